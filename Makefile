@@ -1,0 +1,40 @@
+# Two commands on a fresh machine: `make demo` runs the main job, `make test` runs the tests.
+# Both create .venv and install everything first (idempotent: a stamp file skips a finished install).
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+# The CPU wheel of torch lies on this machine's disk; elsewhere override, e.g. TORCH_SPEC="torch" for CUDA.
+TORCH_SPEC ?= torch==2.13.0
+STAMP  := $(VENV)/.installed-stamp
+
+.PHONY: demo test test-slow bench lint clean system-deps install
+
+install: $(STAMP)
+
+system-deps:
+	@bash tools/ensure_system_deps.sh
+
+$(STAMP): pyproject.toml | system-deps
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q "$(TORCH_SPEC)"
+	$(PY) -m pip install -q -e ".[dev,slurm]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m pushtorch
+
+test: $(STAMP)
+	$(PY) -m pytest -n 2 -q
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -m slow -q
+
+bench: $(STAMP)
+	$(PY) tools/bench_sim.py
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check pushtorch tests tools
+
+clean:
+	rm -rf $(VENV) .pytest_cache .hypothesis
