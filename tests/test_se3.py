@@ -1,0 +1,145 @@
+"""Batched SE(3): group laws, double cover, conversions and samplers (pushtorch.se3)."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given
+from hypothesis import strategies as st
+
+from pushtorch import se3
+from pushtorch.errors import InvalidPoseError
+
+finite = st.floats(-2.0, 2.0, allow_nan=False, allow_infinity=False)
+vec3 = st.tuples(finite, finite, finite)
+# Quaternions from 4 Gaussian-like draws, kept away from zero length.
+quat_raw = st.tuples(finite, finite, finite, finite).filter(lambda v: sum(x * x for x in v) > 1e-2)
+
+
+@st.composite
+def poses(draw, n=4):
+    ps = [draw(vec3) for _ in range(n)]
+    qs = [draw(quat_raw) for _ in range(n)]
+    q = torch.tensor(qs, dtype=torch.float64)
+    return se3.Pose(torch.tensor(ps, dtype=torch.float64), q / q.norm(dim=-1, keepdim=True))
+
+
+def assert_same_pose(a: se3.Pose, b: se3.Pose, atol=1e-9):
+    torch.testing.assert_close(a.p, b.p, atol=atol, rtol=0)
+    # q and -q are the same rotation
+    assert torch.all(se3.quat_distance(a.q, b.q) < atol)
+
+
+@given(poses(), poses(), poses())
+def test_composition_is_associative(a, b, c):
+    assert_same_pose(se3.compose(se3.compose(a, b), c), se3.compose(a, se3.compose(b, c)))
+
+
+@given(poses())
+def test_inverse_gives_identity_on_both_sides(a):
+    ident = se3.identity((4,), dtype=torch.float64)
+    assert_same_pose(se3.compose(a, se3.inverse(a)), ident)
+    assert_same_pose(se3.compose(se3.inverse(a), a), ident)
+    assert_same_pose(se3.inverse(se3.inverse(a)), a)
+
+
+@given(poses(), poses(), st.lists(vec3, min_size=4, max_size=4))
+def test_apply_of_composition_is_composition_of_applies(a, b, pts):
+    x = torch.tensor(pts, dtype=torch.float64)
+    torch.testing.assert_close(se3.apply(se3.compose(a, b), x), se3.apply(a, se3.apply(b, x)))
+
+
+@given(poses(), poses(), st.lists(vec3, min_size=4, max_size=4))
+def test_q_and_minus_q_act_identically(a, b, pts):
+    x = torch.tensor(pts, dtype=torch.float64)
+    flipped = se3.Pose(a.p, -a.q)
+    torch.testing.assert_close(se3.apply(flipped, x), se3.apply(a, x))
+    assert_same_pose(se3.compose(flipped, b), se3.compose(a, b))
+    assert torch.all(se3.quat_distance(a.q, -a.q) < 1e-12)
+    assert torch.all(se3.angle_between(a.q, -a.q) < 1e-5)
+
+
+@given(poses(), poses())
+def test_relative_pose_recovers_b(a, b):
+    assert_same_pose(se3.compose(a, se3.relative(a, b)), b)
+
+
+@given(poses())
+def test_matrix_round_trip_and_matrix_product_matches_compose(a):
+    assert_same_pose(se3.from_matrix(se3.to_matrix(a)), a, atol=1e-9)
+    b = se3.Pose(a.p.flip(0), a.q.flip(0))
+    torch.testing.assert_close(se3.to_matrix(se3.compose(a, b)), se3.to_matrix(a) @ se3.to_matrix(b))
+
+
+@given(poses())
+def test_xyzw_round_trip(a):
+    torch.testing.assert_close(se3.xyzw_to_wxyz(se3.wxyz_to_xyzw(a.q)), a.q)
+    one = se3.Pose(a.p[0], a.q[0])
+    p, q = se3.to_pybullet(one)
+    assert_same_pose(se3.from_pybullet(p, q, dtype=torch.float64), one)
+
+
+def test_xyzw_matches_pybullet_convention():
+    pybullet = pytest.importorskip("pybullet")
+    yaw = 0.7
+    q_xyzw = pybullet.getQuaternionFromEuler([0.0, 0.0, yaw])
+    pose = se3.from_pybullet([0, 0, 0], q_xyzw)
+    assert abs(se3.yaw_of(pose.q).item() - yaw) < 1e-6
+    torch.testing.assert_close(pose.q, se3.from_xy_yaw(0.0, 0.0, yaw).q)
+
+
+@pytest.mark.parametrize("shape", [(), (5,), (2, 3)])
+def test_batch_shapes_broadcast(shape):
+    g = torch.Generator().manual_seed(0)
+    a = se3.Pose(torch.randn(*shape, 3, generator=g), se3.random_quaternion(shape, g))
+    single = se3.Pose(torch.randn(3, generator=g), se3.random_quaternion((), g))
+    assert se3.compose(a, single).batch_shape == torch.Size(shape)
+    assert se3.apply(a, torch.zeros(*shape, 3)).shape == (*shape, 3)
+    assert se3.to_matrix(a).shape == (*shape, 4, 4)
+
+
+def test_uniform_rotation_sampler_matches_haar_angle_distribution():
+    # The rotation angle of a Haar-uniform rotation has density (1 - cos θ) / π on [0, π].
+    g = torch.Generator().manual_seed(1)
+    q = se3.random_quaternion((20000,), g, dtype=torch.float64)
+    angles = se3.angle_between(q, torch.tensor([1.0, 0, 0, 0], dtype=torch.float64)).numpy()
+    edges = np.linspace(0, math.pi, 11)
+    cdf = (edges - np.sin(edges)) / math.pi
+    expected = np.diff(cdf) * len(angles)
+    observed, _ = np.histogram(angles, edges)
+    chi2 = float(((observed - expected) ** 2 / expected).sum())
+    assert chi2 < 27.9  # 99.9 % quantile of chi-square with 9 degrees of freedom
+
+
+@pytest.mark.parametrize("kappa", [0.0, 10.0, 400.0, 1e5])
+def test_vmf_sampler_matches_expected_concentration(kappa):
+    # For a vMF on S^3, E[w] = I_2(κ)/I_1(κ) (w = <q, mean>, sign kept) — compared through scipy.
+    from scipy.special import ive
+
+    g = torch.Generator().manual_seed(2)
+    mean = se3.random_quaternion((), g, dtype=torch.float64).expand(40000, 4)
+    q = se3.sample_vmf_quaternion(mean, kappa, g)
+    torch.testing.assert_close(q.norm(dim=-1), torch.ones(40000, dtype=torch.float64))
+    w = (q * mean).sum(-1)
+    expected = 0.0 if kappa == 0 else ive(2, kappa) / ive(1, kappa)
+    assert abs(w.mean().item() - expected) < 4 * w.std().item() / math.sqrt(len(w)) + 1e-6
+
+
+def test_perturb_spreads_translation_with_requested_std():
+    g = torch.Generator().manual_seed(3)
+    base = se3.identity((50000,))
+    moved = se3.perturb(base, 0.01, 1e4, g)
+    assert abs(moved.p.std().item() - 0.01) < 5e-4
+    assert se3.angle_between(moved.q, base.q).mean().item() < 0.05
+
+
+def test_non_unit_quaternion_is_refused():
+    with pytest.raises(InvalidPoseError, match="unit quaternion"):
+        se3.check_unit_quaternion(torch.tensor([1.0, 1.0, 0.0, 0.0]))
+    with pytest.raises(InvalidPoseError, match="NaN"):
+        se3.check_unit_quaternion(torch.tensor([float("nan"), 0.0, 0.0, 0.0]))
+    with pytest.raises(InvalidPoseError, match="shape"):
+        se3.check_unit_quaternion(torch.tensor([1.0, 0.0, 0.0]))
+    with pytest.raises(InvalidPoseError, match="zero length"):
+        se3.quat_normalize(torch.zeros(4))
