@@ -268,6 +268,10 @@ def load_mesh_file(path: str | Path, scale: float = 1.0, name: str | None = None
         InvalidMeshError: the file is missing, unreadable, or holds no triangles.
         InvalidParameterError: ``scale`` is not a positive finite number.
     """
+    try:
+        scale = float(scale)
+    except (TypeError, ValueError) as exc:
+        raise InvalidParameterError(f"mesh scale must be a positive finite number, got {scale!r}") from exc
     if not (np.isfinite(scale) and scale > 0):
         raise InvalidParameterError(f"mesh scale must be a positive finite number, got {scale!r}")
     path = Path(path)
@@ -283,7 +287,10 @@ def load_mesh_file(path: str | Path, scale: float = 1.0, name: str | None = None
     mesh.apply_scale(scale)
     if not mesh.is_watertight:
         # The centre of mass of an open mesh is undefined; its convex hull is the best physical proxy.
-        mesh = mesh.convex_hull
+        try:
+            mesh = mesh.convex_hull
+        except Exception as exc:  # scipy's QhullError on flat or degenerate meshes
+            raise InvalidMeshError(f"{path} is open and flat: it encloses no volume") from exc
     if mesh.volume <= 0:
         raise InvalidMeshError(f"{path} encloses no volume after scaling by {scale}")
     mesh, _ = _centred(mesh)
