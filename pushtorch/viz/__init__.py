@@ -2,8 +2,9 @@
 
 Entity paths (world frame, z up, metres):
     world/objects/<name>/mesh          object mesh (its transform on world/objects/<name>)
-    world/objects/<name>/cloud         point cloud, coloured by curvature r1
-    world/objects/<name>/features      surface-feature frames (k1 red, k2 green, normal blue)
+    world/clouds/<name>/full_cloud     training cloud (world frame), coloured by curvature r1
+    world/clouds/<name>/partial_cloud  single-shot cloud (world frame), coloured by curvature r1
+    world/clouds/<name>/features       surface-feature frames (k1 red, k2 green, normal blue)
     world/sim/...                      a simulated push on the ``sim_time`` timeline (see viz.sim)
 """
 
