@@ -1,0 +1,1049 @@
+"""Kernel density estimation over SE(3), optionally × R^k descriptors, batched in torch.
+
+Paper, Background → Kernel Density Estimation: the surface-feature kernel (Eq. surface_feature_kernel)
+approximated by the cut-off Gaussians N3 / N2 and the antipodal von Mises–Fisher pair Θ, the distances
+d_p, d_q, d_r, the bandwidth multipliers β = α_T^(−T) and the trial rounds T = (T_p, T_q, T_r), the
+weighted kernel sum P(x) ≈ Σ w_i K(x | x_i) (Eqs. surface_feature_probability, contact_frame_probability,
+pdf_motion once the contact-frame terms are folded into the weights, as the paper does), the
+descriptor distance d'_r used by the heuristic H_r, and the product of experts (Eq. poe) in log space.
+
+Units (one decision, used everywhere): bandwidths are given as **standard deviations** and the paper's
+distances are exact Gaussians / vMF in those units:
+
+* translation: ``d_p = ||p − μ||² / σ_p`` with ``σ_p = 2 p_std²`` (metres), so ``exp(−d_p)`` is an
+  isotropic Gaussian of std ``p_std`` per axis;
+* rotation: ``d_q = (1 − |<q, μ>|) / σ_q`` with ``σ_q = rot_std² / 4`` (radians), so for small angles
+  ``exp(−d_q)`` is a Gaussian in the rotation vector with std ``rot_std`` per axis; exactly it is the vMF
+  density of concentration ``κ = 1/σ_q`` folded onto SO(3) (q and −q are one rotation);
+* descriptors: ``d_r = Σ_k (r_k − μ_k)² / σ_r,k`` with ``σ_r,k = 2 r_std_k²``;
+* cut-offs are given as std multiples ``cutoff_std = (c_p, c_q, c_r)``: a kernel factor is zero when
+  ``β d ≥ δ`` with ``δ = c² / 2`` (a Mahalanobis radius of ``c`` effective stds);
+* ``β_* = α_T^(−T_*)`` with ``α_T > 1``: one more trial round divides the factor's precision by α_T,
+  i.e. widens its std by ``sqrt(α_T)``.
+
+Kernels are the paper's unnormalised ``exp(−β d)`` (``K(μ | μ) = 1``): every kernel of one density
+shares the bandwidth and cut-offs, so the missing constant is common to all kernels and cancels in every
+ratio and arg-max the method takes (P(m|c,a) = Σ…/P(c), annealing, the product of experts). Omitting the
+descriptors of a query (``descriptors=None``) therefore evaluates the density marginalised over the
+descriptors, up to that same constant — the paper's "descriptor distance is omitted during optimisation".
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from pytorch_kinematics import transforms as pkt
+
+from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
+from pushtorch.se3 import Pose, check_unit_quaternion
+
+Tensor = torch.Tensor
+
+__all__ = [
+    "KernelBandwidth",
+    "PoseKDE",
+    "ProductOfExperts",
+    "TrialRounds",
+    "descriptor_distance",
+    "descriptor_distance_unscaled",
+    "product_log_prob",
+    "rotation_distance",
+    "translation_distance",
+]
+
+COMPONENTS = ("p", "q", "r")
+# Elements of one dense (queries x kernels) block per chunk when no chunk size is given: about 8 MB
+# per float32 temporary, so the few temporaries of a chunk stay in a CPU's last-level cache (faster
+# here than one 500 x 25,500 block) while the matmuls stay efficient.
+_DEFAULT_BLOCK_ELEMENTS = 1 << 21
+# Safeguarded Newton steps of the truncated Gamma(3/2) inverse CDF: 16 reach float64 round-off of the CDF
+# for every truncation from 1e-3 to none (measured); 20 leave a margin.
+_NEWTON_STEPS = 20
+
+
+# --------------------------------------------------------------------------------------------------
+# Bandwidths and trial rounds
+# --------------------------------------------------------------------------------------------------
+
+
+def _positive_finite(value: float, name: str) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError) as exc:
+        raise InvalidParameterError(f"{name} must be a number, got {value!r}") from exc
+    if not math.isfinite(value) or value <= 0.0:
+        raise InvalidParameterError(f"{name} must be finite and > 0, got {value}")
+    return value
+
+
+@dataclass(frozen=True)
+class KernelBandwidth:
+    """Kernel bandwidths (as standard deviations), cut-offs and the trial-round settings.
+
+    Attributes:
+        p_std: translation std in metres (σ_p = 2 p_std²).
+        rot_std: rotation std in radians per axis of the rotation vector (σ_q = rot_std² / 4).
+        r_std: per-dimension descriptor stds (σ_r = 2 r_std²), or None for a density over SE(3) only.
+        cutoff_std: (c_p, c_q, c_r) cut-offs in effective stds, δ = c²/2; ``math.inf`` disables one.
+            Default (3, 3, 5): 3 std keeps 97 % of a 3-D Gaussian's mass; the method's lineage cuts
+            descriptors at 5 std.
+        alpha_t: α_T > 1, the rate at which β = α_T^(−T) decreases with trial rounds (default 2, the
+            lineage's 1/2^round).
+        max_trial_rounds: the largest total T_p + T_q + T_r the trial-round search may reach (default 10,
+            the lineage's limit) before it gives up with a ModelError.
+    """
+
+    p_std: float
+    rot_std: float
+    r_std: tuple[float, ...] | None = None
+    cutoff_std: tuple[float, float, float] = (3.0, 3.0, 5.0)
+    alpha_t: float = 2.0
+    max_trial_rounds: int = 10
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "p_std", _positive_finite(self.p_std, "p_std"))
+        object.__setattr__(self, "rot_std", _positive_finite(self.rot_std, "rot_std"))
+        if self.r_std is not None:
+            r_std = tuple(self.r_std) if isinstance(self.r_std, Sequence) else (self.r_std,)
+            if len(r_std) == 0:
+                raise InvalidParameterError("r_std must hold at least one std (None: no descriptors)")
+            r_std = tuple(_positive_finite(s, f"r_std[{i}]") for i, s in enumerate(r_std))
+            object.__setattr__(self, "r_std", r_std)
+        cutoff = tuple(self.cutoff_std)
+        if len(cutoff) != 3:
+            raise InvalidParameterError(f"cutoff_std must hold 3 values (c_p, c_q, c_r), got {cutoff}")
+        for name, c in zip(COMPONENTS, cutoff):
+            c = float(c)
+            if math.isnan(c) or c <= 0.0:
+                raise InvalidParameterError(f"cutoff_std for {name} must be > 0 (inf disables it), got {c}")
+        object.__setattr__(self, "cutoff_std", tuple(float(c) for c in cutoff))
+        alpha = _positive_finite(self.alpha_t, "alpha_t")
+        if alpha <= 1.0:
+            raise InvalidParameterError(f"alpha_t must be > 1 so trial rounds widen kernels, got {alpha}")
+        object.__setattr__(self, "alpha_t", alpha)
+        if isinstance(self.max_trial_rounds, bool) or int(self.max_trial_rounds) != self.max_trial_rounds:
+            raise InvalidParameterError(f"max_trial_rounds must be an integer, got {self.max_trial_rounds!r}")
+        if self.max_trial_rounds < 0:
+            raise InvalidParameterError(f"max_trial_rounds must be >= 0, got {self.max_trial_rounds}")
+        object.__setattr__(self, "max_trial_rounds", int(self.max_trial_rounds))
+
+    @property
+    def sigma_p(self) -> float:
+        """The paper's σ_p = 2 p_std² (m²)."""
+        return 2.0 * self.p_std**2
+
+    @property
+    def sigma_q(self) -> float:
+        """The paper's σ_q = rot_std² / 4, i.e. 1/κ of the vMF pair."""
+        return self.rot_std**2 / 4.0
+
+    @property
+    def sigma_r(self) -> tuple[float, ...] | None:
+        """The paper's per-dimension σ_r = 2 r_std² (the diagonal of D_σr^-1 inverted), or None."""
+        return None if self.r_std is None else tuple(2.0 * s**2 for s in self.r_std)
+
+    @property
+    def descriptor_dim(self) -> int:
+        return 0 if self.r_std is None else len(self.r_std)
+
+    @property
+    def delta(self) -> tuple[float, float, float]:
+        """The paper's cut-offs (δ_p, δ_q, δ_r) = c² / 2."""
+        return tuple(c * c / 2.0 for c in self.cutoff_std)  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class TrialRounds:
+    """Trial rounds T = (T_p, T_q, T_r): how many times each kernel factor has been widened."""
+
+    p: int = 0
+    q: int = 0
+    r: int = 0
+
+    def __post_init__(self) -> None:
+        for name in COMPONENTS:
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value or value < 0:
+                raise InvalidParameterError(f"trial round T_{name} must be an integer >= 0, got {value!r}")
+            object.__setattr__(self, name, int(value))
+
+    def beta(self, alpha_t: float) -> tuple[float, float, float]:
+        """Bandwidth multipliers (β_p, β_q, β_r) = α_T^(−T)."""
+        return (alpha_t ** (-self.p), alpha_t ** (-self.q), alpha_t ** (-self.r))
+
+    def as_tensor(self, device=None) -> Tensor:
+        """``(3,)`` int64 tensor (T_p, T_q, T_r)."""
+        return torch.tensor([self.p, self.q, self.r], dtype=torch.int64, device=device)
+
+    @staticmethod
+    def from_tensor(rounds: Tensor) -> TrialRounds:
+        """From a ``(3,)`` tensor (e.g. ``kde.trial_rounds[i]`` of one batch element)."""
+        if rounds.shape != (3,):
+            raise InvalidParameterError(f"trial rounds must have shape (3,), got {tuple(rounds.shape)}")
+        return TrialRounds(*(int(v) for v in rounds.tolist()))
+
+
+# --------------------------------------------------------------------------------------------------
+# The paper's distances (exact, broadcasting)
+# --------------------------------------------------------------------------------------------------
+
+
+def _check_sigma(sigma: float | Tensor, name: str) -> None:
+    if isinstance(sigma, Tensor):
+        if not torch.isfinite(sigma).all() or (sigma <= 0).any():
+            raise InvalidParameterError(f"{name} must be finite and > 0")
+    else:
+        _positive_finite(sigma, name)
+
+
+def translation_distance(p: Tensor, mu: Tensor, sigma_p: float | Tensor) -> Tensor:
+    """The paper's d_p = ||p − μ||² / σ_p.
+
+    Args:
+        p: points ``(..., 3)``; mu: kernel means ``(..., 3)``; batch dims broadcast.
+        sigma_p: bandwidth σ_p > 0 (m², = 2 p_std²), scalar or broadcastable to the batch dims.
+
+    Returns:
+        ``(...)`` distances.
+
+    Raises:
+        InvalidParameterError: σ_p not finite and positive.
+    """
+    _check_sigma(sigma_p, "sigma_p")
+    return ((p - mu) ** 2).sum(-1) / sigma_p
+
+
+def rotation_distance(q: Tensor, mu: Tensor, sigma_q: float | Tensor) -> Tensor:
+    """The paper's d_q = (1 − |<q, μ>|) / σ_q (sign-invariant: q and −q are one rotation).
+
+    Args:
+        q: unit quaternions ``(..., 4)`` w,x,y,z; mu: kernel means ``(..., 4)``; batch dims broadcast.
+        sigma_q: bandwidth σ_q > 0 (= rot_std² / 4), scalar or broadcastable to the batch dims.
+
+    Returns:
+        ``(...)`` distances in ``[0, 1/σ_q]``.
+
+    Raises:
+        InvalidParameterError: σ_q not finite and positive.
+    """
+    _check_sigma(sigma_q, "sigma_q")
+    return (1.0 - (q * mu).sum(-1).abs().clamp(max=1.0)) / sigma_q
+
+
+def descriptor_distance(r: Tensor, mu: Tensor, sigma_r: float | Sequence[float] | Tensor) -> Tensor:
+    """The paper's d_r = (r − μ)ᵀ D_σr^-1 (r − μ), with D_σr^-1 = diag(1/σ_r).
+
+    Args:
+        r: descriptors ``(..., k)``; mu: kernel descriptors ``(..., k)``; batch dims broadcast.
+        sigma_r: per-dimension bandwidths σ_r > 0 (= 2 r_std²), a scalar or ``(k,)``.
+
+    Returns:
+        ``(...)`` distances.
+
+    Raises:
+        InvalidParameterError: a σ_r not finite and positive.
+    """
+    sigma = torch.as_tensor(sigma_r, dtype=r.dtype, device=r.device)
+    _check_sigma(sigma, "sigma_r")
+    return ((r - mu) ** 2 / sigma).sum(-1)
+
+
+def descriptor_distance_unscaled(r1: Tensor, r2: Tensor) -> Tensor:
+    """The paper's d'_r(r1, r2) = (r1 − r2)ᵀ I (r1 − r2), used by the selection heuristic H_r.
+
+    Args:
+        r1, r2: descriptors ``(..., k)``; batch dims broadcast.
+
+    Returns:
+        ``(...)`` squared Euclidean distances.
+    """
+    return ((r1 - r2) ** 2).sum(-1)
+
+
+# --------------------------------------------------------------------------------------------------
+# Samplers for one kernel factor (exact, truncated at the cut-off)
+# --------------------------------------------------------------------------------------------------
+
+
+def _gamma_1p5_cdf(x: Tensor) -> Tensor:
+    """Regularised lower incomplete gamma P(3/2, x) = erf(√x) − 2 √(x/π) e^(−x)."""
+    return torch.erf(torch.sqrt(x)) - 2.0 * torch.sqrt(x / math.pi) * torch.exp(-x)
+
+
+def _sample_truncated_gamma_1p5(upper: Tensor, generator: torch.Generator | None) -> Tensor:
+    """Gamma(3/2, 1) samples conditioned on ``x < upper`` (float64, any shape), by inverse CDF.
+
+    Both kernel factors reduce to this law: β d_p of a 3-D Gaussian sample is χ²_3/2 ~ Gamma(3/2), and
+    κ(1 − w) of the vMF on S^3 has density ∝ s^(1/2) e^(−s) √(2 − s/κ), i.e. Gamma(3/2) times a bounded
+    factor. Inverting the CDF needs no rejection however tight the cut-off: Newton steps on
+    F(x) = u, safeguarded by a shrinking bracket (a step that leaves it bisects instead).
+    """
+    upper = upper.clamp(max=80.0)  # P(3/2, 80) = 1 in float64: beyond is the untruncated law
+    u = torch.rand(upper.shape, generator=generator, dtype=torch.float64, device=upper.device)
+    target = u * _gamma_1p5_cdf(upper)
+    lo = torch.zeros_like(upper)
+    hi = upper.clone()
+    x = torch.minimum(torch.full_like(upper, 1.2), 0.5 * upper)  # near the median of Gamma(3/2)
+    for _ in range(_NEWTON_STEPS):
+        error = _gamma_1p5_cdf(x) - target
+        lo = torch.where(error < 0, x, lo)
+        hi = torch.where(error < 0, hi, x)
+        density = 2.0 * torch.sqrt(x / math.pi) * torch.exp(-x)
+        step = x - error / density.clamp_min(1e-300)
+        inside = (step >= lo) & (step <= hi)
+        x = torch.where(inside, step, 0.5 * (lo + hi))
+    return x
+
+
+def _unit_vectors(shape: tuple[int, ...], generator, device) -> Tensor:
+    v = torch.randn(*shape, 3, generator=generator, dtype=torch.float64, device=device)
+    return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+
+
+def _sample_translation_offsets(
+    std: Tensor, delta_p: float, generator: torch.Generator | None
+) -> Tensor:
+    """Offsets ``(..., 3)`` (float64): isotropic Gaussian of per-axis ``std (...)``, cut at β d_p < δ_p."""
+    x = _sample_truncated_gamma_1p5(torch.full_like(std, delta_p), generator)
+    radius = torch.sqrt(2.0 * x) * std  # β d_p = |Δ|² / (2 std²) = x
+    return radius.unsqueeze(-1) * _unit_vectors(tuple(std.shape), generator, std.device)
+
+
+def _sample_rotation_offsets(
+    kappa: Tensor, delta_q: float, generator: torch.Generator | None, max_rounds: int = 64
+) -> Tensor:
+    """Unit quaternions ``(..., 4)`` (float64) around identity, density ∝ exp(κ|w|), cut at κ(1−|w|) < δ_q.
+
+    Returned with w ≥ 0 (the hemisphere of the identity; the antipodal half is the same rotations).
+    s = 1 − w has density ∝ e^(−κ s) √(s (2 − s)) on [0, min(1, δ_q/κ)]: propose κ s from the truncated
+    Gamma(3/2) and accept with √(2 − s)/√2 ≥ 1/√2, so a handful of rounds always suffice.
+    """
+    shape = tuple(kappa.shape)
+    upper = torch.minimum(torch.full_like(kappa, delta_q), kappa)
+    s = torch.zeros_like(kappa)
+    pending = torch.ones(shape, dtype=torch.bool, device=kappa.device)
+    for _ in range(max_rounds):
+        if not pending.any():
+            break
+        kk, up = kappa[pending], upper[pending]
+        s_try = _sample_truncated_gamma_1p5(up, generator) / kk
+        u = torch.rand(s_try.shape, generator=generator, dtype=torch.float64, device=kappa.device)
+        ok = u * math.sqrt(2.0) < torch.sqrt(2.0 - s_try)
+        idx = pending.nonzero(as_tuple=True)
+        chosen = tuple(i[ok] for i in idx)
+        s[chosen] = s_try[ok]
+        pending[chosen] = False
+    # Acceptance is >= 71 % per round: rows still pending after 64 rounds mean a broken generator; they
+    # keep s = 0 (the kernel mean) rather than loop forever.
+    w = 1.0 - s
+    axis = _unit_vectors(shape, generator, kappa.device)
+    return torch.cat([w.unsqueeze(-1), torch.sqrt((1.0 - w * w).clamp_min(0.0)).unsqueeze(-1) * axis], -1)
+
+
+# --------------------------------------------------------------------------------------------------
+# The density
+# --------------------------------------------------------------------------------------------------
+
+
+def _augment_query(x: Tensor) -> Tensor:
+    """``[x, 1, |x|²]`` so that ``aug(x) @ aug_kernel(μ)ᵀ = s (|x|² − 2 x·μ + |μ|²)`` is one matmul."""
+    return torch.cat([x, torch.ones_like(x[..., :1]), (x * x).sum(-1, keepdim=True)], -1)
+
+
+def _augment_kernel(mu: Tensor, scale: Tensor) -> Tensor:
+    """``scale · [−2 μ, |μ|², 1]``; ``scale`` broadcasts over ``mu``'s batch dims as ``(*B, 1, 1)``."""
+    aug = torch.cat([-2.0 * mu, (mu * mu).sum(-1, keepdim=True), torch.ones_like(mu[..., :1])], -1)
+    return aug * scale
+
+
+class PoseKDE:
+    """A weighted kernel density over SE(3) (× R^k descriptors) with the paper's cut-off kernels.
+
+    ``P(x) ≈ Σ_i w_i K(x | μ_i)`` with ``K = N3(p) Θ(q) N2(r)`` (Eq. surface_feature_kernel, its
+    approximations and Eq. surface_feature_probability), batched: the kernel tensors carry leading batch
+    dims ``*B`` (e.g. one density per problem, or one per expert of a product of experts) and a kernel dim
+    ``N``. Kernels with weight ``-inf`` are padding, so densities with different kernel counts stack
+    into one tensor (:meth:`stack`). Trial rounds are per batch element: ``trial_rounds (*B, 3)``.
+
+    Args:
+        means: kernel means, a Pose with ``p (*B, N, 3)`` and ``q (*B, N, 4)`` (unit, w,x,y,z).
+        bandwidth: the shared :class:`KernelBandwidth`.
+        log_weights: ``(*B, N)`` unnormalised log-weights (normalised here with logsumexp over N);
+            ``-inf`` marks padding. Default: uniform.
+        descriptors: kernel descriptors ``(*B, N, k)``; required iff ``bandwidth.r_std`` is set (k each).
+        trial_rounds: initial T, a :class:`TrialRounds` for all batch elements or an int tensor
+            ``(*B, 3)``/``(3,)``. Default (0, 0, 0).
+        validate_args: check the queries of every call (unit quaternions, finite values). The kernel
+            arguments are always checked.
+
+    Raises:
+        InvalidPoseError: malformed means.
+        InvalidParameterError: shapes that do not match, NaN/+inf weights, a batch element whose weights
+            are all ``-inf``, descriptors missing or of the wrong size.
+
+    Example:
+        >>> bw = KernelBandwidth(p_std=0.01, rot_std=0.1)
+        >>> kde = PoseKDE(Pose(torch.zeros(5, 3), torch.tensor([[1.0, 0, 0, 0]]).expand(5, 4)), bw)
+        >>> kde.log_prob(Pose(torch.zeros(2, 3), torch.tensor([[1.0, 0, 0, 0]]).expand(2, 4))).shape
+        torch.Size([2])
+    """
+
+    def __init__(
+        self,
+        means: Pose,
+        bandwidth: KernelBandwidth,
+        log_weights: Tensor | None = None,
+        descriptors: Tensor | None = None,
+        trial_rounds: TrialRounds | Tensor | None = None,
+        validate_args: bool = True,
+    ) -> None:
+        if not isinstance(bandwidth, KernelBandwidth):
+            raise InvalidParameterError(
+                f"bandwidth must be a KernelBandwidth, got {type(bandwidth).__name__}"
+            )
+        p, q = means
+        if p.dim() < 2 or p.shape[-1] != 3:
+            raise InvalidPoseError(f"kernel means p must have shape (*B, N, 3), got {tuple(p.shape)}")
+        if q.dim() < 2 or q.shape[-1] != 4:
+            raise InvalidPoseError(f"kernel means q must have shape (*B, N, 4) w,x,y,z, got {tuple(q.shape)}")
+        if not p.is_floating_point():
+            raise InvalidPoseError(f"kernel means must be floating point, got {p.dtype}")
+        if not torch.isfinite(p).all():
+            raise InvalidPoseError("kernel means p hold NaN or infinite values")
+        check_unit_quaternion(q, name="kernel means q")
+        dtype, device = p.dtype, p.device
+        q = q.to(dtype)
+        shapes = [p.shape[:-1], q.shape[:-1]]
+        if log_weights is not None:
+            log_weights = torch.as_tensor(log_weights, device=device).to(dtype)
+            shapes.append(log_weights.shape)
+        if (descriptors is None) != (bandwidth.r_std is None):
+            raise InvalidParameterError(
+                "kernel descriptors and bandwidth.r_std must be given together"
+                f" (descriptors {'missing' if descriptors is None else 'given'},"
+                f" r_std {'missing' if bandwidth.r_std is None else 'given'})"
+            )
+        if descriptors is not None:
+            descriptors = torch.as_tensor(descriptors, device=device).to(dtype)
+            if descriptors.dim() < 2 or descriptors.shape[-1] != bandwidth.descriptor_dim:
+                raise InvalidParameterError(
+                    f"kernel descriptors must have shape (*B, N, {bandwidth.descriptor_dim}) to match r_std,"
+                    f" got {tuple(descriptors.shape)}"
+                )
+            if not torch.isfinite(descriptors).all():
+                raise InvalidParameterError("kernel descriptors hold NaN or infinite values")
+            shapes.append(descriptors.shape[:-1])
+        try:
+            full = torch.broadcast_shapes(*shapes)
+        except RuntimeError as exc:
+            raise InvalidParameterError(
+                f"kernel tensors do not broadcast to one (*B, N): {[tuple(s) for s in shapes]}"
+            ) from exc
+        if full[-1] == 0:
+            raise InvalidParameterError("a kernel density needs at least one kernel (N = 0)")
+        if log_weights is None:
+            log_weights = torch.zeros(full, dtype=dtype, device=device)
+        if torch.isnan(log_weights).any() or (log_weights == math.inf).any():
+            raise InvalidParameterError("kernel log-weights hold NaN or +inf (use -inf for padding)")
+        log_weights = log_weights.expand(full)
+        total = torch.logsumexp(log_weights, -1, keepdim=True)
+        if (total == -math.inf).any():
+            raise InvalidParameterError("every kernel weight of some batch element is zero (-inf log-weight)")
+        batch = full[:-1]
+        self._p = p.expand(*full, 3).contiguous()
+        self._q = q.expand(*full, 4).contiguous()
+        self._r = None
+        if descriptors is not None:
+            self._r = descriptors.expand(*full, descriptors.shape[-1]).contiguous()
+        self._log_w = (log_weights - total).contiguous()
+        self.bandwidth = bandwidth
+        self.validate_args = validate_args
+        self._trial_rounds = self._rounds_tensor(trial_rounds, batch, device)
+        self._precompute()
+
+    # -- construction helpers ------------------------------------------------------------------
+
+    @staticmethod
+    def _rounds_tensor(rounds: TrialRounds | Tensor | None, batch: torch.Size, device) -> Tensor:
+        if rounds is None:
+            rounds = TrialRounds()
+        if isinstance(rounds, TrialRounds):
+            t = rounds.as_tensor(device)
+        else:
+            t = torch.as_tensor(rounds, device=device)
+            if t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
+                raise InvalidParameterError(f"trial rounds must be an integer tensor, got {t.dtype}")
+            if (t < 0).any():
+                raise InvalidParameterError("trial rounds must be >= 0")
+            t = t.to(torch.int64)
+        if t.shape[-1:] != (3,):
+            raise InvalidParameterError(f"trial rounds must have shape (*B, 3) or (3,), got {tuple(t.shape)}")
+        try:
+            return t.expand(*batch, 3).contiguous()
+        except RuntimeError as exc:
+            raise InvalidParameterError(
+                f"trial rounds of shape {tuple(t.shape)} do not match the batch shape {tuple(batch)}"
+            ) from exc
+
+    def _precompute(self) -> None:
+        """Scaled kernel matrices so that every chunk needs one matmul per factor."""
+        bw = self.bandwidth
+        dtype = self._p.dtype
+        self._beta = torch.pow(
+            torch.tensor(bw.alpha_t, dtype=torch.float64, device=self._p.device), -self._trial_rounds.double()
+        ).to(dtype)  # (*B, 3)
+        weights = self._log_w.exp().unsqueeze(-1)  # padding kernels get 0 weight in the centre
+        # Centring on the weighted kernel mean keeps the expanded |x|² − 2x·μ + |μ|² well conditioned.
+        self._p_centre = (weights * self._p).sum(-2, keepdim=True)
+        # Kernel matrices carry the minus sign and β/σ, so one matmul yields −β d directly.
+        scale_p = -(self._beta[..., 0] / bw.sigma_p)[..., None, None]
+        self._p_aug_t = _augment_kernel(self._p - self._p_centre, scale_p).transpose(-1, -2).contiguous()
+        self._kappa = (self._beta[..., 1] / bw.sigma_q)[..., None, None]  # κ = β_q / σ_q, (*B, 1, 1)
+        self._q_kappa_t = (self._q * self._kappa).transpose(-1, -2).contiguous()
+        if self._r is not None:
+            sigma_r = torch.tensor(bw.sigma_r, dtype=torch.float64)
+            inv_sqrt_sigma = sigma_r.rsqrt().to(dtype=dtype, device=self._r.device)
+            self._r_inv_sqrt_sigma = inv_sqrt_sigma
+            self._r_centre = (weights * self._r).sum(-2, keepdim=True)
+            scale_r = -self._beta[..., 2][..., None, None]
+            mu_r = (self._r - self._r_centre) * inv_sqrt_sigma
+            self._r_aug_t = _augment_kernel(mu_r, scale_r).transpose(-1, -2).contiguous()
+
+    def _replace(self, **changes) -> PoseKDE:
+        new = object.__new__(PoseKDE)
+        new.__dict__.update(self.__dict__)
+        new.__dict__.update(changes)
+        new._precompute()
+        return new
+
+    # -- properties ----------------------------------------------------------------------------
+
+    @property
+    def means(self) -> Pose:
+        """Kernel means, ``p (*B, N, 3)``, ``q (*B, N, 4)``."""
+        return Pose(self._p, self._q)
+
+    @property
+    def descriptors(self) -> Tensor | None:
+        """Kernel descriptors ``(*B, N, k)`` or None."""
+        return self._r
+
+    @property
+    def log_weights(self) -> Tensor:
+        """Normalised log-weights ``(*B, N)`` (logsumexp over N is 0; padding is -inf)."""
+        return self._log_w
+
+    @property
+    def trial_rounds(self) -> Tensor:
+        """``(*B, 3)`` int64 trial rounds (T_p, T_q, T_r) of each batch element."""
+        return self._trial_rounds
+
+    @property
+    def beta(self) -> Tensor:
+        """``(*B, 3)`` bandwidth multipliers (β_p, β_q, β_r) = α_T^(−T)."""
+        return self._beta
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self._log_w.shape[:-1]
+
+    @property
+    def num_kernels(self) -> int:
+        """N, the size of the kernel dim (padding included)."""
+        return self._log_w.shape[-1]
+
+    @property
+    def descriptor_dim(self) -> int:
+        return 0 if self._r is None else self._r.shape[-1]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self._p.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self._p.device
+
+    def __repr__(self) -> str:
+        return (
+            f"PoseKDE(batch_shape={tuple(self.batch_shape)}, num_kernels={self.num_kernels},"
+            f" descriptor_dim={self.descriptor_dim}, bandwidth={self.bandwidth})"
+        )
+
+    def to(self, *args, **kwargs) -> PoseKDE:
+        """Move/cast like ``Tensor.to``; a floating dtype applies to every floating tensor."""
+        moved = {
+            "_p": self._p.to(*args, **kwargs),
+            "_q": self._q.to(*args, **kwargs),
+            "_log_w": self._log_w.to(*args, **kwargs),
+            "_r": None if self._r is None else self._r.to(*args, **kwargs),
+        }
+        moved["_trial_rounds"] = self._trial_rounds.to(moved["_p"].device)
+        return self._replace(**moved)
+
+    def with_trial_rounds(self, rounds: TrialRounds | Tensor) -> PoseKDE:
+        """The same kernels with other trial rounds (a TrialRounds for all, or ``(*B, 3)``/``(3,)``)."""
+        return self._replace(_trial_rounds=self._rounds_tensor(rounds, self.batch_shape, self.device))
+
+    @staticmethod
+    def stack(kdes: Sequence[PoseKDE]) -> PoseKDE:
+        """Stack densities along a new leading batch dim, padding kernel counts with -inf weights.
+
+        Args:
+            kdes: densities with equal bandwidth, batch shape, descriptor dim, dtype and device.
+
+        Returns:
+            A PoseKDE of batch shape ``(len(kdes), *B)`` and ``max N`` kernels; each keeps its trial rounds.
+
+        Raises:
+            InvalidParameterError: an empty list or densities that differ in any of the above.
+        """
+        if len(kdes) == 0:
+            raise InvalidParameterError("stack needs at least one PoseKDE")
+        first = kdes[0]
+        for i, k in enumerate(kdes):
+            if (k.bandwidth, k.batch_shape, k.descriptor_dim, k.dtype, k.device) != (
+                first.bandwidth,
+                first.batch_shape,
+                first.descriptor_dim,
+                first.dtype,
+                first.device,
+            ):
+                raise InvalidParameterError(
+                    f"cannot stack PoseKDE {i}: bandwidth, batch shape, descriptor dim, dtype and device"
+                    " must match the first one"
+                )
+        n_max = max(k.num_kernels for k in kdes)
+
+        def pad(t: Tensor, n: int, value: float) -> Tensor:
+            extra = n_max - n
+            if extra == 0:
+                return t
+            filler = torch.full((*t.shape[:-2], extra, t.shape[-1]), value, dtype=t.dtype, device=t.device)
+            return torch.cat([t, filler], -2)
+
+        p = torch.stack([pad(k._p, k.num_kernels, 0.0) for k in kdes])
+        q_parts = []
+        for k in kdes:
+            qk = pad(k._q, k.num_kernels, 0.0)
+            qk[..., k.num_kernels :, 0] = 1.0
+            q_parts.append(qk)
+        log_w = torch.stack([pad(k._log_w.unsqueeze(-1), k.num_kernels, -math.inf).squeeze(-1) for k in kdes])
+        r = None if first._r is None else torch.stack([pad(k._r, k.num_kernels, 0.0) for k in kdes])
+        return PoseKDE(
+            Pose(p, torch.stack(q_parts)),
+            first.bandwidth,
+            log_w,
+            r,
+            torch.stack([k._trial_rounds for k in kdes]),
+            validate_args=first.validate_args,
+        )
+
+    # -- queries -------------------------------------------------------------------------------
+
+    def _prepare_queries(
+        self, pose: Pose, descriptors: Tensor | None
+    ) -> tuple[Tensor, Tensor, Tensor | None]:
+        p, q = pose
+        if p.dim() < 2 or p.shape[-1] != 3 or q.dim() < 2 or q.shape[-1] != 4:
+            raise InvalidPoseError(
+                f"query poses need p (..., M, 3) and q (..., M, 4); got {tuple(p.shape)} and {tuple(q.shape)}"
+            )
+        p = p.to(self.dtype)
+        q = q.to(self.dtype)
+        try:
+            shape = torch.broadcast_shapes(p.shape[:-1], q.shape[:-1])
+        except RuntimeError as exc:
+            raise InvalidPoseError(
+                f"query p {tuple(p.shape)} and q {tuple(q.shape)} do not broadcast"
+            ) from exc
+        if descriptors is not None:
+            if self._r is None:
+                raise InvalidParameterError("query descriptors given to a PoseKDE built without descriptors")
+            descriptors = descriptors.to(self.dtype)
+            if descriptors.shape[-1:] != (self.descriptor_dim,):
+                raise InvalidParameterError(
+                    f"query descriptors must have shape (..., M, {self.descriptor_dim}),"
+                    f" got {tuple(descriptors.shape)}"
+                )
+            try:
+                shape = torch.broadcast_shapes(shape, descriptors.shape[:-1])
+            except RuntimeError as exc:
+                raise InvalidParameterError(
+                    f"query descriptors {tuple(descriptors.shape)} do not broadcast with the poses"
+                    f" {tuple(shape)}"
+                ) from exc
+            descriptors = descriptors.expand(*shape, self.descriptor_dim)
+        try:
+            torch.broadcast_shapes(shape[:-1], self.batch_shape)
+        except RuntimeError as exc:
+            raise InvalidPoseError(
+                f"query batch dims {tuple(shape[:-1])} do not broadcast with the density's batch shape"
+                f" {tuple(self.batch_shape)} (queries are (..., M))"
+            ) from exc
+        p = p.expand(*shape, 3)
+        q = q.expand(*shape, 4)
+        if self.validate_args:
+            if not torch.isfinite(p).all():
+                raise InvalidPoseError("query positions hold NaN or infinite values")
+            check_unit_quaternion(q, name="query q")
+            if descriptors is not None and not torch.isfinite(descriptors).all():
+                raise InvalidParameterError("query descriptors hold NaN or infinite values")
+        return p, q, descriptors
+
+    def _chunk_size(self, query_batch: torch.Size, chunk_size: int | None) -> int:
+        if chunk_size is not None:
+            if isinstance(chunk_size, bool) or int(chunk_size) != chunk_size or chunk_size < 1:
+                raise InvalidParameterError(f"chunk_size must be a positive integer, got {chunk_size!r}")
+            return int(chunk_size)
+        batch = torch.broadcast_shapes(query_batch, self.batch_shape).numel()
+        return max(1, _DEFAULT_BLOCK_ELEMENTS // max(1, batch * self.num_kernels))
+
+    def _neg_terms(self, p: Tensor, q: Tensor, r: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
+        """−β·d of each factor for a chunk of queries: ``(*BB, m, N)`` tensors (r: None if unused).
+
+        One matmul per factor plus in-place element-wise passes: this is the hot path of every density
+        evaluation, so it avoids boolean masks and ``where`` (several times slower on CPU).
+        """
+        neg_p = torch.matmul(_augment_query(p - self._p_centre), self._p_aug_t).clamp_max_(0.0)
+        neg_q = torch.matmul(q, self._q_kappa_t).abs_().sub_(self._kappa).clamp_max_(0.0)
+        neg_r = None
+        if r is not None:
+            x = (r - self._r_centre) * self._r_inv_sqrt_sigma
+            neg_r = torch.matmul(_augment_query(x), self._r_aug_t).clamp_max_(0.0)
+        return neg_p, neg_q, neg_r
+
+    def _scaled_terms(self, p: Tensor, q: Tensor, r: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
+        """β·d of each factor, computed exactly as in :meth:`log_prob` (negation is exact)."""
+        neg_p, neg_q, neg_r = self._neg_terms(p, q, r)
+        return neg_p.neg_(), neg_q.neg_(), (None if neg_r is None else neg_r.neg_())
+
+    def _chunk_log_kernels(self, p: Tensor, q: Tensor, r: Tensor | None, with_weights: bool) -> Tensor:
+        """log(w_i K(x|μ_i)) (or log K) for a chunk: ``(*BB, m, N)``, -inf where a factor is cut off."""
+        terms = self._neg_terms(p, q, r)
+        total = None
+        for neg, delta in zip(terms, self.bandwidth.delta):
+            if neg is None:
+                continue
+            # threshold keeps x where x > −δ (β d < δ) and writes −inf elsewhere: the paper's cut-off.
+            torch.nn.functional.threshold_(neg, -delta, -math.inf)
+            total = neg if total is None else total.add_(neg)
+        assert total is not None
+        if with_weights:
+            total.add_(self._log_w.unsqueeze(-2))
+        return total
+
+    def _iter_chunks(self, pose: Pose, descriptors: Tensor | None, chunk_size: int | None):
+        p, q, r = self._prepare_queries(pose, descriptors)
+        m = p.shape[-2]
+        step = self._chunk_size(p.shape[:-2], chunk_size)
+        for start in range(0, m, step):
+            sl = slice(start, start + step)
+            yield p[..., sl, :], q[..., sl, :], (None if r is None else r[..., sl, :])
+
+    def log_prob(
+        self, pose: Pose, descriptors: Tensor | None = None, chunk_size: int | None = None
+    ) -> Tensor:
+        """log P(x) = log Σ_i w_i K(x | μ_i) with the hard cut-offs (Eq. surface_feature_probability).
+
+        Args:
+            pose: query poses, ``p (*B', M, 3)``, ``q (*B', M, 4)``; ``*B'`` broadcasts with ``batch_shape``.
+            descriptors: query descriptors ``(*B', M, k)``; None evaluates the density over SE(3) alone
+                (marginal over descriptors, see the module docstring).
+            chunk_size: queries per dense ``(chunk, N)`` block; None picks one bounded in memory.
+
+        Returns:
+            ``(*broadcast(B, B'), M)`` log densities (unnormalised kernels, ``K(μ|μ) = 1``); ``-inf``
+            where every kernel is cut off.
+
+        Raises:
+            InvalidPoseError / InvalidParameterError: malformed queries.
+
+        Precision: squared distances are expanded (|x|² − 2x·μ + |μ|², one matmul) around the weighted
+        kernel centre, so in float32 the error of β d_p is about 1e-7 · (distance to that centre /
+        p_std)² and that of β d_q about 1e-7 · κ; use float64 densities for extreme ratios.
+        """
+        out = [
+            _logsumexp_last(self._chunk_log_kernels(p, q, r, with_weights=True))
+            for p, q, r in self._iter_chunks(pose, descriptors, chunk_size)
+        ]
+        if not out:  # M = 0
+            p, _, _ = self._prepare_queries(pose, descriptors)
+            shape = torch.broadcast_shapes(p.shape[:-2], self.batch_shape) + (0,)
+            return torch.empty(shape, dtype=self.dtype, device=self.device)
+        return torch.cat(out, -1)
+
+    def __call__(self, pose: Pose, descriptors: Tensor | None = None) -> Tensor:
+        """Alias of :meth:`log_prob`, so a PoseKDE is itself a ``log_prob_fn`` for annealing."""
+        return self.log_prob(pose, descriptors)
+
+    def log_kernels(self, pose: Pose, descriptors: Tensor | None = None) -> Tensor:
+        """Per-kernel log K(x | μ_i) (weights not included): dense ``(*BB, M, N)``, -inf at cut-offs.
+
+        Use it for the contact-frame terms of Eq. pdf_motion; memory is ``M × N`` per batch element.
+        """
+        p, q, r = self._prepare_queries(pose, descriptors)
+        return self._chunk_log_kernels(p, q, r, with_weights=False)
+
+    def log_kernel_terms(self, pose: Pose, descriptors: Tensor | None = None) -> Tensor:
+        """The scaled distances β·d of each factor, dense ``(*BB, M, N, 3)`` in order (p, q, r).
+
+        The r column is 0 when no descriptors take part. A factor is cut off where its value is ≥ the
+        matching ``bandwidth.delta``; the trial-round search counts exactly these.
+        """
+        p, q, r = self._prepare_queries(pose, descriptors)
+        bd_p, bd_q, bd_r = self._scaled_terms(p, q, r)
+        if bd_r is None:
+            bd_r = torch.zeros_like(bd_p)
+        return torch.stack(torch.broadcast_tensors(bd_p, bd_q, bd_r), -1)
+
+    # -- trial rounds --------------------------------------------------------------------------
+
+    def _coverage(
+        self, pose: Pose, descriptors: Tensor | None, chunk_size: int | None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Per batch element: surviving (query, kernel) pairs ``(*B,)``, cut-offs per factor ``(*B, 3)``
+        and the smallest β·d per factor ``(*B, 3)``, over valid (non-padding) kernels."""
+        delta = self.bandwidth.delta
+        valid = self._log_w > -math.inf  # (*B, N)
+        batch = self.batch_shape
+        survivors = torch.zeros(batch, dtype=torch.int64, device=self.device)
+        cuts = torch.zeros(*batch, 3, dtype=torch.int64, device=self.device)
+        nearest = torch.full((*batch, 3), math.inf, dtype=self.dtype, device=self.device)
+        for p, q, r in self._iter_chunks(pose, descriptors, chunk_size):
+            terms = self._scaled_terms(p, q, r)
+            valid_b = valid.unsqueeze(-2).expand_as(terms[0])
+            alive = valid_b.clone()
+            for k, bd in enumerate(terms):
+                if bd is None:
+                    continue
+                cut = bd >= delta[k]
+                alive &= ~cut
+                cuts[..., k] += (cut & valid_b).sum((-1, -2)).sum_to_size(batch)
+                masked = bd.masked_fill(~valid_b, math.inf).amin((-1, -2))
+                while masked.dim() > len(batch):
+                    masked = masked.amin(0)
+                nearest[..., k] = torch.minimum(nearest[..., k], _amin_to_size(masked, batch))
+            survivors += alive.sum((-1, -2)).sum_to_size(batch)
+        return survivors, cuts, nearest
+
+    def fit_trial_rounds(
+        self, pose: Pose, descriptors: Tensor | None = None, chunk_size: int | None = None
+    ) -> PoseKDE:
+        """Widen the kernels by trial rounds until some (query, kernel) pair survives the cut-offs.
+
+        Paper (Kernel Density Estimation): a trial round fails when every (query, kernel) pair is cut
+        off by at least one factor; then one of T_p, T_q, T_r is incremented — the smallest, ties broken
+        by which factor (N3, Θ, N2) caused the most cut-offs — and β = α_T^(−T) recomputed. A factor
+        that cut off no pair is never raised (widening it cannot help); remaining ties go p, q, r.
+        Each batch element is fitted independently; queries broadcast as in :meth:`log_prob` and every
+        query batch that maps onto one density element counts toward that element.
+
+        Args:
+            pose: query poses ``(*B', M)``; descriptors: ``(*B', M, k)`` or None; chunk_size: as log_prob.
+
+        Returns:
+            A new PoseKDE with the fitted ``trial_rounds``; itself if no round fails or M = 0.
+
+        Raises:
+            ModelError: some element still fails when T_p + T_q + T_r reaches
+                ``bandwidth.max_trial_rounds``.
+        """
+        p, _, _ = self._prepare_queries(pose, descriptors)
+        if p.shape[-2] == 0:
+            return self
+        current = self
+        max_rounds = self.bandwidth.max_trial_rounds
+        while True:
+            survivors, cuts, nearest = current._coverage(pose, descriptors, chunk_size)
+            failed = survivors == 0
+            if not failed.any():
+                return current
+            rounds = current._trial_rounds
+            exhausted = failed & (rounds.sum(-1) >= max_rounds)
+            if exhausted.any():
+                where = exhausted.nonzero().tolist()
+                first = tuple(where[0])
+                raise ModelError(
+                    f"no kernel covers any query after {max_rounds} trial rounds"
+                    f" (T=(T_p, T_q, T_r)={tuple(rounds[first].tolist())}) for batch element(s)"
+                    f" {where[:5]}{'...' if len(where) > 5 else ''}; the smallest scaled distances β·d there"
+                    f" are (p, q, r)={tuple(round(v, 3) for v in nearest[first].tolist())} against cut-offs"
+                    f" δ={tuple(round(v, 3) for v in self.bandwidth.delta)}. The queries lie far outside the"
+                    " model: widen the bandwidth, relax cutoff_std or raise max_trial_rounds."
+                )
+            eligible = cuts > 0
+            big = torch.iinfo(torch.int64).max
+            masked_rounds = torch.where(eligible, rounds, torch.full_like(rounds, big))
+            smallest = masked_rounds.amin(-1, keepdim=True)
+            candidates = eligible & (rounds == smallest)
+            choice = torch.where(candidates, cuts, torch.full_like(cuts, -1)).argmax(-1)
+            step = torch.nn.functional.one_hot(choice, 3) * failed.unsqueeze(-1)
+            current = current._replace(_trial_rounds=rounds + step)
+
+    # -- sampling ------------------------------------------------------------------------------
+
+    def sample_kernels(self, n: int, generator: torch.Generator | None = None) -> Tensor:
+        """Kernel indices ``(*B, n)`` drawn with probability w_i (padding is never drawn)."""
+        if isinstance(n, bool) or int(n) != n or n < 0:
+            raise InvalidParameterError(f"number of samples must be an integer >= 0, got {n!r}")
+        n = int(n)
+        flat = self._log_w.reshape(-1, self.num_kernels).double().exp()
+        if n == 0:
+            return torch.zeros(*self.batch_shape, 0, dtype=torch.int64, device=self.device)
+        idx = torch.multinomial(flat, n, replacement=True, generator=generator)
+        return idx.reshape(*self.batch_shape, n)
+
+    def kernel_means(self, index: Tensor) -> Pose:
+        """Gather kernel means at ``index (*B, n)`` → Pose ``(*B, n)``."""
+        p = torch.gather(self._p, -2, index.unsqueeze(-1).expand(*index.shape, 3))
+        q = torch.gather(self._q, -2, index.unsqueeze(-1).expand(*index.shape, 4))
+        return Pose(p, q)
+
+    def sample(self, n: int, generator: torch.Generator | None = None) -> tuple[Pose, Tensor]:
+        """Draw ``n`` poses per batch element from the (cut-off) density over SE(3).
+
+        A kernel is chosen with probability w_i; the translation is the Gaussian of per-axis std
+        ``p_std / sqrt(β_p)`` around μ_p and the rotation the vMF pair of concentration
+        ``κ = β_q / σ_q`` around μ_q (rotation-vector std ``rot_std / sqrt(β_q)`` per axis), each
+        truncated at its cut-off exactly as :meth:`log_prob` evaluates it — every sample has a finite
+        log-density (up to float rounding on the cut-off boundary itself). All kernels share bandwidth
+        and cut-offs, so this samples exactly the normalised density. Descriptors are not sampled
+        (gather ``descriptors`` with the returned indices if needed).
+
+        Args:
+            n: samples per batch element; generator: a seeded torch.Generator for reproducibility.
+
+        Returns:
+            ``(Pose (*B, n), kernel index (*B, n))``; quaternions are on the kernel mean's hemisphere.
+        """
+        index = self.sample_kernels(n, generator)
+        mean = self.kernel_means(index)
+        delta_p, delta_q, _ = self.bandwidth.delta
+        beta = self._beta.double().unsqueeze(-2).expand(*index.shape, 3)
+        std = self.bandwidth.p_std / torch.sqrt(beta[..., 0])
+        offset = _sample_translation_offsets(std, delta_p, generator)
+        kappa = beta[..., 1] / self.bandwidth.sigma_q
+        around_identity = _sample_rotation_offsets(kappa, delta_q, generator)
+        p = mean.p + offset.to(self.dtype)
+        q = pkt.quaternion_raw_multiply(mean.q.double(), around_identity)
+        q = q / q.norm(dim=-1, keepdim=True)
+        return Pose(p, q.to(self.dtype)), index
+
+
+def _logsumexp_last(x: Tensor) -> Tensor:
+    """logsumexp over the last dim, consuming ``x`` in place; all ``-inf`` gives ``-inf``.
+
+    ``torch.logsumexp`` over a long last dim is several times slower on CPU than these four passes.
+    """
+    peak = x.amax(-1, keepdim=True)
+    peak = torch.where(torch.isfinite(peak), peak, torch.zeros_like(peak))  # small: (*BB, m, 1)
+    return x.sub_(peak).exp_().sum(-1).log_().add_(peak.squeeze(-1))
+
+
+def _amin_to_size(x: Tensor, size: torch.Size) -> Tensor:
+    """Min-reduce broadcast dims of ``x`` down to ``size`` (the min analogue of ``sum_to_size``)."""
+    for dim, (have, want) in enumerate(zip(x.shape, size)):
+        if want == 1 and have != 1:
+            x = x.amin(dim, keepdim=True)
+    return x.expand(size) if x.shape != size else x
+
+
+# --------------------------------------------------------------------------------------------------
+# Product of experts
+# --------------------------------------------------------------------------------------------------
+
+
+def _expert_aligned(t: Tensor, name: str, experts: PoseKDE) -> Tensor:
+    """Shape ``(E,)`` or ``(E, *B)`` → ``(E, *B or 1s, 1)`` to align with ``(E, *B, M)`` log densities."""
+    batch = experts.batch_shape
+    if t.dim() == 0 or t.shape[0] != batch[0] or (t.dim() > 1 and t.shape != batch):
+        raise InvalidParameterError(
+            f"{name} must have shape ({batch[0]},) or {tuple(batch)} (experts first), got {tuple(t.shape)}"
+        )
+    return t.reshape(*t.shape, *([1] * (len(batch) + 1 - t.dim())))
+
+
+def product_log_prob(
+    experts: PoseKDE,
+    pose: Pose,
+    expert_log_weight: Tensor | None = None,
+    expert_mask: Tensor | None = None,
+    chunk_size: int | None = None,
+) -> Tensor:
+    """log of the product of experts, Σ_e (log w^P_e + log P_e(m)) (Eq. poe in log space).
+
+    Args:
+        experts: one PoseKDE whose leading batch dim is the expert dim E: batch shape ``(E, *B)``
+            (stack densities with different kernel counts using :meth:`PoseKDE.stack`).
+        pose: query poses ``(*B', M)`` with ``*B'`` broadcastable to ``*B`` (no expert dim).
+        expert_log_weight: log w^P_e, shape ``(E,)`` or ``(E, *B)``; default 0 (w^P = 1).
+        expert_mask: bool ``(E,)`` or ``(E, *B)``; False marks a padding expert that contributes nothing
+            (so problems with different expert counts stack). Default: all experts count.
+        chunk_size: as :meth:`PoseKDE.log_prob`.
+
+    Returns:
+        ``(*broadcast(B, B'), M)``; ``-inf`` where any counted expert vetoes the pose (density 0).
+
+    Raises:
+        InvalidParameterError: experts without a batch dim, misshaped weights/mask, or a pose with more
+            batch dims than the experts.
+    """
+    if len(experts.batch_shape) == 0:
+        raise InvalidParameterError("experts must have a leading expert batch dim, got batch shape ()")
+    inner = len(experts.batch_shape) - 1
+    query_batch = pose.batch_shape[:-1] if len(pose.batch_shape) else pose.batch_shape
+    if len(query_batch) > inner:
+        raise InvalidParameterError(
+            f"query batch dims {tuple(query_batch)} exceed the experts' batch dims"
+            f" {tuple(experts.batch_shape[1:])} (the expert dim must not appear in the queries)"
+        )
+    # Batch dims align from the right, so queries with at most len(B) batch dims meet (E, *B) as (*B).
+    per_expert = experts.log_prob(pose, chunk_size=chunk_size)  # (E, *BB, M)
+    if expert_log_weight is not None:
+        w = torch.as_tensor(expert_log_weight, dtype=per_expert.dtype, device=per_expert.device)
+        if torch.isnan(w).any() or (w == math.inf).any():
+            raise InvalidParameterError("expert_log_weight holds NaN or +inf")
+        per_expert = per_expert + _expert_aligned(w, "expert_log_weight", experts)
+    if expert_mask is not None:
+        mask = torch.as_tensor(expert_mask, device=per_expert.device)
+        if mask.dtype != torch.bool:
+            raise InvalidParameterError(f"expert_mask must be boolean, got {mask.dtype}")
+        per_expert = per_expert.masked_fill(~_expert_aligned(mask, "expert_mask", experts), 0.0)
+    return per_expert.sum(0)
+
+
+class ProductOfExperts:
+    """The density of Eq. poe as an object: ``log_prob(pose)`` sums the experts' log densities.
+
+    Args: as :func:`product_log_prob`. Callable, so it can be handed to :func:`pushtorch.anneal.anneal`.
+    """
+
+    def __init__(
+        self,
+        experts: PoseKDE,
+        expert_log_weight: Tensor | None = None,
+        expert_mask: Tensor | None = None,
+    ) -> None:
+        if len(experts.batch_shape) == 0:
+            raise InvalidParameterError("experts must have a leading expert batch dim, got batch shape ()")
+        self.experts = experts
+        self.expert_log_weight = expert_log_weight
+        self.expert_mask = expert_mask
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self.experts.batch_shape[1:]
+
+    @property
+    def num_experts(self) -> int:
+        return self.experts.batch_shape[0]
+
+    def log_prob(self, pose: Pose, chunk_size: int | None = None) -> Tensor:
+        return product_log_prob(self.experts, pose, self.expert_log_weight, self.expert_mask, chunk_size)
+
+    def __call__(self, pose: Pose) -> Tensor:
+        return self.log_prob(pose)
