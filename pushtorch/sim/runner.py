@@ -1,0 +1,400 @@
+"""Running many pushes: in process, or in parallel worker processes writing resumable shards.
+
+Paper, Experimental Setup and the parameter tables (500 samples per action for training, 3 per push
+condition for ground truth: tens of thousands of pushes). Each worker holds one pybullet DIRECT client
+and one :class:`PushWorld`, built once; a task is one shard of consecutive pushes of the plan, simulated
+and written by the worker itself (atomically, see :mod:`pushtorch.sim.records`). Because every push's
+inputs are fixed by the plan and a world keeps no state from one push to the next, the shards do not
+depend on the number of workers or on their order, and a run that was killed resumes by simulating only
+the shards that have no finished manifest.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pushtorch import se3
+from pushtorch.errors import InvalidParameterError, RecordFormatError
+from pushtorch.sim.plan import PushPlan
+from pushtorch.sim.push import execute_push
+from pushtorch.sim.records import (
+    FORMAT,
+    VERSION,
+    PushRecords,
+    atomic_write_bytes,
+    complete_shards,
+    records_from_arrays,
+    write_shard,
+)
+from pushtorch.sim.world import ObjectSpec, PushWorld, SimSettings, object_spec
+
+__all__ = [
+    "PushPool",
+    "RunSummary",
+    "default_workers",
+    "run_plan",
+    "simulate_arrays",
+    "simulate_plan",
+    "simulate_pushes",
+]
+
+MANIFEST = "manifest.json"
+
+
+def default_workers() -> int:
+    """The number of CPU cores this process may use."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def simulate_arrays(world: PushWorld, plan_arrays: dict[str, np.ndarray], object_name: str, seed: int,
+                    duration: float) -> dict[str, np.ndarray]:
+    """Simulate the pushes of one plan slice in ``world``; return the shard arrays (numpy, no torch)."""
+    n = len(plan_arrays["index"])
+    outcomes = []
+    for i in range(n):
+        outcomes.append(
+            execute_push(
+                world,
+                plan_arrays["robot_start_p"][i],
+                plan_arrays["robot_start_q"][i],
+                plan_arrays["object_initial_p"][i],
+                plan_arrays["object_initial_q"][i],
+                float(plan_arrays["action"][i, 0]),
+                float(plan_arrays["action"][i, 1]),
+                float(duration),
+                float(plan_arrays["mass"][i]),
+                float(plan_arrays["ground_friction"][i]),
+            )
+        )
+    times = outcomes[0].time if outcomes else np.zeros(1)
+    t = len(times)
+
+    def stack(name: str, trailing: tuple[int, ...]) -> np.ndarray:
+        if not outcomes:
+            return np.zeros((0, *trailing))
+        return np.stack([getattr(o, name) for o in outcomes]).astype(np.float64)
+
+    return {
+        "index": np.asarray(plan_arrays["index"], dtype=np.int64),
+        "seed": np.full(n, int(seed), dtype=np.int64),
+        "object_name": np.array([object_name] * n, dtype=str).reshape(n),
+        "action_index": np.asarray(plan_arrays["action_index"], dtype=np.int64),
+        "action": np.asarray(plan_arrays["action"], dtype=np.float64),
+        "object_initial_p": stack("object_initial_p", (3,)),
+        "object_initial_q": stack("object_initial_q", (4,)),
+        "object_final_p": stack("object_final_p", (3,)),
+        "object_final_q": stack("object_final_q", (4,)),
+        "robot_start_p": np.asarray(plan_arrays["robot_start_p"], dtype=np.float64),
+        "robot_start_q": np.asarray(plan_arrays["robot_start_q"], dtype=np.float64),
+        "object_trajectory_p": stack("object_trajectory_p", (t, 3)),
+        "object_trajectory_q": stack("object_trajectory_q", (t, 4)),
+        "robot_trajectory_p": stack("robot_trajectory_p", (t, 3)),
+        "robot_trajectory_q": stack("robot_trajectory_q", (t, 4)),
+        "time": np.asarray(times, dtype=np.float64),
+        "mass": np.asarray(plan_arrays["mass"], dtype=np.float64),
+        "ground_friction": np.asarray(plan_arrays["ground_friction"], dtype=np.float64),
+        "object_friction": np.full(n, world.settings.object_friction, dtype=np.float64),
+        "touched": np.array([o.touched for o in outcomes], dtype=bool).reshape(n),
+        "tipped": np.array([o.tipped for o in outcomes], dtype=bool).reshape(n),
+        "left_ground": np.array([o.left_ground for o in outcomes], dtype=bool).reshape(n),
+        "first_contact_time": np.array([o.first_contact_time for o in outcomes], dtype=np.float64).reshape(n),
+    }
+
+
+def simulate_plan(spec: ObjectSpec, plan: PushPlan, settings: SimSettings | None = None) -> PushRecords:
+    """Simulate a (small) plan in this process and return its records as float64 tensors, no files.
+
+    Raises:
+        InvalidParameterError: the plan is for another object than ``spec``.
+    """
+    if plan.object_name != spec.name:
+        raise InvalidParameterError(f"the plan pushes {plan.object_name!r} but the spec is {spec.name!r}")
+    with PushWorld(spec, settings) as world:
+        arrays = simulate_arrays(world, plan.arrays(), spec.name, plan.seed, plan.duration)
+    return records_from_arrays(arrays, dtype=torch.float64)
+
+
+def simulate_pushes(
+    model,
+    robot_start: se3.Pose,
+    object_initial: se3.Pose,
+    action: torch.Tensor,
+    mass: torch.Tensor | float,
+    ground_friction: torch.Tensor | float,
+    settings: SimSettings | None = None,
+    duration: float = 4.0,
+) -> PushRecords:
+    """Ground truth for arbitrary pushes (e.g. a predicted robot start pose), in this process.
+
+    Args:
+        model: the :class:`pushtorch.objects.ObjectModel` pushed.
+        robot_start: base poses ``(...)`` on the ground (any pose: prediction chooses it).
+        object_initial: object poses ``(...)``.
+        action: ``(..., 2)`` (ẋ m/s, θ̇ rad/s).
+        mass, ground_friction: ``(...)`` or scalars.
+        settings: simulator settings.
+        duration: s per push.
+
+    Returns:
+        :class:`PushRecords` (float64) of the flattened broadcast batch, in row-major order.
+
+    Raises:
+        InvalidParameterError, InvalidPoseError: shapes that do not broadcast, or invalid values.
+    """
+    action = torch.as_tensor(action, dtype=torch.float64)
+    mass = torch.as_tensor(mass, dtype=torch.float64)
+    friction = torch.as_tensor(ground_friction, dtype=torch.float64)
+    try:
+        shape = torch.broadcast_shapes(
+            robot_start.batch_shape, object_initial.batch_shape, action.shape[:-1], mass.shape, friction.shape
+        )
+    except RuntimeError as exc:
+        raise InvalidParameterError(f"push inputs do not broadcast: {exc}") from exc
+    n = int(np.prod(shape)) if len(shape) else 1
+
+    def flat(pose: se3.Pose) -> se3.Pose:
+        return se3.Pose(pose.p.double().expand(*shape, 3).reshape(n, 3),
+                        pose.q.double().expand(*shape, 4).reshape(n, 4))
+
+    plan = PushPlan(
+        object_name=model.name,
+        robot_start=flat(robot_start),
+        object_initial=flat(object_initial),
+        action=action.expand(*shape, 2).reshape(n, 2),
+        mass=mass.expand(shape).reshape(n),
+        ground_friction=friction.expand(shape).reshape(n),
+        duration=duration,
+    )
+    return simulate_plan(object_spec(model), plan, settings)
+
+
+# --- worker processes ------------------------------------------------------------------------------
+
+_WORKER_WORLD: PushWorld | None = None
+
+
+def _init_worker(spec: ObjectSpec, settings: SimSettings) -> None:
+    global _WORKER_WORLD
+    _WORKER_WORLD = PushWorld(spec, settings)
+
+
+def _run_shard(task: tuple[int, str, dict[str, np.ndarray], str, int, float]) -> tuple[int, int, int]:
+    shard_id, folder, arrays, object_name, seed, duration = task
+    assert _WORKER_WORLD is not None, "worker used before its initializer ran"
+    result = simulate_arrays(_WORKER_WORLD, arrays, object_name, seed, duration)
+    write_shard(folder, shard_id, result)
+    valid = int((result["touched"] & ~result["tipped"] & ~result["left_ground"]).sum())
+    return shard_id, len(result["index"]), valid
+
+
+@dataclass
+class RunSummary:
+    """What :func:`run_plan` did.
+
+    Attributes:
+        folder: the shard folder.
+        pushes: pushes in the plan; shards: shards in the plan.
+        resumed_shards: shards found finished and skipped; simulated_pushes: pushes simulated now.
+        valid_pushes: valid pushes among those simulated now.
+        seconds: wall time of the simulation (pool start-up excluded when a pool was passed in).
+    """
+
+    folder: Path
+    pushes: int
+    shards: int
+    resumed_shards: int
+    simulated_pushes: int
+    valid_pushes: int
+    seconds: float
+
+    @property
+    def pushes_per_second(self) -> float:
+        return self.simulated_pushes / self.seconds if self.seconds > 0 else float("nan")
+
+
+class PushPool:
+    """Worker processes, each with its own pybullet client and world for one object.
+
+    Use as a context manager; :meth:`run` may be called several times (e.g. a warm-up and a timed run).
+
+    Args:
+        spec: the object.
+        settings: simulator settings.
+        workers: number of processes (0: all cores).
+        start_method: multiprocessing start method; default ``fork`` where available (workers start in
+            milliseconds and need no torch), else ``spawn``.
+    """
+
+    def __init__(self, spec: ObjectSpec, settings: SimSettings | None = None, workers: int = 0,
+                 start_method: str | None = None):
+        self.spec = spec
+        self.settings = settings or SimSettings()
+        self.workers = int(workers) if workers else default_workers()
+        if self.workers < 1:
+            raise InvalidParameterError(f"workers must be >= 1 (or 0 for all cores), got {workers!r}")
+        methods = mp.get_all_start_methods()
+        linux_fork = "fork" in methods and sys.platform.startswith("linux")
+        method = start_method or ("fork" if linux_fork else "spawn")
+        if method not in methods:
+            raise InvalidParameterError(
+                f"start method {method!r} is not available here ({', '.join(methods)})"
+            )
+        self._pool = mp.get_context(method).Pool(
+            self.workers, initializer=_init_worker, initargs=(self.spec, self.settings)
+        )
+
+    def run(
+        self, plan: PushPlan, folder: str | Path, shard_size: int = 100, progress: bool = True
+    ) -> RunSummary:
+        """Simulate ``plan`` into shards in ``folder`` (see :func:`run_plan`)."""
+        return _run(plan, Path(folder), self.spec, self.settings, shard_size, progress, self._pool)
+
+    def close(self) -> None:
+        self._pool.close()
+        self._pool.join()
+
+    def terminate(self) -> None:
+        self._pool.terminate()
+        self._pool.join()
+
+    def __enter__(self) -> PushPool:
+        return self
+
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.terminate()
+
+
+def _manifest(plan: PushPlan, spec: ObjectSpec, settings: SimSettings, shard_size: int) -> dict:
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "object": spec.name,
+        "pushes": len(plan),
+        "seed": plan.seed,
+        "duration": plan.duration,
+        "shard_size": int(shard_size),
+        "plan_sha256": plan.fingerprint(),
+        "settings": asdict(settings),
+    }
+
+
+def _prepare_folder(folder: Path, manifest: dict) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    for stale in folder.glob(".shard-*.tmp-*"):  # left by a killed writer; never a finished shard
+        stale.unlink(missing_ok=True)
+    path = folder / MANIFEST
+    if path.exists():
+        try:
+            existing = json.loads(path.read_text())
+        except ValueError as exc:
+            raise RecordFormatError(f"{path} is not a readable run manifest: {exc}") from exc
+        changed = [k for k in manifest if existing.get(k) != manifest.get(k)]
+        if changed:
+            raise RecordFormatError(
+                f"{folder} holds shards of a different run (differs in {', '.join(changed)}); "
+                "use a fresh folder or the same configuration to resume"
+            )
+    else:
+        atomic_write_bytes(path, json.dumps(manifest, indent=1).encode())
+
+
+def _run(plan: PushPlan, folder: Path, spec: ObjectSpec, settings: SimSettings, shard_size: int,
+         progress: bool, pool) -> RunSummary:
+    from tqdm import tqdm
+
+    if plan.object_name != spec.name:
+        raise InvalidParameterError(
+            f"the plan pushes {plan.object_name!r} but the workers hold {spec.name!r}"
+        )
+    if int(shard_size) != shard_size or shard_size < 1:
+        raise InvalidParameterError(f"shard_size must be a positive integer, got {shard_size!r}")
+    shard_size = int(shard_size)
+    _prepare_folder(folder, _manifest(plan, spec, settings, shard_size))
+    n = len(plan)
+    n_shards = (n + shard_size - 1) // shard_size
+    done = {k for k in complete_shards(folder) if k < n_shards}
+    todo = [k for k in range(n_shards) if k not in done]
+    done_pushes = sum(min(shard_size, n - k * shard_size) for k in done)
+    tasks = [
+        (k, str(folder), plan.arrays(k * shard_size, min(n, (k + 1) * shard_size)), spec.name, plan.seed,
+         plan.duration)
+        for k in todo
+    ]
+    simulated = valid = 0
+    start = time.perf_counter()
+    with tqdm(total=n, initial=done_pushes, unit="push", desc=f"pushing {spec.name}", disable=not progress,
+              dynamic_ncols=True) as bar:
+        if pool is None:
+            global _WORKER_WORLD
+            previous = _WORKER_WORLD
+            _WORKER_WORLD = PushWorld(spec, settings)
+            try:
+                results = (_run_shard(task) for task in tasks)
+                for _, count, ok in results:
+                    simulated, valid = simulated + count, valid + ok
+                    bar.update(count)
+            finally:
+                _WORKER_WORLD.close()
+                _WORKER_WORLD = previous
+        else:
+            for _, count, ok in pool.imap_unordered(_run_shard, tasks):
+                simulated, valid = simulated + count, valid + ok
+                bar.update(count)
+    seconds = time.perf_counter() - start
+    return RunSummary(folder, n, n_shards, len(done), simulated, valid, seconds)
+
+
+def run_plan(
+    spec: ObjectSpec,
+    plan: PushPlan,
+    folder: str | Path,
+    settings: SimSettings | None = None,
+    workers: int = 0,
+    shard_size: int = 100,
+    progress: bool = True,
+    start_method: str | None = None,
+) -> RunSummary:
+    """Simulate every push of ``plan`` into shards in ``folder``, in parallel, resuming a killed run.
+
+    Shard ``k`` holds pushes ``k*shard_size ...``; shards already finished in ``folder`` are skipped. A
+    ``manifest.json`` ties the folder to its plan and settings: resuming with anything changed raises.
+
+    Args:
+        spec: the object (its :class:`ObjectSpec`).
+        plan: the pushes.
+        folder: where the shards go (created).
+        settings: simulator settings.
+        workers: processes (0: all cores; 1: in this process, no pool).
+        shard_size: pushes per shard (and per task).
+        progress: show a tqdm progress bar.
+        start_method: see :class:`PushPool`.
+
+    Returns:
+        A :class:`RunSummary`.
+
+    Raises:
+        InvalidParameterError: bad sizes, or a plan for another object.
+        RecordFormatError: ``folder`` holds shards of a different run.
+    """
+    settings = settings or SimSettings()
+    folder = Path(folder)
+    workers = int(workers) if workers else default_workers()
+    if workers == 1:
+        return _run(plan, folder, spec, settings, shard_size, progress, None)
+    with PushPool(spec, settings, workers, start_method) as pool:
+        return pool.run(plan, folder, shard_size, progress)

@@ -1,0 +1,486 @@
+"""The pybullet world of a push: ground, robot with bumper, one object; created once, reset per push.
+
+Paper, Experimental Setup: the authors simulated a Pioneer 3-DX with a bumper pushing objects in
+Gazebo/ODE; pybullet replaces that engine here and is the ground truth of every push.
+
+Design (decisions the paper leaves open, see docs/method.md):
+    * The ground is a large static box whose top face is z = 0 (a box gives the objects a full contact
+      manifold at once; a pybullet plane starts with one point and lets a resting object rock).
+    * Objects are compounds of the :attr:`ObjectModel.collision_parts` convex pieces (pieces that are
+      axis-aligned boxes become exact box primitives, the others convex hulls), free rigid bodies
+      (maximal coordinates), with the collision margin set to 0 so an object rests exactly at its
+      ``rest_height`` (the default 1 mm margin lifts it). Mass and friction are set per push; the inertia is
+      the mesh's (uniform density) scaled to the sampled mass, in the principal frame of the mesh.
+    * The bumper's friction acts in the robot's horizontal plane only (anisotropic friction): vertical
+      static friction between plate and object is indeterminate for a rigid solver and pressed the object
+      into the ground or lifted it, which made the effective ground friction erratic.
+    * Friction: pybullet multiplies the coefficients of the two bodies in contact. The object's own
+      coefficient is fixed to ``object_friction`` (1.0 by default); the ground gets
+      ``ground_friction / object_friction`` and the bumper ``bumper_friction / object_friction``, so the
+      effective object-ground and object-bumper coefficients are exactly the sampled / configured ones.
+    * The robot is the package's URDF with a fixed world link placed at the push's start pose; its planar
+      joints (x, y, yaw) start at 0, so joint x points along the start heading (see pushtorch.robot). Their
+      velocity motors track the commanded body twist; each planar axis is bounded by ``max_force`` and yaw
+      by ``max_torque`` (a box bound in the start frame: within the ±40° of a push the forward force
+      available lies between ``max_force`` and 1.3 ``max_force``).
+
+The simulation itself runs on numpy and pybullet (no torch on the workers' hot path).
+Poses at this level are numpy ``(position (3,), quaternion (4,) wxyz)`` pairs; conversions to pybullet's
+x,y,z,w happen here and nowhere else in the simulator.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pushtorch.errors import InvalidParameterError, SimulationError
+
+__all__ = [
+    "ObjectSpec",
+    "PushWorld",
+    "SimSettings",
+    "object_spec",
+    "quat_conjugate",
+    "quat_multiply",
+    "quat_rotate",
+    "wxyz",
+    "xyzw",
+    "yaw_quat",
+]
+
+#: Joint indices of pushtorch/assets/pioneer_bumper.urdf as pybullet numbers them.
+JOINT_X, JOINT_Y, JOINT_YAW = 0, 1, 2
+BASE_LINK_INDEX, BUMPER_LINK_INDEX = 2, 3
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    """Physics and controller settings of the push simulator (the ``sim`` config group).
+
+    Attributes:
+        time_step: physics step in s. 1/240 s keeps 0.1 m/s pushes quasi-static and stable.
+        solver_iterations: constraint-solver iterations per step.
+        control_every: physics steps between two updates of the robot's velocity targets.
+        record_rate: Hz of the recorded object and robot trajectories (t = 0 included).
+        settle_time: s the world keeps running after the push with the robot commanded to stop; the final
+            object pose is read after it, at rest.
+        bumper_friction: effective bumper-object friction coefficient.
+        object_friction: the object's own pybullet friction coefficient (see module notes).
+        max_force: N, bound of each planar drive axis of the robot (wheel traction of a 9 kg base, ~0.7 g).
+        max_torque: N m, bound of the yaw drive.
+        tip_angle_deg: an object whose up axis tilts more than this during the push has "tipped".
+        lift_tolerance: m; an object whose centre rises or sinks more than this "left the ground".
+        ground_half_extent: m, half side of the square ground box.
+    """
+
+    time_step: float = 1.0 / 240.0
+    solver_iterations: int = 50
+    control_every: int = 4
+    record_rate: float = 10.0
+    settle_time: float = 0.25
+    bumper_friction: float = 0.5
+    object_friction: float = 1.0
+    max_force: float = 60.0
+    max_torque: float = 10.0
+    tip_angle_deg: float = 10.0
+    lift_tolerance: float = 0.01
+    ground_half_extent: float = 50.0
+
+    def __post_init__(self) -> None:
+        positive = {
+            "time_step": self.time_step,
+            "record_rate": self.record_rate,
+            "object_friction": self.object_friction,
+            "max_force": self.max_force,
+            "max_torque": self.max_torque,
+            "tip_angle_deg": self.tip_angle_deg,
+            "lift_tolerance": self.lift_tolerance,
+            "ground_half_extent": self.ground_half_extent,
+        }
+        for name, value in positive.items():
+            if not (np.isfinite(value) and value > 0):
+                raise InvalidParameterError(f"sim.{name} must be a positive finite number, got {value!r}")
+        if not (np.isfinite(self.bumper_friction) and self.bumper_friction >= 0):
+            raise InvalidParameterError(f"sim.bumper_friction must be >= 0, got {self.bumper_friction!r}")
+        if not (np.isfinite(self.settle_time) and self.settle_time >= 0):
+            raise InvalidParameterError(f"sim.settle_time must be >= 0, got {self.settle_time!r}")
+        if int(self.solver_iterations) < 1 or int(self.control_every) < 1:
+            raise InvalidParameterError("sim.solver_iterations and sim.control_every must be >= 1")
+        if self.record_rate * self.time_step > 1.0:
+            raise InvalidParameterError("sim.record_rate must not exceed the physics rate 1/time_step")
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """What a worker needs to build an object in pybullet: plain arrays, cheap to send to a process.
+
+    Attributes:
+        name: object name (catalogue name or mesh file stem).
+        parts: convex pieces as ``(V_i, 3)`` vertex arrays in the object frame (origin at the centre of
+            mass, metres).
+        part_faces: ``(F_i, 3)`` triangle vertex indices of each piece.
+        rest_height: height of the origin above the ground when upright.
+        inertia_per_kg: ``(3,)`` principal moments of inertia of a 1 kg object of this shape (kg m²/kg).
+        principal_rotation: ``(4,)`` wxyz rotation of the principal inertia frame in the object frame.
+    """
+
+    name: str
+    parts: tuple[np.ndarray, ...]
+    part_faces: tuple[np.ndarray, ...]
+    rest_height: float
+    inertia_per_kg: np.ndarray
+    principal_rotation: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
+
+
+def object_spec(model) -> ObjectSpec:
+    """The :class:`ObjectSpec` of an :class:`pushtorch.objects.ObjectModel` (uniform density).
+
+    Raises:
+        InvalidParameterError: the model has no collision part or a degenerate mass distribution.
+    """
+    mesh = model.mesh
+    if not model.collision_parts:
+        raise InvalidParameterError(f"object {model.name!r} has no collision parts")
+    volume = float(mesh.volume)
+    if not (np.isfinite(volume) and volume > 0):
+        raise InvalidParameterError(f"object {model.name!r} encloses no volume")
+    # trimesh's moment_inertia is about the centre of mass at density 1; divide by the volume for 1 kg.
+    tensor = np.asarray(mesh.moment_inertia, dtype=np.float64) / volume
+    off_diagonal = np.abs(tensor - np.diag(np.diag(tensor))).max()
+    if off_diagonal <= 1e-9 * np.abs(tensor).max():
+        moments, rotation = np.diag(tensor).copy(), np.array([1.0, 0.0, 0.0, 0.0])
+    else:
+        moments, axes = np.linalg.eigh(tensor)
+        if np.linalg.det(axes) < 0:
+            axes[:, 2] = -axes[:, 2]
+        rotation = _matrix_to_wxyz(axes)
+    if (moments <= 0).any():
+        raise InvalidParameterError(f"object {model.name!r} has a non-positive principal moment of inertia")
+    parts = tuple(np.array(p.vertices, dtype=np.float64) for p in model.collision_parts)
+    faces = tuple(np.array(p.faces, dtype=np.int64) for p in model.collision_parts)
+    return ObjectSpec(model.name, parts, faces, float(model.rest_height), moments, rotation)
+
+
+# --- small quaternion helpers (numpy, wxyz) -------------------------------------------------------
+
+
+def xyzw(q_wxyz: np.ndarray) -> list[float]:
+    """wxyz → pybullet's x,y,z,w (as a list)."""
+    q = np.asarray(q_wxyz, dtype=np.float64)
+    return [float(q[1]), float(q[2]), float(q[3]), float(q[0])]
+
+
+def wxyz(q_xyzw) -> np.ndarray:
+    """pybullet's x,y,z,w → wxyz array."""
+    return np.array([q_xyzw[3], q_xyzw[0], q_xyzw[1], q_xyzw[2]], dtype=np.float64)
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of wxyz quaternions ``(..., 4)``."""
+    aw, ax, ay, az = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
+    bw, bx, by, bz = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
+
+
+def quat_conjugate(q: np.ndarray) -> np.ndarray:
+    """Conjugate (inverse of a unit quaternion) of wxyz quaternions ``(..., 4)``."""
+    q = np.asarray(q, dtype=np.float64)
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate vectors ``(..., 3)`` by wxyz quaternions ``(..., 4)``."""
+    q = np.asarray(q, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    w, u = q[..., :1], q[..., 1:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def yaw_quat(yaw: np.ndarray | float) -> np.ndarray:
+    """wxyz quaternions of rotations by ``yaw`` rad about z, shape ``(..., 4)``."""
+    half = 0.5 * np.asarray(yaw, dtype=np.float64)
+    zeros = np.zeros_like(half)
+    return np.stack([np.cos(half), zeros, zeros, np.sin(half)], -1)
+
+
+def _as_axis_aligned_box(vertices: np.ndarray, rtol: float = 1e-9) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(centre, half_extents)`` if the convex piece is an axis-aligned box, else None."""
+    v = np.asarray(vertices, dtype=np.float64)
+    low, high = v.min(0), v.max(0)
+    scale = max(float((high - low).max()), 1e-12)
+    corners = np.array(
+        [[x, y, z] for x in (low[0], high[0]) for y in (low[1], high[1]) for z in (low[2], high[2])]
+    )
+    if (high - low).min() <= rtol * scale:
+        return None
+    on_corner = np.abs(v[:, None, :] - corners[None]).max(-1) <= 1e-7 * scale  # (V, 8)
+    if not on_corner.any(1).all() or not on_corner.any(0).all():
+        return None
+    return (low + high) / 2, (high - low) / 2
+
+
+def _matrix_to_wxyz(m: np.ndarray) -> np.ndarray:
+    """A proper rotation matrix (3, 3) → unit wxyz quaternion with w >= 0 (Shepperd's method)."""
+    trace = np.trace(m)
+    if trace > 0:
+        s = 2.0 * np.sqrt(1.0 + trace)
+        q = np.array([0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s])
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+        q = np.empty(4)
+        q[0] = (m[k, j] - m[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (m[j, i] + m[i, j]) / s
+        q[1 + k] = (m[k, i] + m[i, k]) / s
+    q = q / np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+class PushWorld:
+    """One pybullet DIRECT client holding the ground, the robot and one object.
+
+    The world is built once; every push resets it (poses, joint states, mass, friction) instead of
+    rebuilding it. A push's outcome depends only on its own inputs: the object body is re-created from
+    cached collision shapes before every push, so no contact cache survives from the previous push.
+
+    Args:
+        spec: the object to push.
+        settings: physics and controller settings.
+        urdf_path: robot URDF (default: the package's Pioneer with bumper).
+
+    Raises:
+        SimulationError: pybullet cannot connect or load a body.
+    """
+
+    def __init__(self, spec: ObjectSpec, settings: SimSettings | None = None, urdf_path: str | None = None):
+        import pybullet as pb
+
+        from pushtorch.robot import URDF_PATH
+
+        self.pb = pb
+        self.spec = spec
+        self.settings = settings or SimSettings()
+        self.client = pb.connect(pb.DIRECT)
+        if self.client < 0:
+            raise SimulationError("pybullet could not start a DIRECT physics client")
+        self._closed = False
+        s = self.settings
+        cid = self.client
+        pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
+        pb.setPhysicsEngineParameter(
+            fixedTimeStep=s.time_step,
+            numSolverIterations=int(s.solver_iterations),
+            numSubSteps=0,
+            deterministicOverlappingPairs=1,
+            physicsClientId=cid,
+        )
+        half = s.ground_half_extent
+        ground_shape = pb.createCollisionShape(
+            pb.GEOM_BOX, halfExtents=[half, half, 0.05], physicsClientId=cid
+        )
+        self.ground = pb.createMultiBody(
+            0.0, ground_shape, basePosition=[0.0, 0.0, -0.05], physicsClientId=cid
+        )
+        self.robot = pb.loadURDF(str(urdf_path or URDF_PATH), useFixedBase=True, physicsClientId=cid)
+        if self.robot < 0:
+            raise SimulationError(f"pybullet could not load the robot URDF {urdf_path or URDF_PATH}")
+        # The chassis floats above the ground by design; skipping those pairs saves collision work.
+        for link in range(-1, pb.getNumJoints(self.robot, physicsClientId=cid)):
+            pb.setCollisionFilterPair(self.ground, self.robot, -1, link, 0, physicsClientId=cid)
+            pb.changeDynamics(
+                self.robot,
+                link,
+                lateralFriction=s.bumper_friction / s.object_friction,
+                # Friction acts in the robot's horizontal plane only: vertical static friction between
+                # the plate and the object is indeterminate for a rigid solver, which then pressed the
+                # object into the ground or lifted it (ground normal force 0.8-1.5 m g, erratic pushes).
+                anisotropicFriction=[1.0, 1.0, 0.0],
+                physicsClientId=cid,
+            )
+        for joint in (JOINT_X, JOINT_Y, JOINT_YAW):
+            pb.changeDynamics(self.robot, joint, jointDamping=0.0, linearDamping=0.0, angularDamping=0.0,
+                              physicsClientId=cid)
+        self._object_shape = self._create_object_shape()
+        self.object = -1
+        # rotation of the principal (inertial) frame in the object frame, and its inverse
+        self._q_principal = np.asarray(spec.principal_rotation, dtype=np.float64)
+
+    # --- object ---------------------------------------------------------------------------------
+
+    def _create_object_shape(self) -> int:
+        """One compound collision shape: exact boxes as box primitives, other pieces as convex hulls.
+
+        Box primitives are exact and collide several times faster than an 8-vertex hull.
+        """
+        pb, cid = self.pb, self.client
+        types, half_extents, files, positions = [], [], [], []
+        with tempfile.TemporaryDirectory(prefix="pushtorch-shape-") as folder:
+            for i, (vertices, faces) in enumerate(zip(self.spec.parts, self.spec.part_faces, strict=True)):
+                box = _as_axis_aligned_box(vertices)
+                if box is not None:
+                    centre, half = box
+                    types.append(pb.GEOM_BOX)
+                    half_extents.append([float(v) for v in half])
+                    files.append("")
+                    positions.append([float(v) for v in centre])
+                    continue
+                path = os.path.join(folder, f"part{i}.obj")
+                # pybullet builds a dynamic mesh's convex hull from the vertices its faces reference
+                with open(path, "w") as f:
+                    f.write("".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in vertices))
+                    f.write("".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces))
+                types.append(pb.GEOM_MESH)
+                half_extents.append([0.0, 0.0, 0.0])
+                files.append(path)
+                positions.append([0.0, 0.0, 0.0])
+            shape = pb.createCollisionShapeArray(
+                shapeTypes=types,
+                halfExtents=half_extents,
+                fileNames=files,
+                meshScales=[[1.0, 1.0, 1.0]] * len(types),
+                collisionFramePositions=positions,
+                collisionFrameOrientations=[[0.0, 0.0, 0.0, 1.0]] * len(types),
+                physicsClientId=cid,
+            )
+        if shape < 0:
+            raise SimulationError(f"pybullet could not create the collision shape of {self.spec.name!r}")
+        return shape
+
+    def _principal_pose(self, position: np.ndarray, q_object: np.ndarray) -> tuple[list[float], list[float]]:
+        """Object-frame pose → pose of the principal inertial frame that pybullet stores as the base."""
+        return [float(v) for v in position], xyzw(quat_multiply(q_object, self._q_principal))
+
+    def spawn_object(
+        self, position: np.ndarray, q_object: np.ndarray, mass: float, ground_friction: float
+    ) -> None:
+        """(Re-)create the object body at a pose (object frame, wxyz) with its mass and the ground friction.
+
+        Raises:
+            InvalidParameterError: mass or friction not positive and finite.
+        """
+        if not (np.isfinite(mass) and mass > 0):
+            raise InvalidParameterError(f"object mass must be positive and finite, got {mass!r}")
+        if not (np.isfinite(ground_friction) and ground_friction > 0):
+            raise InvalidParameterError(
+                f"ground friction must be positive and finite, got {ground_friction!r}"
+            )
+        pb, cid, s = self.pb, self.client, self.settings
+        if self.object >= 0:
+            pb.removeBody(self.object, physicsClientId=cid)
+        pos, orn = self._principal_pose(position, q_object)
+        self.object = pb.createMultiBody(
+            baseMass=float(mass),
+            baseCollisionShapeIndex=self._object_shape,
+            basePosition=pos,
+            baseOrientation=orn,
+            baseInertialFramePosition=[0.0, 0.0, 0.0],
+            baseInertialFrameOrientation=xyzw(self._q_principal),
+            # a free rigid body (not a 0-link multibody) collides and solves markedly faster
+            useMaximalCoordinates=True,
+            physicsClientId=cid,
+        )
+        if self.object < 0:
+            raise SimulationError(f"pybullet could not create the body of {self.spec.name!r}")
+        pb.resetBasePositionAndOrientation(self.object, pos, orn, physicsClientId=cid)
+        pb.changeDynamics(
+            self.object,
+            -1,
+            mass=float(mass),
+            localInertiaDiagonal=[float(v) for v in mass * np.asarray(self.spec.inertia_per_kg)],
+            lateralFriction=s.object_friction,
+            spinningFriction=0.0,
+            rollingFriction=0.0,
+            restitution=0.0,
+            linearDamping=0.0,
+            angularDamping=0.0,
+            collisionMargin=0.0,
+            activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING,
+            physicsClientId=cid,
+        )
+        pb.changeDynamics(self.ground, -1, lateralFriction=float(ground_friction) / s.object_friction,
+                          restitution=0.0, physicsClientId=cid)
+
+    def object_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """The object's current pose: position ``(3,)`` and wxyz quaternion ``(4,)`` of the object frame."""
+        pos, orn = self.pb.getBasePositionAndOrientation(self.object, physicsClientId=self.client)
+        q = quat_multiply(wxyz(orn), quat_conjugate(self._q_principal))
+        return np.asarray(pos, dtype=np.float64), q / np.linalg.norm(q)
+
+    # --- robot ----------------------------------------------------------------------------------
+
+    def place_robot(self, position: np.ndarray, q_base: np.ndarray) -> None:
+        """Put the robot's world link at the start pose (base frame, wxyz) with its joints at rest."""
+        pb, cid = self.pb, self.client
+        pb.resetBasePositionAndOrientation(
+            self.robot, [float(v) for v in position], xyzw(q_base), physicsClientId=cid
+        )
+        for joint in (JOINT_X, JOINT_Y, JOINT_YAW):
+            pb.resetJointState(self.robot, joint, 0.0, 0.0, physicsClientId=cid)
+        self.drive(0.0, 0.0)
+
+    def drive(self, speed: float, yaw_rate: float) -> None:
+        """Command the body twist (forward speed m/s, yaw rate rad/s) with bounded force and torque.
+
+        The planar joints live in the start frame, so the forward speed is split along the current
+        heading; each drive axis is bounded by ``max_force`` (yaw by ``max_torque``), which is what makes
+        a heavy or high-friction object slow the robot down.
+        """
+        pb, cid, s = self.pb, self.client, self.settings
+        heading = pb.getJointState(self.robot, JOINT_YAW, physicsClientId=cid)[0]
+        pb.setJointMotorControlArray(
+            self.robot,
+            [JOINT_X, JOINT_Y, JOINT_YAW],
+            pb.VELOCITY_CONTROL,
+            targetVelocities=[speed * np.cos(heading), speed * np.sin(heading), yaw_rate],
+            forces=[s.max_force, s.max_force, s.max_torque],
+            physicsClientId=cid,
+        )
+
+    def robot_joints(self) -> np.ndarray:
+        """Joint positions ``(3,)``: x, y (m) and yaw (rad) of the base in the start frame."""
+        states = self.pb.getJointStates(
+            self.robot, [JOINT_X, JOINT_Y, JOINT_YAW], physicsClientId=self.client
+        )
+        return np.array([st[0] for st in states], dtype=np.float64)
+
+    def touching(self) -> bool:
+        """Whether the robot (bumper or chassis) is in contact with the object now."""
+        return bool(self.pb.getContactPoints(self.robot, self.object, physicsClientId=self.client))
+
+    def step(self) -> None:
+        self.pb.stepSimulation(physicsClientId=self.client)
+
+    def close(self) -> None:
+        """Disconnect the pybullet client (idempotent)."""
+        if not self._closed:
+            try:
+                self.pb.disconnect(physicsClientId=self.client)
+            finally:
+                self._closed = True
+
+    def __enter__(self) -> PushWorld:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:  # pragma: no cover - best effort at interpreter shutdown
+        try:
+            self.close()
+        except Exception:
+            pass
