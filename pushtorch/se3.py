@@ -36,6 +36,7 @@ __all__ = [
     "from_xy_yaw",
     "identity",
     "inverse",
+    "mean_pose",
     "perturb",
     "quat_distance",
     "quat_normalize",
@@ -263,6 +264,18 @@ def perturb(
         generator,
     )
     return Pose(p + sigma * noise, pkt.quaternion_raw_multiply(pose.q.expand(*shape, 4), delta))
+
+
+def mean_pose(poses: Pose, dim: int = -1) -> Pose:
+    """The average of poses over batch dim ``dim``: mean translation and the rotation maximising the
+    summed squared alignment (Markley's eigenvector average, sign-invariant)."""
+    d = dim if dim >= 0 else dim - 1
+    p = poses.p.mean(d)
+    q = poses.q.movedim(d, -2)  # (..., N, 4)
+    scatter = q.transpose(-1, -2) @ q  # (..., 4, 4)
+    _, vectors = torch.linalg.eigh(scatter.double())
+    mean_q = vectors[..., -1].to(q.dtype)
+    return Pose(p, torch.where(mean_q[..., :1] < 0, -mean_q, mean_q))
 
 
 def to_matrix(pose: Pose) -> Tensor:

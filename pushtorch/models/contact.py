@@ -1,0 +1,217 @@
+"""Contact models: the manipulator contact model and the environment contact model (paper, §Contact Models).
+
+Manipulator Contact Model: from the surface features of a full training cloud and the robot placed
+against the object, every feature within ``δ_c`` of the bumper's triangles becomes a frame
+``c^m = (v, r, u^m)`` with weight ``w^c = exp(-λ_c ||u^m||²)`` (``||u^m||`` the distance to the closest
+point of the bumper mesh) and ``u^m = v⁻¹ ∘ robot`` (:func:`fit_manipulator_contact_model`).
+
+Environment Contact Model: at training, environment contacts are sampled from the features with
+``P(x | X, C^e) ∝ w_Z · w_CD · w_AG`` and related to the floor point below them
+(:func:`environment_feature_weights`, :func:`sample_environment_contacts`); at prediction, candidates
+drawn uniformly from the partial cloud are scored by the contact-frame density of Eq.
+contact_frame_probability and the best is kept (:func:`place_environment_contacts`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import trimesh
+
+from pushtorch import se3
+from pushtorch.errors import InvalidParameterError, ModelError
+from pushtorch.features import SurfaceFeatures
+from pushtorch.models.frames import ContactFrames, embed_descriptors
+
+Tensor = torch.Tensor
+
+__all__ = [
+    "ManipulatorContactModel",
+    "closest_points_on_mesh",
+    "environment_feature_weights",
+    "feature_frames",
+    "fit_manipulator_contact_model",
+    "floor_relations",
+    "place_environment_contacts",
+    "sample_environment_contacts",
+]
+
+
+def closest_points_on_mesh(mesh: trimesh.Trimesh, points: Tensor) -> tuple[Tensor, Tensor]:
+    """Closest points on ``mesh``'s triangles to ``points (N, 3)`` and their distances ``(N,)``.
+
+    open3d's ray-casting scene answers the query exactly (a BVH over the triangles), as the paper's
+    "closest point of each triangular polygon in the mesh of the robot's manipulator".
+    """
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
+        o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)),
+    )
+    query = o3d.core.Tensor(points.detach().cpu().numpy().astype(np.float32))
+    closest = torch.from_numpy(scene.compute_closest_points(query)["points"].numpy()).to(points)
+    return closest, (closest - points).norm(dim=-1)
+
+
+def feature_frames(features: SurfaceFeatures) -> se3.Pose:
+    """The poses ``v = (p, q)`` of surface features, ``(N,)``."""
+    return se3.Pose(features.p, features.q)
+
+
+@dataclass
+class ManipulatorContactModel:
+    """Frames ``c^m`` of the training object touching the bumper, stored in the object frame.
+
+    ``frames.v`` are expressed relative to the training object's origin ``B^O`` (so the model can be
+    moved with the object), ``frames.u`` relate each feature to the robot base pose.
+    """
+
+    frames: ContactFrames
+    cutoff: float
+    drop_off: float
+
+
+def fit_manipulator_contact_model(
+    features: SurfaceFeatures,
+    object_pose: se3.Pose,
+    robot_pose: se3.Pose,
+    bumper_mesh_world: trimesh.Trimesh,
+    cutoff: float = 0.01,
+    drop_off: float = 100.0,
+    min_contacts: int = 10,
+) -> ManipulatorContactModel:
+    """Build the manipulator contact model (paper, Manipulator Contact Model).
+
+    Args:
+        features: surface features of the full training cloud, world frame.
+        object_pose: ``B^O`` of the training object in the world.
+        robot_pose: the robot base pose of the training placement (the paper's relation to L:
+            the bumper is rigid on the base, so relating to the base is the same model and gives the
+            start pose the simulator takes).
+        bumper_mesh_world: the bumper's collision mesh at ``robot_pose``, world frame.
+        cutoff: ``δ_c`` in metres; features farther from the bumper are dropped.
+        drop_off: ``λ_c`` in m⁻²: ``w = exp(-λ_c d²)``.
+        min_contacts: fewer surviving frames than this raises (the placement does not touch).
+    Raises:
+        InvalidParameterError: non-positive cut-off or negative drop-off.
+        ModelError: fewer than ``min_contacts`` features touch the bumper.
+    """
+    if not cutoff > 0 or not drop_off >= 0:
+        raise InvalidParameterError(f"contact cut-off must be > 0 and λ_c >= 0, got {cutoff}, {drop_off}")
+    closest, dist = closest_points_on_mesh(bumper_mesh_world, features.p)
+    # lineage: a point whose outward normal faces away from the link cannot be in contact with it
+    towards = ((closest - features.p) * features.normal).sum(-1) >= -1e-4
+    keep = (dist < cutoff) & towards
+    if int(keep.sum()) < min_contacts:
+        raise ModelError(
+            f"only {int(keep.sum())} surface features lie within {cutoff} m of the bumper "
+            f"(need {min_contacts}): is the robot placed against the object?"
+        )
+    v_world = se3.Pose(features.p[keep], features.q[keep])
+    u = se3.relative(v_world, robot_pose)
+    weight = torch.exp(-drop_off * dist[keep] ** 2)
+    v_object = se3.compose(se3.inverse(object_pose), v_world)
+    return ManipulatorContactModel(ContactFrames(v_object, features.r[keep], u, weight), cutoff, drop_off)
+
+
+def floor_relations(v: se3.Pose) -> se3.Pose:
+    """``u^e = v⁻¹ ∘ F`` with F the floor point straight below ``v`` (identity rotation, z = 0).
+
+    The paper writes ``u^e = (0, 0, -z)``: the closest point of the floor is z below the feature. As a
+    full relative pose it also holds the feature's orientation relative to the (level) floor.
+    """
+    floor = se3.Pose(torch.cat([v.p[..., :2], torch.zeros_like(v.p[..., :1])], -1), torch.zeros_like(v.q))
+    floor.q[..., 0] = 1.0
+    return se3.relative(v, floor)
+
+
+def environment_feature_weights(points: Tensor, chosen: Tensor | None = None) -> Tensor:
+    """``w_Z · w_CD · w_AG`` for every feature (paper, Environment Contact Model), batched.
+
+    Args:
+        points: feature positions ``(..., N, 3)`` in the world (z above the floor).
+        chosen: positions of the contacts placed so far ``(..., C, 3)`` (``w_AG``), or ``None``.
+    Returns:
+        ``(..., N)`` non-negative weights.
+    """
+    z = points[..., 2]
+    w_z = torch.exp(-z / z.amax(-1, keepdim=True).clamp_min(1e-9))
+    centroid = points.mean(-2, keepdim=True)
+    d2 = ((points - centroid) ** 2).sum(-1)
+    w_cd = d2 / d2.amax(-1, keepdim=True).clamp_min(1e-12)
+    weight = w_z * w_cd
+    if chosen is not None and chosen.shape[-2] > 0:
+        d2c = ((points.unsqueeze(-2) - chosen.unsqueeze(-3)) ** 2).sum(-1)  # (..., N, C)
+        w_ag = (d2c / d2c.amax(-2, keepdim=True).clamp_min(1e-12)).prod(-1)
+        weight = weight * w_ag
+    return weight
+
+
+def sample_environment_contacts(
+    points: Tensor, count: int, generator: torch.Generator | None = None
+) -> Tensor:
+    """Indices ``(..., count)`` of environment contacts drawn one after another from
+    ``P(x | X, C^e) ∝ w_Z w_CD w_AG`` (each draw lowers the weight near what is already chosen).
+
+    Batched over leading dims (e.g. one row per training push); the loop runs over the ``count``
+    contact slots only.
+    """
+    if count < 1:
+        raise InvalidParameterError(f"number of environment contacts must be >= 1, got {count}")
+    batch = points.shape[:-2]
+    flat = points.reshape(-1, *points.shape[-2:])
+    chosen_idx = torch.empty(flat.shape[0], 0, dtype=torch.long, device=points.device)
+    for _ in range(count):
+        chosen = torch.gather(flat, 1, chosen_idx.unsqueeze(-1).expand(-1, -1, 3))
+        weight = environment_feature_weights(flat, chosen)
+        # a degenerate cloud (all weight zero) falls back to a uniform draw rather than failing
+        weight = torch.where(weight.sum(-1, keepdim=True) > 0, weight, torch.ones_like(weight))
+        pick = torch.multinomial(weight, 1, generator=generator)
+        chosen_idx = torch.cat([chosen_idx, pick], -1)
+    return chosen_idx.reshape(*batch, count)
+
+
+def place_environment_contacts(
+    features: SurfaceFeatures,
+    kernels_r: Tensor,
+    kernels_u: se3.Pose,
+    bandwidth,
+    count: int = 5,
+    samples: int = 100,
+    generator: torch.Generator | None = None,
+) -> ContactFrames:
+    """Environment contacts on a new cloud (paper, Environment Contact Model, prediction time).
+
+    Each of the ``count`` contacts is the best of ``samples`` candidates drawn uniformly from the
+    cloud's features, scored by the contact-frame density ``P(c)`` (Eq. contact_frame_probability)
+    whose kernels are the training environment frames ``(r, u^e)``. All ``count × samples``
+    candidates are scored in one batched call; trial rounds widen the density if none is covered.
+
+    Args:
+        features: the cloud's surface features (world frame, z above the floor).
+        kernels_r, kernels_u: the training environment frames' descriptors ``(N, 2)`` and relations ``(N,)``.
+        bandwidth: a :class:`pushtorch.kde.KernelBandwidth` with ``r_std`` (the contact-frame kernel;
+            descriptors are compared after :func:`~pushtorch.models.frames.embed_descriptors`).
+    Returns:
+        ``count`` frames ``(v, r, u^e)`` with weight ``exp(log P(c))`` (relative).
+    """
+    from pushtorch.kde import PoseKDE
+
+    if count < 1 or samples < 1:
+        raise InvalidParameterError(f"need at least one contact and one sample, got {count}, {samples}")
+    density = PoseKDE(kernels_u, bandwidth, descriptors=embed_descriptors(kernels_r))
+    pick = torch.randint(len(features), (count, samples), generator=generator, device=features.p.device)
+    v = se3.Pose(features.p[pick], features.q[pick])  # (count, samples)
+    u = floor_relations(v)
+    r = embed_descriptors(features.r[pick])
+    density = density.fit_trial_rounds(u.reshape(1, -1), r.reshape(1, -1, 2))
+    log_p = density.log_prob(u, r)  # (count, samples)
+    best = log_p.argmax(-1)
+    rows = torch.arange(count, device=best.device)
+    chosen = pick[rows, best]
+    frames_v = se3.Pose(features.p[chosen], features.q[chosen])
+    return ContactFrames(frames_v, features.r[chosen], floor_relations(frames_v), log_p[rows, best].exp())

@@ -1,0 +1,266 @@
+"""Motion model: contact-frame motions from push records and their product of experts (paper, §Motion Model).
+
+Training (:func:`fit_motion_model`). For every push record of one action, contact frames are placed on
+the training object at its initial pose ``B0``: manipulator frames where the features touch the bumper
+at the push's robot start pose (weights ``exp(-λ_c d²)`` as the contact model), environment frames drawn
+with ``w_Z w_CD w_AG``. Contact frames are rigidly attached to the object, so each one's local motion
+follows from the object's motion alone: with ``x`` the feature's pose in the object frame,
+``m = v0⁻¹ ∘ v1 = x⁻¹ ∘ (B0⁻¹ ∘ B1) ∘ x``. A kernel stores ``(r, u, m)``.
+
+Prediction (:class:`MotionDensity`). For each contact frame ``c_e = (v_e, r_e, u_e)`` placed on the new
+object and the estimated object pose ``B0'`` (``h_e = v_e⁻¹ ∘ B0'``), the training kernel ``j`` of the
+same kind becomes a kernel over the object's final pose ``v_e ∘ m_j ∘ h_e`` ("shifted by h into the
+same motion space") with weight ``K^c(c_e | c_j) / P(c_e)`` (Eq. pdf_motion, the contact-frame kernel
+compares ``r`` and ``u``, Eq. contact_frame_probability). The experts' product (Eq. poe) with
+``w^P = N_K^{c^e} / N_K^{c^m}`` for the manipulator expert is optimised by simulated annealing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import trimesh
+
+from pushtorch import se3
+from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal
+from pushtorch.errors import InvalidParameterError, ModelError
+from pushtorch.features import SurfaceFeatures
+from pushtorch.kde import KernelBandwidth, PoseKDE, ProductOfExperts
+from pushtorch.models.contact import closest_points_on_mesh, floor_relations, sample_environment_contacts
+from pushtorch.models.frames import ContactFrames, embed_descriptors
+
+Tensor = torch.Tensor
+
+__all__ = ["MotionDensity", "MotionKernels", "MotionModel", "fit_motion_model", "local_motions"]
+
+
+@dataclass
+class MotionKernels:
+    """Training kernels of one contact kind: descriptor ``r (N, 2)``, relation ``u (N,)``, motion ``m (N,)``."""
+
+    r: Tensor
+    u: se3.Pose
+    m: se3.Pose
+
+    def __len__(self) -> int:
+        return int(self.r.shape[0])
+
+    def arrays(self, prefix: str) -> dict[str, Tensor]:
+        return {
+            f"{prefix}.r": self.r, f"{prefix}.u_p": self.u.p, f"{prefix}.u_q": self.u.q,
+            f"{prefix}.m_p": self.m.p, f"{prefix}.m_q": self.m.q,
+        }
+
+    @staticmethod
+    def from_arrays(arrays: dict[str, Tensor], prefix: str) -> MotionKernels:
+        return MotionKernels(
+            arrays[f"{prefix}.r"],
+            se3.Pose(arrays[f"{prefix}.u_p"], arrays[f"{prefix}.u_q"]),
+            se3.Pose(arrays[f"{prefix}.m_p"], arrays[f"{prefix}.m_q"]),
+        )
+
+
+@dataclass
+class MotionModel:
+    """Motion kernels of one action ``a = (speed m/s, yaw rate rad/s)`` for both contact kinds.
+
+    ``mean_motion`` is the training pushes' average object motion in the robot's start frame
+    (``R0⁻¹ ∘ B1 ∘ B0⁻¹ ∘ R0``), kept for the mean-motion baseline.
+    """
+
+    action: Tensor  # (2,)
+    manipulator: MotionKernels
+    environment: MotionKernels
+    mean_motion: se3.Pose
+
+
+def local_motions(x_object: se3.Pose, object_motion: se3.Pose) -> se3.Pose:
+    """``m = x⁻¹ ∘ D ∘ x``: the motion of a frame ``x`` (object frame) when the object moves by
+    ``D = B0⁻¹ ∘ B1`` (its motion in its own initial frame); batch dims broadcast."""
+    return se3.compose(se3.inverse(x_object), se3.compose(object_motion, x_object))
+
+
+def fit_motion_model(
+    features_object: SurfaceFeatures,
+    initial: se3.Pose,
+    final: se3.Pose,
+    robot_start: se3.Pose,
+    bumper_mesh_robot: trimesh.Trimesh,
+    action: Tensor,
+    environment_contacts: int = 10,
+    manipulator_kernels_per_push: int = 1,
+    contact_cutoff: float = 0.01,
+    contact_drop_off: float = 100.0,
+    generator: torch.Generator | None = None,
+) -> MotionModel:
+    """Motion kernels of one action from its push records (paper, Motion Model; Environment Contact Model).
+
+    Args:
+        features_object: surface features of the full training cloud in the object frame ``B^O``.
+        initial, final: object poses ``(P,)`` before and after each push (world).
+        robot_start: robot base poses ``(P,)`` at the start of each push (world).
+        bumper_mesh_robot: the bumper's collision mesh in the robot base frame.
+        action: ``(2,)`` the action these pushes share.
+        environment_contacts: environment frames per push (paper: 10).
+        manipulator_kernels_per_push: manipulator frames drawn per push among those touching the bumper.
+    Raises:
+        ModelError: no push has a feature within ``contact_cutoff`` of the bumper.
+    """
+    n_push = initial.p.shape[0]
+    if n_push == 0:
+        raise InvalidParameterError("a motion model needs at least one push record")
+    x = se3.Pose(features_object.p, features_object.q)  # (N,)
+    motion = se3.relative(initial, final)  # D = B0^-1 ∘ B1, (P,)
+
+    # Manipulator frames: features within the cut-off of the bumper at each push's start pose.
+    robot_in_object = se3.relative(initial, robot_start)  # (P,)
+    points_robot = se3.apply(se3.inverse(robot_in_object).unsqueeze(-1), x.p)  # (P, N, 3)
+    closest, dist = closest_points_on_mesh(bumper_mesh_robot, points_robot.reshape(-1, 3))
+    dist = dist.reshape(n_push, -1)
+    normals_robot = se3.apply(
+        se3.Pose(torch.zeros_like(robot_in_object.p), se3.inverse(robot_in_object).q).unsqueeze(-1),
+        features_object.normal,
+    )
+    towards = ((closest.reshape(n_push, -1, 3) - points_robot) * normals_robot).sum(-1) >= -1e-4
+    weight = torch.exp(-contact_drop_off * dist**2) * ((dist < contact_cutoff) & towards)
+    touched = weight.sum(-1) > 0
+    if not touched.any():
+        raise ModelError(
+            f"no push record has a training feature within {contact_cutoff} m of the bumper at its start pose"
+        )
+    rows = touched.nonzero().squeeze(-1)
+    pick = torch.multinomial(weight[rows], manipulator_kernels_per_push, replacement=True, generator=generator)
+    rows = rows.unsqueeze(-1).expand_as(pick).reshape(-1)
+    pick = pick.reshape(-1)
+    xm = se3.Pose(x.p[pick], x.q[pick])
+    manipulator = MotionKernels(
+        features_object.r[pick],
+        se3.relative(xm, robot_in_object.take(rows)),  # u^m = v^-1 ∘ robot, frame-invariant form
+        local_motions(xm, motion.take(rows)),
+    )
+
+    # Environment frames: drawn per push at the push's initial pose (z above the floor matters).
+    world_points = se3.apply(initial.unsqueeze(-1), x.p)  # (P, N, 3)
+    env_idx = sample_environment_contacts(world_points, environment_contacts, generator).reshape(-1)
+    env_rows = torch.arange(n_push, device=env_idx.device).repeat_interleave(environment_contacts)
+    xe = se3.Pose(x.p[env_idx], x.q[env_idx])
+    v_world = se3.compose(initial.take(env_rows), xe)
+    environment = MotionKernels(
+        features_object.r[env_idx], floor_relations(v_world), local_motions(xe, motion.take(env_rows))
+    )
+    world_motion = se3.compose(final, se3.inverse(initial))
+    in_robot = se3.compose(se3.inverse(robot_start), se3.compose(world_motion, robot_start))
+    return MotionModel(torch.as_tensor(action, dtype=x.p.dtype), manipulator, environment, se3.mean_pose(in_robot))
+
+
+@dataclass
+class MotionPrediction:
+    """Result of :meth:`MotionDensity.predict`: the best final pose and the annealed candidates."""
+
+    final_pose: se3.Pose  # ()
+    log_prob: Tensor  # ()
+    anneal: AnnealResult
+
+
+class MotionDensity:
+    """The density ``P(B1 | a)`` over the object's final pose (Eq. poe), built for one push condition.
+
+    Args:
+        model: the action's motion kernels.
+        manipulator_frame: the manipulator contact frame ``c^m`` on the new object (one frame, world).
+        environment_frames: environment contact frames ``(E,)`` on the new object (world).
+        object_pose: the estimated initial object pose ``B0'``.
+        contact_bandwidth: bandwidth of the contact-frame kernel ``K^c`` over ``(u, r)`` (``r`` compared
+            after :func:`~pushtorch.models.frames.embed_descriptors`).
+        motion_bandwidth: bandwidth of the motion kernels over the final pose.
+    """
+
+    def __init__(
+        self,
+        model: MotionModel,
+        manipulator_frame: ContactFrames,
+        environment_frames: ContactFrames,
+        object_pose: se3.Pose,
+        contact_bandwidth: KernelBandwidth,
+        motion_bandwidth: KernelBandwidth,
+    ) -> None:
+        frames = [(manipulator_frame, model.manipulator), (environment_frames, model.environment)]
+        experts = []
+        for frame, kernels in frames:
+            n_frames, n_kernels = frame.r.reshape(-1, 2).shape[0], len(kernels)
+            # one contact density per frame, so trial rounds widen each frame's kernels on their own
+            contact_kde = PoseKDE(
+                se3.Pose(kernels.u.p.expand(n_frames, n_kernels, 3), kernels.u.q.expand(n_frames, n_kernels, 4)),
+                contact_bandwidth,
+                descriptors=embed_descriptors(kernels.r).expand(n_frames, n_kernels, 2),
+            )
+            query_u = se3.Pose(frame.u.p.reshape(-1, 1, 3), frame.u.q.reshape(-1, 1, 4))
+            query_r = embed_descriptors(frame.r).reshape(-1, 1, 2)
+            contact_kde = contact_kde.fit_trial_rounds(query_u, query_r)
+            log_w = contact_kde.log_kernels(query_u, query_r).squeeze(-2)  # (F, N): log K^c(c_e | c_j)
+            v = se3.Pose(frame.v.p.reshape(-1, 3), frame.v.q.reshape(-1, 4))
+            h = se3.relative(v, object_pose)  # (F,)
+            finals = se3.compose(se3.compose(v.unsqueeze(-1), kernels.m), h.unsqueeze(-1))  # (F, N)
+            for i in range(n_frames):  # a handful of experts (1 + E), not kernels
+                keep = torch.isfinite(log_w[i])  # kernels the contact kernel cut off carry no weight
+                experts.append(PoseKDE(finals.take((i, keep)), motion_bandwidth, log_w[i, keep]))
+        self.experts = PoseKDE.stack(experts)
+        n_env, n_man = len(model.environment), len(model.manipulator)
+        log_wp = torch.zeros(len(experts), dtype=object_pose.p.dtype)
+        log_wp[0] = math.log(n_env / n_man)  # w^P of the manipulator expert; environment experts 1
+        self.expert_log_weight = log_wp
+        self.object_pose = object_pose
+
+    @property
+    def num_experts(self) -> int:
+        return int(self.experts.batch_shape[0])
+
+    def log_prob(self, final_pose: se3.Pose) -> Tensor:
+        """``log P(B1 | a)`` up to the constant of the unnormalised kernels, for poses ``(..., M)``."""
+        poe = ProductOfExperts(self.experts, self.expert_log_weight)
+        return poe.log_prob(final_pose)
+
+    def proposal(self, n: int, generator: torch.Generator | None = None) -> se3.Pose:
+        """``n`` poses drawn from the experts' mixture (equal shares): annealing's starting candidates."""
+        samples, _ = self.experts.sample(max(1, math.ceil(n / self.num_experts)), generator)  # (E, k)
+        flat = samples.reshape(-1)
+        return flat.take(torch.randperm(flat.p.shape[0], generator=generator)[:n])
+
+    def widen_until_supported(self, candidates: se3.Pose, max_rounds: int = 10) -> se3.Pose:
+        """Trial rounds for the product: widen every expert until some candidate has non-zero density."""
+        for _ in range(max_rounds + 1):
+            if torch.isfinite(self.log_prob(candidates)).any():
+                return candidates
+            rounds = self.experts.trial_rounds.clone()
+            rounds[..., :2] += 1  # translation and rotation of the motion kernels (no descriptors here)
+            self.experts = self.experts.with_trial_rounds(rounds)
+        raise ModelError(
+            f"the {self.num_experts} experts share no final pose even after {max_rounds} trial rounds: "
+            "the contact frames' predictions contradict each other"
+        )
+
+    def predict(
+        self,
+        n_candidates: int,
+        schedule: AnnealSchedule,
+        generator: torch.Generator | None = None,
+        record_history: bool = False,
+    ) -> MotionPrediction:
+        """Simulated annealing on the product of experts from candidates drawn from the experts."""
+        init = self.proposal(n_candidates, generator)
+        init = self.widen_until_supported(init)
+        result = anneal(self.log_prob, init, schedule, generator, record_history=record_history)
+        return MotionPrediction(result.best, result.best_log_prob, result)
+
+    def sample(self, n: int, generator: torch.Generator | None = None, oversample: int = 8) -> se3.Pose:
+        """``n`` final poses from the product density, by importance resampling of mixture proposals."""
+        proposals = self.proposal(n * oversample, generator)
+        log_target = self.log_prob(proposals)
+        mixture = torch.logsumexp(self.experts.log_prob(proposals), 0)
+        log_w = log_target - mixture
+        if not torch.isfinite(log_w).any():
+            raise ModelError("no proposal has non-zero density under the product of experts")
+        idx = torch.multinomial(torch.softmax(log_w, -1), n, replacement=True, generator=generator)
+        return proposals.take(idx)
