@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from pushtorch import se3
-from pushtorch.anneal import AnnealSchedule
+from pushtorch.anneal import AnnealResult, AnnealSchedule
 from pushtorch.features import SurfaceFeatures, compute_surface_features
 from pushtorch.kde import KernelBandwidth
 from pushtorch.models.contact import place_environment_contacts
@@ -58,6 +58,7 @@ class Prediction:
     density: MotionDensity
     candidates: se3.Pose  # (C,) annealed candidates
     candidate_log_prob: torch.Tensor  # (C,)
+    anneal: AnnealResult | None = None  # the motion annealing (with per-step history if recorded)
 
 
 def query_bandwidth(settings: ModelSettings) -> KernelBandwidth:
@@ -66,10 +67,13 @@ def query_bandwidth(settings: ModelSettings) -> KernelBandwidth:
                            alpha_t=settings.alpha_t)
 
 
-def contact_bandwidth(settings: ModelSettings) -> KernelBandwidth:
+def contact_bandwidth(settings: ModelSettings, with_robot_position: bool = True) -> KernelBandwidth:
+    """The contact-frame kernel: relation ``u``, embedded curvatures and (for the motion model) the
+    frame's position in the robot's start frame."""
     c = settings.cutoff_std
+    stds = (settings.descriptor_std,) * 2 + ((settings.contact_robot_std,) * 3 if with_robot_position else ())
     return KernelBandwidth(
-        settings.contact_p_std, settings.contact_rot_std, (settings.descriptor_std,) * 2,
+        settings.contact_p_std, settings.contact_rot_std, stds,
         cutoff_std=(c, c, settings.descriptor_cutoff_std), alpha_t=settings.alpha_t,
     )
 
@@ -116,8 +120,7 @@ def estimate_pose(
 def _subsample(kernels: MotionKernels, count: int, generator: torch.Generator | None) -> MotionKernels:
     if len(kernels) <= count:
         return kernels
-    idx = torch.randperm(len(kernels), generator=generator)[:count]
-    return MotionKernels(kernels.r[idx], kernels.u.take(idx), kernels.m.take(idx))
+    return kernels.take(torch.randperm(len(kernels), generator=generator)[:count])
 
 
 def generate_push_condition(
@@ -134,7 +137,7 @@ def generate_push_condition(
     robot_density = build_query_density(
         model.contact.frames, features, settings.query_kernels, std, query_bandwidth(settings),
         r_cutoff_std=settings.descriptor_cutoff_std, alpha_t=settings.alpha_t, project_planar=True,
-        generator=generator,
+        heuristic=True, generator=generator,
     )
     robot = optimise_query_density(
         robot_density, settings.anneal_candidates, _schedule(settings, planar=True), generator, record_history
@@ -142,7 +145,7 @@ def generate_push_condition(
     motion = model.motions[action_index]
     env_kernels = _subsample(motion.environment, settings.environment_kernels, generator)
     environment = place_environment_contacts(
-        features, env_kernels.r, env_kernels.u, contact_bandwidth(settings),
+        features, env_kernels.r, env_kernels.u, contact_bandwidth(settings, with_robot_position=False),
         settings.environment_contacts, settings.environment_samples, generator,
     )
     pose = estimate_pose(model.position, features, settings, generator, record_history)
@@ -182,13 +185,14 @@ def predict(
         condition.manipulator_frame,
         condition.environment_frames,
         condition.object_pose,
+        condition.robot_start,
         contact_bandwidth(settings),
         motion_bandwidth(settings),
     )
     result = density.predict(settings.anneal_candidates, _schedule(settings, planar=False), generator,
                              record_history)
     return Prediction(model.name, motion.action, condition, result.final_pose, result.log_prob, density,
-                      result.anneal.candidates, result.anneal.log_prob)
+                      result.anneal.candidates, result.anneal.log_prob, result.anneal)
 
 
 def predict_many(

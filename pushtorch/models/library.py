@@ -63,6 +63,7 @@ class ModelSettings:
     manipulator_kernels: int = 500
     # query densities (paper, pose estimation table: 3000 kernels, 500 candidates x 100 steps)
     query_kernels: int = 3000
+    position_frames: int = 3000  # uniform subset of the training features kept as position frames
     anneal_candidates: int = 500
     anneal_steps: int = 100
     descriptor_std: float = 0.5
@@ -72,6 +73,7 @@ class ModelSettings:
     # contact-frame kernel K^c over (u, r) and motion kernels over final poses
     contact_p_std: float = 0.02
     contact_rot_std: float = 0.3
+    contact_robot_std: float = 0.05  # m, frame position in the robot's start frame (motion model)
     motion_p_std: float = 0.01
     motion_rot_std: float = 0.05
     cutoff_std: float = 3.0
@@ -248,8 +250,9 @@ def train_push_model(
 ) -> PushModel:
     """Train a model from an object and its push records (paper, Fig. pipeline, both training stages).
 
-    The training placement of the manipulator contact model is the robot start pose of the first
-    valid record, expressed relative to the training pose (records start at the training pose).
+    The manipulator contact model is learnt at the nominal training placement (bumper flat against the
+    side facing the robot, centred: :func:`pushtorch.sim.push.place_robot_against`); the records, whose
+    placements may be jittered, train the motion models.
 
     Args:
         obj: the training object.
@@ -259,6 +262,7 @@ def train_push_model(
         InvalidParameterError: no valid record.
     """
     from pushtorch.robot import bumper_mesh
+    from pushtorch.sim.push import place_robot_against
 
     settings = settings or ModelSettings()
     valid = records.take(records.valid)
@@ -266,14 +270,15 @@ def train_push_model(
         raise InvalidParameterError("no valid push record (every push tipped, lifted or missed the object)")
     valid = valid.to(torch.float32)
     pose, features = training_features(obj, settings)
-    # records may start the object elsewhere: express the first placement relative to the training pose
-    robot_in_object = se3.relative(valid.object_initial.take(0), valid.robot_start.take(0))
-    robot_pose = se3.compose(pose, robot_in_object)
+    # the contact model is learnt at the nominal placement; the records' jittered placements only
+    # enter the motion model
+    robot_pose = place_robot_against(obj.mesh, pose)
     contact = fit_manipulator_contact_model(
         features, pose, robot_pose, bumper_mesh(robot_pose),
         cutoff=settings.contact_cutoff, drop_off=settings.contact_drop_off,
     )
-    position = fit_position_model(features, pose)
+    keep = torch.randperm(len(features), generator=generator)[: settings.position_frames]
+    position = fit_position_model(features.select(keep.sort().values), pose)
     features_object = _in_object_frame(features, pose)
     motions = []
     for a in torch.unique(valid.action_index).tolist():
@@ -303,7 +308,9 @@ class ModelLibrary:
         """``H_r`` of every model's manipulator contact model on the cloud's features, ``(L,)``."""
         from pushtorch.models.query import feature_distance_heuristic
 
-        return torch.stack([feature_distance_heuristic(features.r, m.contact.frames.r) for m in self.models])
+        sample = torch.randperm(len(features), generator=torch.Generator().manual_seed(0))[:2000]
+        r = features.r[sample.to(features.r.device)]
+        return torch.stack([feature_distance_heuristic(r, m.contact.frames.r) for m in self.models])
 
     def select(self, features: SurfaceFeatures) -> tuple[PushModel, torch.Tensor]:
         """The model with the lowest ``H_r`` and all models' ``H_r``."""

@@ -38,6 +38,7 @@ __all__ = [
 ]
 
 _BLOCK = 1 << 22  # elements of one (features x frames) block
+_HEURISTIC_FEATURES = 2000  # features over which H_r's mean is estimated
 
 
 def neighbourhood_log_weights(
@@ -92,7 +93,7 @@ class QueryDensity:
 
     kernels: ContactFrames  # v: cloud features, r: their descriptors, u: from the model frames
     kde: PoseKDE  # over entity poses v ∘ u (planar-projected for the robot)
-    feature_distance: Tensor  # H_r, scalar
+    feature_distance: Tensor | None  # H_r (scalar) when asked for
     descriptor_rounds: int  # trial rounds the descriptor cut-off needed (0 = none)
 
 
@@ -104,6 +105,7 @@ class QueryResult:
     log_prob: Tensor  # ()
     nearest_kernel: ContactFrames  # one frame: (v, r, u) of the kernel closest to the best candidate
     anneal: AnnealResult
+    density: QueryDensity | None = None  # the density that was optimised (kernels for Rerun, H_r)
 
 
 def build_query_density(
@@ -117,6 +119,7 @@ def build_query_density(
     alpha_t: float = 2.0,
     max_rounds: int = 10,
     project_planar: bool = False,
+    heuristic: bool = False,
     generator: torch.Generator | None = None,
 ) -> QueryDensity:
     """Build the query density of a contact/position model on a cloud's features (paper, Query Density).
@@ -124,7 +127,8 @@ def build_query_density(
     Drawing ``x`` uniformly and re-drawing while no model frame falls within the descriptor cut-off
     (the lineage retries) is the same as drawing uniformly among the features that have at least one
     frame in reach, which is what is done here, vectorised. If no feature has any, the descriptor
-    bandwidth widens by trial rounds (β_r = α_T^(−T_r)) up to ``max_rounds``.
+    bandwidth widens by trial rounds (β_r = α_T^(−T_r)) up to ``max_rounds``. With ``heuristic`` the
+    selection heuristic ``H_r`` is estimated on a uniform subset of the cloud's features (it is a mean).
 
     Raises:
         InvalidPointCloudError: no features.
@@ -135,25 +139,33 @@ def build_query_density(
     r_std = r_std.to(features.r)
     e_features = embed_descriptors(features.r, descriptor_scale)
     e_frames = embed_descriptors(frames.r, descriptor_scale)
+    order = torch.randperm(len(features), generator=generator).to(features.r.device)
+    step = max(1, _BLOCK // max(1, len(frames)))
     for rounds in range(max_rounds + 1):
         beta_r = alpha_t ** (-rounds)
-        reachable = torch.zeros(len(features), dtype=torch.bool, device=features.r.device)
-        step = max(1, _BLOCK // max(1, len(frames)))
+        pool_idx, pool_log_wn, found = [], [], 0
+        # Blocks of features in random order until enough have a frame within reach: usually one or two.
         for start in range(0, len(features), step):
-            block = neighbourhood_log_weights(
-                e_features[start : start + step], e_frames, frames.weight, r_std, r_cutoff_std, beta_r
-            )
-            reachable[start : start + step] = torch.isfinite(block).any(-1)
-        if reachable.any():
+            idx = order[start : start + step]
+            block = neighbourhood_log_weights(e_features[idx], e_frames, frames.weight, r_std, r_cutoff_std, beta_r)
+            ok = torch.isfinite(block).any(-1)
+            pool_idx.append(idx[ok])
+            pool_log_wn.append(block[ok])
+            found += int(ok.sum())
+            if found >= n_kernels:
+                break
+        if found:
             break
     else:
         raise ModelError(
             f"no feature of the cloud resembles any of the model's {len(frames)} frames, even with the "
             f"descriptor bandwidth widened {max_rounds} times: the model does not fit this object"
         )
-    candidates = reachable.nonzero().squeeze(-1)
-    pick = candidates[torch.randint(len(candidates), (n_kernels,), generator=generator, device=candidates.device)]
-    log_wn = neighbourhood_log_weights(e_features[pick], e_frames, frames.weight, r_std, r_cutoff_std, beta_r)
+    pool = torch.cat(pool_idx)
+    # uniform draws (with replacement) among reachable features: a random subset of them is the pool
+    choice = torch.randint(found, (n_kernels,), generator=generator).to(pool.device)
+    pick = pool[choice]
+    log_wn = torch.cat(pool_log_wn)[choice]  # (K, Nc)
     frame_idx = torch.multinomial(torch.softmax(log_wn, -1), 1, generator=generator).squeeze(-1)
     kernel_log_w = torch.logsumexp(log_wn, -1)
     v = se3.Pose(features.p[pick], features.q[pick])
@@ -163,7 +175,10 @@ def build_query_density(
     if project_planar:
         entity = planar(entity)
     kde = PoseKDE(entity, pose_bandwidth, log_weights=kernel_log_w)
-    h_r = feature_distance_heuristic(features.r, frames.r)
+    h_r = None
+    if heuristic:
+        sample = torch.randperm(len(features), generator=generator)[:_HEURISTIC_FEATURES].to(features.r.device)
+        h_r = feature_distance_heuristic(features.r[sample], frames.r)
     return QueryDensity(kernels, kde, h_r, rounds)
 
 
@@ -181,4 +196,4 @@ def optimise_query_density(
         raise ModelError("simulated annealing found no pose with non-zero query density")
     d = ((density.kde.means.p - result.best.p) ** 2).sum(-1)
     nearest = density.kernels.select(d.argmin().reshape(1))
-    return QueryResult(result.best, result.best_log_prob, nearest, result)
+    return QueryResult(result.best, result.best_log_prob, nearest, result, density)

@@ -1,0 +1,229 @@
+"""The transferable push model on real pybullet records (pushtorch.models, pushtorch.predict).
+
+Small sizes keep this fast; the predictor's settings are scaled down from the paper's (kernels,
+candidates, steps) but nothing is mocked: real pushes, real meshes, real clouds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+
+from pushtorch import metrics, se3
+from pushtorch.baselines import mean_motion_prediction, no_motion_prediction
+from pushtorch.errors import InvalidParameterError, RecordFormatError
+from pushtorch.features import compute_surface_features
+from pushtorch.models.contact import environment_feature_weights, floor_relations, sample_environment_contacts
+from pushtorch.models.library import ModelLibrary, ModelSettings, load_model, train_push_model
+from pushtorch.models.motion import local_motions, motion_frames
+from pushtorch.models.position import centroid_pose, fit_position_model
+from pushtorch.objects import load_object
+from pushtorch.perception import capture_full_cloud, capture_partial_cloud
+from pushtorch.predict import estimate_pose, predict
+from pushtorch.sim.plan import plan_training_pushes
+from pushtorch.sim.priors import Normal
+from pushtorch.sim.push import make_actions
+from pushtorch.sim.records import load_records
+from pushtorch.sim.runner import run_plan, simulate_pushes
+from pushtorch.sim.world import object_spec
+
+FAST = ModelSettings(query_kernels=1000, anneal_candidates=150, anneal_steps=40, position_frames=2000)
+MASS, FRICTION = Normal(0.5, 0.025), Normal(0.3, 0.05)  # the paper's experiment defaults
+
+
+def _records(obj, samples_per_action, folder, seed=0):
+    plan = plan_training_pushes(obj, make_actions(3), samples_per_action, MASS, FRICTION, seed=seed)
+    run_plan(object_spec(obj), plan, folder, workers=2, progress=False)
+    return load_records(folder)
+
+
+@pytest.fixture(scope="module")
+def cube_model(tmp_path_factory):
+    cube = load_object("cube")
+    records = _records(cube, 100, tmp_path_factory.mktemp("cube_pushes"))
+    return train_push_model(cube, records, FAST, generator=torch.Generator().manual_seed(0))
+
+
+@pytest.fixture(scope="module")
+def cylinder_model(tmp_path_factory):
+    cylinder = load_object("cylinder")
+    records = _records(cylinder, 10, tmp_path_factory.mktemp("cylinder_pushes"))
+    return train_push_model(cylinder, records, FAST, generator=torch.Generator().manual_seed(0))
+
+
+# -- building blocks ---------------------------------------------------------------------------
+
+
+def test_environment_weights_prefer_low_extreme_points_and_avoid_chosen_ones():
+    g = torch.Generator().manual_seed(0)
+    points = torch.rand(500, 3, generator=g) * 0.2
+    points = torch.cat([points, torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.1, 0.16]])])  # a low corner, a high middle
+    low_far, high_near = 500, 501
+    w = environment_feature_weights(points)
+    assert w[low_far] > w[high_near]
+    chosen = points[low_far].reshape(1, 3)
+    assert environment_feature_weights(points, chosen)[low_far] == 0  # w_AG vanishes at a chosen contact
+    idx = sample_environment_contacts(points.expand(4, 502, 3), 10, g)
+    assert idx.shape == (4, 10)
+    assert all(len(set(row.tolist())) == 10 for row in idx)  # never the same feature twice in a push
+
+
+def test_floor_relation_points_to_the_floor_below():
+    g = torch.Generator().manual_seed(1)
+    v = se3.Pose(torch.rand(20, 3, generator=g), se3.random_quaternion((20,), g))
+    floor = se3.compose(v, floor_relations(v))
+    torch.testing.assert_close(floor.p[:, :2], v.p[:, :2])
+    assert floor.p[:, 2].abs().max() < 1e-6
+    assert se3.quat_distance(floor.q, torch.tensor([1.0, 0, 0, 0])).max() < 1e-6
+
+
+def test_local_motion_of_a_rigid_frame_reproduces_the_object_motion():
+    g = torch.Generator().manual_seed(2)
+    b0 = se3.from_xy_yaw(0.3, -0.1, 0.4, z=0.1)
+    b1 = se3.from_xy_yaw(0.6, 0.05, 0.9, z=0.1)
+    robot = se3.from_xy_yaw(0.0, -0.1, 0.3)
+    points = se3.apply(b0, torch.rand(10, 3, generator=g) * 0.1)  # points on the object at b0
+    w0 = motion_frames(points, robot)
+    m = local_motions(w0, se3.compose(b1, se3.inverse(b0)))
+    # the frame carried rigidly by the object ends where the object's motion takes it
+    w1 = se3.compose(w0, m)
+    expected = se3.compose(b1, se3.relative(b0, w0))
+    torch.testing.assert_close(w1.p, expected.p, atol=1e-5, rtol=0)
+    assert se3.quat_distance(w1.q, expected.q).max() < 1e-6
+    # and shifting back by h = w0^-1 ∘ b0 recovers the object's final pose from any frame
+    final = se3.compose(w1, se3.relative(w0, b0))
+    torch.testing.assert_close(final.p, b1.p.expand(10, 3), atol=1e-5, rtol=0)
+
+
+def test_contact_model_frames_touch_the_bumper_and_face_it(cube_model):
+    frames = cube_model.contact.frames
+    assert len(frames) > 100
+    assert (frames.weight > 0).all() and (frames.weight <= 1).all()
+    # stored in the object frame: the contacts lie on the face towards the robot (-x), 0.1 m from the centre
+    assert (frames.v.p[:, 0] < -0.09).all()
+    robot = frames.entity  # v ∘ u, the robot pose each frame implies (object frame)
+    assert (robot.p - robot.p[:1]).norm(dim=-1).max() < 1e-4  # all agree on one robot pose
+
+
+def test_model_settings_reject_bad_values():
+    with pytest.raises(InvalidParameterError, match="query_kernels"):
+        ModelSettings(query_kernels=0)
+    with pytest.raises(InvalidParameterError, match="unknown model settings"):
+        ModelSettings.from_mapping({"query_kernel": 10})
+
+
+# -- acceptance ------------------------------------------------------------------------------
+
+
+MODIFIED_CUBE_ORIENTATION = pytest.mark.xfail(
+    strict=True,
+    reason="known gap (issue 4 note): the notch is too small a share of the query density's kernels, so "
+    "the orientation often lands on a cube orientation that the notch rules out",
+)
+
+
+@pytest.mark.parametrize(
+    "name, yaws",
+    [
+        ("cube", (0.3, 1.2, 2.0)),
+        ("cylinder", (0.0, 1.0, 2.0)),
+        pytest.param("modified_cube", (math.pi, math.pi - 0.3, math.pi + 0.3), marks=MODIFIED_CUBE_ORIENTATION),
+    ],
+)
+def test_position_model_beats_the_centroid_and_finds_the_orientation(name, yaws):
+    obj = load_object(name)
+    training_pose = obj.resting_pose()
+    full = compute_surface_features(capture_full_cloud(obj, training_pose))
+    keep = torch.randperm(len(full), generator=torch.Generator().manual_seed(0))[:3000]
+    position = fit_position_model(full.select(keep), training_pose)
+    settings = replace(FAST, query_kernels=2000, anneal_candidates=300, anneal_steps=60)
+    ours, centroid, angles = [], [], []
+    for i, yaw in enumerate(yaws):
+        truth = obj.resting_pose(0.05 * i, -0.04 * i, yaw)
+        cloud = capture_partial_cloud(obj, truth)
+        est = estimate_pose(position, cloud, settings, torch.Generator().manual_seed(i)).pose
+        acc = metrics.accuracy(est, truth, obj)
+        ours.append(acc.linear_cm.item())
+        angles.append(acc.angular_deg.item())
+        centroid.append(metrics.linear_error_cm(centroid_pose(cloud.points), truth).item())
+    assert sum(ours) / len(ours) < sum(centroid) / len(centroid), (ours, centroid)
+    assert sum(angles) / len(angles) < 15.0, angles
+
+
+def _fresh_push_errors(model, obj, n_conditions, seed):
+    """H_acc of pushtorch, no-motion and mean-motion on fresh pushes (ground truth from pybullet)."""
+    g = torch.Generator().manual_seed(seed)
+    actions = model.actions
+    ours, still, mean = [], [], []
+    for c in range(n_conditions):
+        truth0 = obj.resting_pose(yaw=float(torch.rand((), generator=g)) * math.pi / 2 - math.pi / 4)
+        cloud = compute_surface_features(capture_partial_cloud(obj, truth0))
+        mass, friction = float(MASS.sample((), g)), float(FRICTION.sample((), g))
+        for a, action in enumerate(actions):
+            pred = predict(model, cloud, action, torch.Generator().manual_seed(seed * 1000 + c * 10 + a))
+            gt = simulate_pushes(obj, pred.condition.robot_start, truth0, action, mass, friction)
+            truth1 = se3.Pose(gt.object_final.p[0].float(), gt.object_final.q[0].float())
+            estimate0 = pred.condition.object_pose
+            ours.append(metrics.accuracy(pred.final_pose, truth1, obj).hacc.item())
+            still.append(metrics.accuracy(no_motion_prediction(estimate0), truth1, obj).hacc.item())
+            baseline = mean_motion_prediction(model.motions[a], pred.condition.robot_start, estimate0)
+            mean.append(metrics.accuracy(baseline, truth1, obj).hacc.item())
+    return [sum(x) / len(x) for x in (ours, still, mean)]
+
+
+def test_cube_model_predicts_fresh_cube_pushes_better_than_no_motion(cube_model):
+    ours, still, mean = _fresh_push_errors(cube_model, load_object("cube"), n_conditions=10, seed=3)
+    assert ours < still, (ours, still)
+    # Known gap (issue 4 note): under the paper's narrow default prior the pushes are nearly
+    # deterministic and the mean training motion is as good as the product of experts; ours stays
+    # within 15 % of it here.
+    assert ours < 1.15 * mean, (ours, mean)
+
+
+def test_cube_model_transfers_to_the_thin_prism(cube_model):
+    ours, still, _ = _fresh_push_errors(cube_model, load_object("prism_thin"), n_conditions=2, seed=4)
+    assert ours < still, (ours, still)
+
+
+def test_selection_picks_the_model_of_the_matching_shape(cube_model, cylinder_model):
+    library = ModelLibrary([cube_model, cylinder_model])
+    expected = {"cube": "cube", "prism_thin": "cube", "prism_long": "cube",
+                "cylinder": "cylinder", "cylinder_wide": "cylinder"}
+    hits = total = 0
+    for name, want in expected.items():
+        obj = load_object(name)
+        for yaw in (0.0, 0.4, 0.9, 1.3):
+            features = compute_surface_features(capture_partial_cloud(obj, obj.resting_pose(yaw=yaw)))
+            chosen, h_r = library.select(features)
+            hits += chosen.object_name == want
+            total += 1
+    assert hits / total >= 0.9
+
+
+def test_saved_model_predicts_identically_and_tampering_is_refused(cube_model, tmp_path):
+    path = cube_model.save(tmp_path / "cube.npz")
+    loaded = load_model(path)
+    cube = load_object("cube")
+    cloud = compute_surface_features(capture_partial_cloud(cube, cube.resting_pose(yaw=0.2)))
+    action = cube_model.actions[0]
+    a = predict(cube_model, cloud, action, torch.Generator().manual_seed(7))
+    b = predict(loaded, cloud, action, torch.Generator().manual_seed(7))
+    torch.testing.assert_close(a.final_pose.p, b.final_pose.p)
+    torch.testing.assert_close(a.final_pose.q, b.final_pose.q)
+    torch.testing.assert_close(a.condition.robot_start.p, b.condition.robot_start.p)
+
+    import numpy as np
+
+    with np.load(path, allow_pickle=False) as archive:
+        arrays = {k: archive[k] for k in archive.files}
+    arrays["contact.weight"] = arrays["contact.weight"] * 0.5
+    tampered = tmp_path / "tampered.npz"
+    np.savez(tampered, **arrays)
+    with pytest.raises(RecordFormatError, match="checksum"):
+        load_model(tampered)
+    (tmp_path / "junk.npz").write_bytes(b"not a zip file")
+    with pytest.raises(RecordFormatError):
+        load_model(tmp_path / "junk.npz")

@@ -1,0 +1,274 @@
+"""Rerun logging of a trained model and a prediction (pushtorch.viz.model), on a tiny real cube model.
+
+The model is trained on real pybullet pushes and the prediction is made from a real single-shot
+cloud; what is logged is read back from the saved ``.rrd`` with Rerun's own reader.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given
+from hypothesis import strategies as st
+
+from pushtorch import se3
+from pushtorch.errors import InvalidParameterError
+from pushtorch.models.contact import closest_points_on_mesh
+from pushtorch.models.library import ModelSettings, train_push_model
+from pushtorch.objects import load_object
+from pushtorch.perception import capture_partial_cloud
+from pushtorch.predict import predict
+from pushtorch.robot import bumper_mesh
+from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_training_pushes, run_plan
+from pushtorch.sim.runner import simulate_pushes
+from pushtorch.viz import open_recording, read_entity_paths
+from pushtorch.viz.model import (
+    ANNEAL_TIMELINE,
+    PREDICTION,
+    TRAINING,
+    _range_colors,
+    _subsample,
+    log_anneal_history,
+    log_contact_model,
+    log_prediction,
+)
+
+SETTINGS = ModelSettings(
+    query_kernels=300, anneal_candidates=50, anneal_steps=10, environment_kernels=500, manipulator_kernels=100
+)
+
+TRAINING_ENTITIES = (
+    "object", "object/mesh", "object/axes", "contact/points", "contact/frames", "contact/implied_robot",
+    "robot", "robot/chassis", "robot/axes", "bumper", "position/points", "position/frames",
+)
+PREDICTION_ENTITIES = (
+    "cloud", "robot", "robot/chassis", "robot/axes", "bumper",
+    "manipulator_contact/frame", "manipulator_contact/relation",
+    "environment_contacts/points", "environment_contacts/frames", "environment_contacts/relation",
+    "initial_estimate", "initial_estimate/mesh", "initial_estimate/axes",
+    "motion/experts", "motion/final_candidates",
+    "final_predicted", "final_predicted/mesh", "final_predicted/axes",
+    "initial_true", "initial_true/mesh", "final_true", "final_true/mesh", "initial_error", "final_error",
+) + tuple(
+    f"{query}/{part}" for query in ("robot_query", "pose_query")
+    for part in ("features", "kernels", "candidates", "final_candidates")
+)
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    """A cube model from 3 actions x 10 real pushes, one prediction with history, and its ground truth."""
+    cube = load_object("cube")
+    actions = make_actions(3)
+    plan = plan_training_pushes(cube, actions, 10, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=0)
+    folder = tmp_path_factory.mktemp("pushes")
+    run_plan(object_spec(cube), plan, folder, workers=1, progress=False)
+    records = load_records(folder)
+    model = train_push_model(cube, records, SETTINGS, generator=torch.Generator().manual_seed(0))
+    truth_initial = cube.resting_pose(x=0.05, y=-0.02, yaw=0.3)
+    cloud = capture_partial_cloud(cube, truth_initial)
+    prediction = predict(model, cloud, actions[0], torch.Generator().manual_seed(1), record_history=True)
+    outcome = simulate_pushes(cube, prediction.condition.robot_start, truth_initial, actions[0], 0.5, 0.3)
+    truth_final = se3.Pose(outcome.object_final.p[0].float(), outcome.object_final.q[0].float())
+    return dict(cube=cube, records=records, model=model, cloud=cloud, prediction=prediction,
+                truth_initial=truth_initial, truth_final=truth_final)
+
+
+def _rows(path, entity: str, component: str) -> list[tuple[int | None, list]]:
+    """Every logged row of ``component`` (e.g. ``Points3D:positions``) at ``entity``: (anneal step, value)."""
+    from rerun.chunk import RrdReader
+
+    rows = []
+    for chunk in RrdReader(str(path)).store().stream().to_chunks():
+        if str(chunk.entity_path) != f"/{entity}":
+            continue
+        batch = chunk.to_record_batch()
+        if component not in batch.schema.names:
+            continue
+        values = batch.column(component).to_pylist()
+        steps = (batch.column(ANNEAL_TIMELINE).to_pylist() if ANNEAL_TIMELINE in batch.schema.names
+                 else [None] * len(values))
+        rows.extend(zip(steps, values, strict=True))
+    return rows
+
+
+def _single(path, entity: str, component: str) -> np.ndarray:
+    rows = _rows(path, entity, component)
+    assert len(rows) == 1, (entity, component, len(rows))
+    return np.asarray(rows[0][1], dtype=np.float64)
+
+
+def test_contact_model_entities_and_training_placement(tmp_path, case):
+    model, cube, records = case["model"], case["cube"], case["records"]
+    path = tmp_path / "model.rrd"
+    rec = open_recording(path, "pushtorch_test")
+    root = log_contact_model(rec, model, cube, max_points=1000, max_frames=50)
+    rec.disconnect()  # writes the file's footer
+    assert root == f"{TRAINING}/cube"
+    paths = read_entity_paths(path)
+    for child in TRAINING_ENTITIES:
+        assert f"/{root}/{child}" in paths, child
+
+    # The robot drawn is the training placement, recomputed here from the first valid record.
+    valid = records.take(records.valid)
+    placement = se3.relative(valid.object_initial.take(0), valid.robot_start.take(0))
+    expected = se3.compose(cube.resting_pose(), placement)
+    robot_p = _single(path, f"{root}/robot", "Transform3D:translation").reshape(3)
+    np.testing.assert_allclose(robot_p[:2], expected.p[:2].numpy(), atol=1e-4)
+    assert abs(robot_p[2]) < 1e-6
+
+    # Every contact point shown is a model frame on the object within the cut-off of that bumper.
+    points = _single(path, f"{root}/contact/points", "Points3D:positions").reshape(-1, 3)
+    assert len(points) == min(len(model.contact.frames), 1000)
+    bumper_at = se3.Pose(torch.tensor(robot_p, dtype=torch.float32), expected.q)
+    _, distance = closest_points_on_mesh(bumper_mesh(bumper_at), torch.tensor(points, dtype=torch.float32))
+    assert float(distance.max()) < model.settings.contact_cutoff + 1e-4
+    frames = _single(path, f"{root}/contact/frames", "Arrows3D:vectors").reshape(-1, 3)
+    assert len(frames) == 3 * min(len(model.contact.frames), 50)
+    position = _single(path, f"{root}/position/points", "Points3D:positions").reshape(-1, 3)
+    assert len(position) == min(len(model.position.frames), 1000)
+
+
+def test_contact_model_follows_the_object_pose(tmp_path, case):
+    """Drawn at another object pose, the frames and robot move with the object, rigidly."""
+    model, cube = case["model"], case["cube"]
+    moved = cube.resting_pose(x=1.0, y=0.5, yaw=1.2)
+    path = tmp_path / "moved.rrd"
+    rec = open_recording(path, "pushtorch_test")
+    home = log_contact_model(rec, model, cube.mesh, label="home")
+    away = log_contact_model(rec, model, cube.mesh, object_pose=moved, label="cube at (1, 0.5)")
+    rec.disconnect()
+    assert away == f"{TRAINING}/cube_at__1__0.5_"
+    shift = se3.compose(moved, se3.inverse(cube.resting_pose()))
+    transforms = [(e, "Transform3D:translation") for e in ("robot", "object")]
+    points = [(e, "Points3D:positions") for e in ("contact/points", "position/points")]
+    for entity, component in transforms + points:
+        at_home = torch.tensor(_single(path, f"{home}/{entity}", component), dtype=torch.float32)
+        at_home = at_home.reshape(-1, 3)
+        at_away = _single(path, f"{away}/{entity}", component).reshape(-1, 3)
+        np.testing.assert_allclose(at_away, se3.apply(shift, at_home).numpy(), atol=1e-4, err_msg=entity)
+
+
+def test_prediction_entities_poses_and_annealing(tmp_path, case):
+    prediction = case["prediction"]
+    path = tmp_path / "prediction.rrd"
+    rec = open_recording(path, "pushtorch_test")
+    root = log_prediction(rec, prediction, case["truth_initial"], case["truth_final"], case["cube"],
+                          label="cube push", cloud=case["cloud"], max_points=200)
+    rec.disconnect()
+    assert root == f"{PREDICTION}/cube_push"
+    paths = read_entity_paths(path)
+    for child in PREDICTION_ENTITIES:
+        assert f"/{root}/{child}" in paths, child
+
+    predicted = _single(path, f"{root}/final_predicted", "Transform3D:translation").reshape(3)
+    np.testing.assert_allclose(predicted, prediction.final_pose.p.numpy(), atol=1e-6)
+    error = _single(path, f"{root}/final_error", "LineStrips3D:strips").reshape(2, 3)
+    np.testing.assert_allclose(error, np.stack([prediction.final_pose.p.numpy(),
+                                                case["truth_final"].p.numpy()]), atol=1e-6)
+    robot = _single(path, f"{root}/robot", "Transform3D:translation").reshape(3)
+    np.testing.assert_allclose(robot, prediction.condition.robot_start.p.numpy(), atol=1e-6)
+
+    # one row per annealing step (step 0: initial candidates), each with every candidate
+    steps = SETTINGS.anneal_steps + 1
+    for query in ("robot_query", "pose_query"):
+        rows = _rows(path, f"{root}/{query}/candidates", "Points3D:positions")
+        assert sorted(step for step, _ in rows) == list(range(steps))
+        assert all(len(points) == SETTINGS.anneal_candidates for _, points in rows)
+        kernels = _single(path, f"{root}/{query}/kernels", "Points3D:positions").reshape(-1, 3)
+        assert len(kernels) == min(SETTINGS.query_kernels, 200)
+    # the last step of the robot query's history is where the chains ended
+    last = dict(_rows(path, f"{root}/robot_query/candidates", "Points3D:positions"))[steps - 1]
+    history = prediction.condition.robot_query.anneal.history
+    np.testing.assert_allclose(np.asarray(last), history.p[-1].numpy(), atol=1e-6)
+    # robot kernels are planar base poses: on the ground
+    robot_kernels = _single(path, f"{root}/robot_query/kernels", "Points3D:positions").reshape(-1, 3)
+    assert np.abs(robot_kernels[:, 2]).max() < 1e-6
+    experts = _single(path, f"{root}/motion/experts", "Points3D:positions").reshape(-1, 3)
+    assert 0 < len(experts) <= 200
+
+
+def test_prediction_without_history_density_truth_or_mesh(tmp_path, case):
+    """What is not there is not logged; the rest still is."""
+    prediction = case["prediction"]
+    condition = prediction.condition
+    bare_anneal = dataclasses.replace(condition.robot_query.anneal, history=None, history_log_prob=None)
+    bare_robot = dataclasses.replace(condition.robot_query, anneal=bare_anneal, density=None)
+    bare = dataclasses.replace(prediction, condition=dataclasses.replace(condition, robot_query=bare_robot))
+    path = tmp_path / "bare.rrd"
+    rec = open_recording(path, "pushtorch_test")
+    root = log_prediction(rec, bare)
+    rec.disconnect()
+    paths = read_entity_paths(path)
+    for child in ("robot_query/candidates", "robot_query/kernels", "robot_query/features", "cloud",
+                  "final_true", "initial_true", "final_error", "initial_error", "final_predicted/mesh"):
+        assert f"/{root}/{child}" not in paths, child
+    for child in ("robot_query/final_candidates", "pose_query/candidates", "pose_query/kernels", "robot",
+                  "bumper", "final_predicted", "final_predicted/axes", "initial_estimate/axes"):
+        assert f"/{root}/{child}" in paths, child
+
+
+def test_anneal_history_absent_returns_false(tmp_path, case):
+    anneal = dataclasses.replace(case["prediction"].condition.pose_query.anneal, history=None)
+    rec = open_recording(tmp_path / "h.rrd")
+    assert log_anneal_history(rec, "world/h", anneal) is False
+    assert log_anneal_history(rec, "world/h", case["prediction"].condition.pose_query.anneal) is True
+    rec.disconnect()
+
+
+def test_bad_arguments_raise(tmp_path, case):
+    rec = open_recording(tmp_path / "bad.rrd")
+    with pytest.raises(InvalidParameterError):
+        log_prediction(rec, case["prediction"], max_points=0)
+    with pytest.raises(InvalidParameterError):
+        log_prediction(rec, case["prediction"], label="///")
+    with pytest.raises(InvalidParameterError):
+        log_prediction(rec, case["prediction"], object_mesh="cube")
+    with pytest.raises(InvalidParameterError):
+        log_contact_model(rec, case["model"], case["cube"], max_frames=0)
+    rec.disconnect()
+
+
+@given(st.integers(0, 500), st.integers(1, 100))
+def test_subsample_is_a_fixed_subset(n, limit):
+    index = _subsample(n, limit)
+    assert len(index) == min(n, limit)
+    assert torch.equal(index, torch.unique(index))  # sorted, no repeats
+    assert len(index) == 0 or (0 <= int(index.min()) and int(index.max()) < n)
+    assert torch.equal(index, _subsample(n, limit))
+
+
+@given(st.lists(st.one_of(st.floats(-1e6, 1e6), st.just(float("-inf"))), min_size=1, max_size=50))
+def test_range_colors_span_viridis_and_mark_no_support_dark(values):
+    colors = _range_colors(torch.tensor(values, dtype=torch.float64))
+    assert colors.shape == (len(values), 3) and colors.dtype == np.uint8
+    darkest, brightest = _range_colors(torch.tensor([0.0, 1.0]))
+    finite = [v for v in values if np.isfinite(v)]
+    for value, color in zip(values, colors, strict=True):
+        if not np.isfinite(value) or (finite and value == min(finite)):
+            assert np.array_equal(color, darkest)
+        elif value == max(finite):
+            assert np.array_equal(color, brightest)
+
+
+def test_motion_annealing_is_logged_when_the_prediction_carries_it(tmp_path, case):
+    """``motion/candidates`` appears once a Prediction holds its motion AnnealResult as ``anneal``."""
+    prediction = case["prediction"]
+    plain = _logged(tmp_path / "plain.rrd", prediction, "plain")
+    assert f"/{PREDICTION}/plain/motion/candidates" not in plain
+    carrying = dataclasses.replace(prediction)
+    carrying.anneal = prediction.condition.pose_query.anneal  # a real record with history, as a stand-in
+    path = tmp_path / "carrying.rrd"
+    assert f"/{PREDICTION}/carrying/motion/candidates" in _logged(path, carrying, "carrying")
+    rows = _rows(path, f"{PREDICTION}/carrying/motion/candidates", "Points3D:positions")
+    assert sorted(step for step, _ in rows) == list(range(SETTINGS.anneal_steps + 1))
+
+
+def _logged(path, prediction, label: str) -> set[str]:
+    rec = open_recording(path, "pushtorch_test")
+    log_prediction(rec, prediction, label=label)
+    rec.disconnect()
+    return read_entity_paths(path)
