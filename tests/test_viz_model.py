@@ -255,16 +255,15 @@ def test_range_colors_span_viridis_and_mark_no_support_dark(values):
 
 
 def test_motion_annealing_is_logged_when_the_prediction_carries_it(tmp_path, case):
-    """``motion/candidates`` appears once a Prediction holds its motion AnnealResult as ``anneal``."""
+    """``motion/candidates`` appears exactly when the Prediction holds its motion AnnealResult."""
     prediction = case["prediction"]
-    plain = _logged(tmp_path / "plain.rrd", prediction, "plain")
-    assert f"/{PREDICTION}/plain/motion/candidates" not in plain
-    carrying = dataclasses.replace(prediction)
-    carrying.anneal = prediction.condition.pose_query.anneal  # a real record with history, as a stand-in
+    assert prediction.anneal is not None and prediction.anneal.history is not None
     path = tmp_path / "carrying.rrd"
-    assert f"/{PREDICTION}/carrying/motion/candidates" in _logged(path, carrying, "carrying")
+    assert f"/{PREDICTION}/carrying/motion/candidates" in _logged(path, prediction, "carrying")
     rows = _rows(path, f"{PREDICTION}/carrying/motion/candidates", "Points3D:positions")
     assert sorted(step for step, _ in rows) == list(range(SETTINGS.anneal_steps + 1))
+    plain = dataclasses.replace(prediction, anneal=None)
+    assert f"/{PREDICTION}/plain/motion/candidates" not in _logged(tmp_path / "plain.rrd", plain, "plain")
 
 
 def _logged(path, prediction, label: str) -> set[str]:
