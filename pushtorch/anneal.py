@@ -14,7 +14,10 @@ docs/method.md and the shared lineage notes):
 * ``planar=True`` perturbs only x, y and the yaw about the world z axis (a push on a table is planar):
   z, roll and pitch stay exactly as initialised.
 
-Every candidate of every problem moves at once: the only Python loop is over steps.
+Every candidate of every problem moves at once: the only Python loop is over steps. ``method="fast"``
+draws the same proposals with cheaper exact samplers and lets planar and free problems share one batch
+(a per-problem ``planar`` mask), which the fast prediction path uses to anneal the robot's and the
+object's query densities together.
 """
 
 from __future__ import annotations
@@ -146,6 +149,65 @@ def _propose(pose: Pose, temperature: float, schedule: AnnealSchedule, generator
     return Pose(p, q / q.norm(dim=-1, keepdim=True))
 
 
+def _vmf_offsets(kappa: float, shape: torch.Size, generator, dtype, device) -> Tensor:
+    """Unit quaternions ``(*shape, 4)`` around identity from the vMF on S^3 of concentration ``kappa``.
+
+    Exact and cheap for the annealing's large κ: s = 1 − w has density ∝ e^(−κ s) √(s (2 − s)) on
+    [0, 2]; a Gamma(3/2, κ) proposal is |n|²/(2κ) for a 3-D standard normal n, whose direction n/|n| is
+    independent of it and uniform, so one draw gives both the angle and the axis. The proposal is
+    accepted with probability √((2 − s)/2) (≥ 1/√2, ≈ 1 − 1/(4κ)); rejected rows draw again.
+    """
+    n = torch.randn(*shape, 3, generator=generator, dtype=dtype, device=device)
+    s = (n * n).sum(-1) / (2.0 * kappa)
+    u = torch.rand(shape, generator=generator, dtype=dtype, device=device)
+    rejected = u * u * 2.0 >= 2.0 - s
+    while bool(rejected.any()):
+        count = int(rejected.sum())
+        n_new = torch.randn(count, 3, generator=generator, dtype=dtype, device=device)
+        s_new = (n_new * n_new).sum(-1) / (2.0 * kappa)
+        u_new = torch.rand(count, generator=generator, dtype=dtype, device=device)
+        n[rejected], s[rejected] = n_new, s_new
+        rejected[rejected.clone()] = u_new * u_new * 2.0 >= 2.0 - s_new
+    sin_half = torch.sqrt((s * (2.0 - s)).clamp_min(0.0))  # √(1 − w²)
+    axis = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+    return torch.cat([(1.0 - s).unsqueeze(-1), sin_half.unsqueeze(-1) * axis], -1)
+
+
+def _propose_fast(
+    pose: Pose, temperature: float, schedule: AnnealSchedule, generator, planar: Tensor | None
+) -> Pose:
+    """The proposals of :func:`_propose` (same distributions) with fewer, cheaper draws.
+
+    ``planar`` is a per-problem bool mask broadcastable to the candidates' batch dims ``(*B, C)``
+    (None: ``schedule.planar`` for all).
+    """
+    p_std = schedule.step_p_std * temperature
+    rot_std = schedule.step_rot_std * temperature
+    shape = pose.batch_shape
+    dtype, device = pose.p.dtype, pose.p.device
+    noise = torch.randn(*shape, 3, generator=generator, dtype=dtype, device=device)
+    if planar is None and schedule.planar:
+        planar = torch.ones((), dtype=torch.bool, device=device)
+    if planar is not None:
+        noise = torch.where(planar.unsqueeze(-1) & _Z_AXIS.to(device), torch.zeros_like(noise), noise)
+    p = pose.p + p_std * noise
+    if rot_std > 0:
+        kappa = 4.0 / rot_std**2
+        full = pkt.quaternion_raw_multiply(pose.q, _vmf_offsets(kappa, shape, generator, dtype, device))
+        if planar is not None:
+            yaw = rot_std * torch.randn(shape, generator=generator, dtype=dtype, device=device)
+            # A world-frame rotation about z (left product) changes the heading only.
+            turned = pkt.quaternion_raw_multiply(_yaw_quaternion(yaw), pose.q)
+            full = torch.where(planar.unsqueeze(-1), turned, full)
+        q = full / full.norm(dim=-1, keepdim=True)
+    else:
+        q = pose.q
+    return Pose(p, q)
+
+
+_Z_AXIS = torch.tensor([False, False, True])
+
+
 def _evaluate(log_prob_fn: Callable[[Pose], Tensor], pose: Pose, shape: torch.Size) -> Tensor:
     with torch.no_grad():
         value = log_prob_fn(pose)
@@ -165,6 +227,8 @@ def anneal(
     schedule: AnnealSchedule | None = None,
     generator: torch.Generator | None = None,
     record_history: bool = False,
+    planar: Tensor | None = None,
+    method: str = "dense",
 ) -> AnnealResult:
     """Maximise ``log_prob_fn`` over SE(3) by simulated annealing from every candidate of ``init``.
 
@@ -177,6 +241,12 @@ def anneal(
         schedule: the :class:`AnnealSchedule`; default AnnealSchedule().
         generator: seeded torch.Generator for reproducible runs.
         record_history: keep every step's chain poses and log-likelihoods (memory ``steps × B × C``).
+        planar: optional bool ``(*B,)`` per problem: planar moves (x, y, yaw) where True, full SE(3)
+            moves where False, so planar and free problems anneal in one batch; None uses
+            ``schedule.planar`` for all. Needs ``method="fast"``.
+        method: ``"dense"``, the reference proposals (vMF by Wood's rejection sampler in float64), or
+            ``"fast"``: the same proposal distributions drawn with fewer, cheaper operations
+            (:func:`_vmf_offsets`). The seed's random stream differs between the two.
 
     Returns:
         :class:`AnnealResult`. A candidate at ``-inf`` accepts any finite proposal; if its proposal is
@@ -187,7 +257,22 @@ def anneal(
         ModelError: ``log_prob_fn`` returns the wrong shape, NaN or +inf.
     """
     schedule = AnnealSchedule() if schedule is None else schedule
+    if method not in ("dense", "fast"):
+        raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
     shape = init.batch_shape
+    if planar is not None:
+        if method != "fast":
+            raise InvalidParameterError("a per-problem planar mask needs method='fast'")
+        planar = torch.as_tensor(planar, device=init.p.device)
+        if planar.dtype != torch.bool:
+            raise InvalidParameterError(f"planar must be a bool tensor, got {planar.dtype}")
+        try:
+            torch.broadcast_shapes(planar.shape, shape[:-1])
+        except RuntimeError as exc:
+            raise InvalidParameterError(
+                f"planar {tuple(planar.shape)} does not broadcast to the problems {tuple(shape[:-1])}"
+            ) from exc
+        planar = planar.unsqueeze(-1)  # over candidates
     if len(shape) == 0 or shape[-1] == 0:
         raise InvalidPoseError(
             f"init must have a candidate dim, Pose (*B, C) with C >= 1; got {tuple(shape)}"
@@ -202,7 +287,10 @@ def anneal(
     history_p, history_q, history_lp = [current.p], [current.q], [current_lp]
     dtype, device = current.p.dtype, current.p.device
     for temperature in schedule.temperatures():
-        proposal = _propose(current, temperature, schedule, generator)
+        if method == "fast":
+            proposal = _propose_fast(current, temperature, schedule, generator, planar)
+        else:
+            proposal = _propose(current, temperature, schedule, generator)
         proposal_lp = _evaluate(log_prob_fn, proposal, shape)
         u = torch.rand(shape, generator=generator, dtype=dtype, device=device)
         # -inf - -inf is NaN: such a candidate compares False everywhere and keeps its pose.

@@ -26,12 +26,19 @@ shares the bandwidth and cut-offs, so the missing constant is common to all kern
 ratio and arg-max the method takes (P(m|c,a) = Σ…/P(c), annealing, the product of experts). Omitting the
 descriptors of a query (``descriptors=None``) therefore evaluates the density marginalised over the
 descriptors, up to that same constant — the paper's "descriptor distance is omitted during optimisation".
+
+Two evaluation paths give the same values: ``method="dense"`` (the reference, every query against every
+kernel with matmuls) and ``method="fast"`` (exact distances in fused, optionally compiled passes, pruned by
+the hard cut-offs to the leaf blocks of kernels that can reach a query; see the "Fast path" section).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import os
+import shutil
+import warnings
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -49,6 +56,8 @@ __all__ = [
     "TrialRounds",
     "descriptor_distance",
     "descriptor_distance_unscaled",
+    "fast_path_compiled",
+    "fused_function",
     "product_log_prob",
     "rotation_distance",
     "translation_distance",
@@ -115,7 +124,7 @@ class KernelBandwidth:
         cutoff = tuple(self.cutoff_std)
         if len(cutoff) != 3:
             raise InvalidParameterError(f"cutoff_std must hold 3 values (c_p, c_q, c_r), got {cutoff}")
-        for name, c in zip(COMPONENTS, cutoff):
+        for name, c in zip(COMPONENTS, cutoff, strict=True):
             c = float(c)
             if math.isnan(c) or c <= 0.0:
                 raise InvalidParameterError(f"cutoff_std for {name} must be > 0 (inf disables it), got {c}")
@@ -516,6 +525,7 @@ class PoseKDE:
         new = object.__new__(PoseKDE)
         new.__dict__.update(self.__dict__)
         new.__dict__.update(changes)
+        new.__dict__.pop("_fast_index", None)  # built from the old kernels / trial rounds
         new._precompute()
         return new
 
@@ -725,7 +735,7 @@ class PoseKDE:
         """log(w_i K(x|μ_i)) (or log K) for a chunk: ``(*BB, m, N)``, -inf where a factor is cut off."""
         terms = self._neg_terms(p, q, r)
         total = None
-        for neg, delta in zip(terms, self.bandwidth.delta):
+        for neg, delta in zip(terms, self.bandwidth.delta, strict=True):
             if neg is None:
                 continue
             # threshold keeps x where x > −δ (β d < δ) and writes −inf elsewhere: the paper's cut-off.
@@ -745,7 +755,11 @@ class PoseKDE:
             yield p[..., sl, :], q[..., sl, :], (None if r is None else r[..., sl, :])
 
     def log_prob(
-        self, pose: Pose, descriptors: Tensor | None = None, chunk_size: int | None = None
+        self,
+        pose: Pose,
+        descriptors: Tensor | None = None,
+        chunk_size: int | None = None,
+        method: str = "dense",
     ) -> Tensor:
         """log P(x) = log Σ_i w_i K(x | μ_i) with the hard cut-offs (Eq. surface_feature_probability).
 
@@ -754,6 +768,12 @@ class PoseKDE:
             descriptors: query descriptors ``(*B', M, k)``; None evaluates the density over SE(3) alone
                 (marginal over descriptors, see the module docstring).
             chunk_size: queries per dense ``(chunk, N)`` block; None picks one bounded in memory.
+            method: ``"dense"`` (the reference: every query against every kernel) or ``"fast"``:
+                exact distances evaluated in fused passes (compiled, see :func:`fast_path_compiled`),
+                for more than ``FAST_DENSE_KERNELS`` kernels only on the leaf blocks the cut-offs let
+                reach a query. Same values up to float rounding; the kernel layout is built on first
+                use and cached. Queries with descriptors, weights spanning more than ~e^60, and small
+                densities without a compiler take the dense path.
 
         Returns:
             ``(*broadcast(B, B'), M)`` log densities (unnormalised kernels, ``K(μ|μ) = 1``); ``-inf``
@@ -762,10 +782,19 @@ class PoseKDE:
         Raises:
             InvalidPoseError / InvalidParameterError: malformed queries.
 
-        Precision: squared distances are expanded (|x|² − 2x·μ + |μ|², one matmul) around the weighted
-        kernel centre, so in float32 the error of β d_p is about 1e-7 · (distance to that centre /
-        p_std)² and that of β d_q about 1e-7 · κ; use float64 densities for extreme ratios.
+        Precision: the dense path expands squared distances (|x|² − 2x·μ + |μ|², one matmul) around the
+        weighted kernel centre, so in float32 the error of β d_p is about 1e-7 · (distance to that
+        centre / p_std)² and that of β d_q about 1e-7 · κ (both paths); use float64 densities for
+        extreme ratios. The fast path subtracts directly.
         """
+        if method not in ("dense", "fast"):
+            raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
+        if method == "fast" and descriptors is None:
+            index = self.fast_index()
+            # uncompiled, the dense reference is as fast as an eager fused pass for small densities
+            if index.linear and (index.blocks or fast_path_compiled(self.device)):
+                p, q, _ = self._prepare_queries(pose, None)
+                return index.log_prob(p, q)
         out = [
             _logsumexp_last(self._chunk_log_kernels(p, q, r, with_weights=True))
             for p, q, r in self._iter_chunks(pose, descriptors, chunk_size)
@@ -775,6 +804,14 @@ class PoseKDE:
             shape = torch.broadcast_shapes(p.shape[:-2], self.batch_shape) + (0,)
             return torch.empty(shape, dtype=self.dtype, device=self.device)
         return torch.cat(out, -1)
+
+    def fast_index(self) -> _FastIndex:
+        """The fast path's leaf blocks of this density (built on first use, then cached)."""
+        index = self.__dict__.get("_fast_index")
+        if index is None:
+            index = _FastIndex(self)
+            self._fast_index = index
+        return index
 
     def __call__(self, pose: Pose, descriptors: Tensor | None = None) -> Tensor:
         """Alias of :meth:`log_prob`, so a PoseKDE is itself a ``log_prob_fn`` for annealing."""
@@ -946,11 +983,335 @@ def _logsumexp_last(x: Tensor) -> Tensor:
 
 def _amin_to_size(x: Tensor, size: torch.Size) -> Tensor:
     """Min-reduce broadcast dims of ``x`` down to ``size`` (the min analogue of ``sum_to_size``)."""
-    for dim, (have, want) in enumerate(zip(x.shape, size)):
+    for dim, (have, want) in enumerate(zip(x.shape, size, strict=False)):
         if want == 1 and have != 1:
             x = x.amin(dim, keepdim=True)
     return x.expand(size) if x.shape != size else x
 
+
+# --------------------------------------------------------------------------------------------------
+# Fast path: kernels pruned by the hard cut-offs, fused evaluation
+# --------------------------------------------------------------------------------------------------
+#
+# The cut-offs make every kernel exactly zero beyond a translation radius and a rotation angle. For a
+# density with many kernels (a query density: 3,000), kernels are put once into leaf blocks of a k-d
+# tree over (position, rotation); a query visits only the blocks whose bounding box and rotation cap
+# come within the cut-offs (a bound: nothing that could survive is skipped) and each visited block is
+# evaluated with the exact distances in one fused pass. A density with few kernels (an expert of the
+# product: ~500, most of them near every candidate) is evaluated in one fused dense pass instead.
+# Sums run in the linear domain relative to each density's largest weight: a surviving kernel factor is
+# at least e^(−δ_p−δ_q), so nothing underflows unless weights span ~e^60 (then the dense reference
+# path is used). With a C++ compiler (CPU) or Triton (CUDA) the fused functions are compiled by
+# torch.compile (``PUSHTORCH_COMPILE``: ``auto`` default, ``1`` insist, ``0`` never); without, the same
+# functions run eagerly, in chunks.
+
+FAST_LEAF_SIZE = 16  # kernels per leaf block: prunes best on the paper-scale query densities (measured)
+# Densities with at most this many kernels skip the blocks: pruning cannot pay for its bookkeeping.
+FAST_DENSE_KERNELS = 1024
+# Relative slack on the pruning bounds: float rounding of a bound must never skip a live kernel.
+_BOUND_SLACK = 1e-3
+_COMPILE_ENV = "PUSHTORCH_COMPILE"
+_compiled_functions: dict[str, Callable] = {}
+_compile_failed: set[str] = set()
+_compiler_found: list[bool] = []  # cached shutil.which answer
+
+
+def _compile_mode() -> str:
+    mode = os.environ.get(_COMPILE_ENV, "auto").strip().lower()
+    if mode not in ("auto", "1", "0"):
+        raise InvalidParameterError(f"{_COMPILE_ENV} must be auto, 1 or 0, got {mode!r}")
+    return mode
+
+
+def fast_path_compiled(device: torch.device | str = "cpu") -> bool:
+    """Whether the fast path's fused functions are compiled with torch.compile on ``device``.
+
+    ``PUSHTORCH_COMPILE=0`` never compiles; ``1`` always tries; ``auto`` (default) compiles on CUDA
+    and on CPU when a C++ compiler is on the PATH (Inductor needs one). A compilation that fails at run
+    time falls back to eager evaluation with a warning, once.
+    """
+    mode = _compile_mode()
+    if mode == "0":
+        return False
+    if mode == "1" or torch.device(device).type == "cuda":
+        return True
+    if not _compiler_found:
+        _compiler_found.append(any(shutil.which(cc) is not None for cc in ("g++", "c++", "clang++", "cl")))
+    return _compiler_found[0]
+
+
+def fused_function(name: str, fn: Callable, device: torch.device | str) -> Callable:
+    """``fn`` compiled with torch.compile if :func:`fast_path_compiled` allows it, else ``fn`` itself.
+
+    For the fast paths' pure tensor functions (no generators, no data-dependent shapes inside). One
+    compiled function per ``name`` and device type, shared by every caller; shapes that change between
+    calls are made dynamic by torch.compile's automatic dynamic shapes. A failing compilation warns once
+    and falls back to ``fn``.
+    """
+    device = torch.device(device)
+    if name in _compile_failed or not fast_path_compiled(device):
+        return fn
+    key = f"{name}:{device.type}"
+    if key not in _compiled_functions:
+        compiled = torch.compile(fn, dynamic=None)
+
+        def call(*args):
+            if name in _compile_failed:
+                return fn(*args)
+            try:
+                return compiled(*args)
+            except Exception as exc:  # a missing/broken compiler surfaces here, on first use
+                _compile_failed.add(name)
+                warnings.warn(f"torch.compile of the fast kernel path failed ({type(exc).__name__}: {exc});"
+                              f" running it eagerly (set {_COMPILE_ENV}=0 to skip compiling)", stacklevel=2)
+                return fn(*args)
+
+        _compiled_functions[key] = call
+    return _compiled_functions[key]
+
+
+def _dense_sums(x: Tensor, table: Tensor, scale: Tensor, delta_p: float, delta_q: float) -> Tensor:
+    """Σ_i w_i K(x | μ_i) for every query against every kernel of its density: ``(Q, M)``.
+
+    x: queries ``(Q, 7, M)`` (rows p, q); table: kernels ``(Q, 8, N)`` (rows p, q, log w relative to the
+    largest); scale: ``(Q, 2)`` (β_p/σ_p, β_q/σ_q). Exact distances, the cut-offs of
+    :meth:`PoseKDE.log_prob`; compiled, no ``(Q, M, N)`` tensor is stored.
+    """
+    xs = x.unsqueeze(-1)  # (Q, 7, M, 1)
+    t = table.unsqueeze(2)  # (Q, 8, 1, N)
+    sc = scale[:, :, None, None]
+    d_p = ((xs[:, 0] - t[:, 0]) ** 2 + (xs[:, 1] - t[:, 1]) ** 2 + (xs[:, 2] - t[:, 2]) ** 2) * sc[:, 0]
+    dot = xs[:, 3] * t[:, 3] + xs[:, 4] * t[:, 4] + xs[:, 5] * t[:, 5] + xs[:, 6] * t[:, 6]
+    d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, 1]
+    keep = (d_p < delta_p) & (d_q < delta_q)
+    return torch.where(keep, torch.exp(t[:, 7] - d_p - d_q), torch.zeros_like(d_p)).sum(-1)
+
+
+def _reachable_blocks(
+    x: Tensor, lo: Tensor, hi: Tensor, centre: Tensor, cos_reach: Tensor, r2: Tensor
+) -> Tensor:
+    """Which blocks each query may touch: ``(Q, M, nb)``, 1.0 where it may (float: compiles ~10× faster).
+
+    x: queries ``(Q, 7, M)``; lo, hi: block bounding boxes ``(Q, 3, nb)``; centre: block rotation centres
+    ``(Q, 4, nb)``; cos_reach: ``(Q, nb)`` cosine of half the largest angle at which the block can
+    still hold a live kernel (−1: any, 2: none); r2: ``(Q, 1)`` squared translation reach (m²).
+    """
+    xs = x.unsqueeze(-1)  # (Q, 7, M, 1)
+    lo, hi, centre = lo.unsqueeze(2), hi.unsqueeze(2), centre.unsqueeze(2)  # (Q, k, 1, nb)
+    g0 = torch.clamp(torch.maximum(lo[:, 0] - xs[:, 0], xs[:, 0] - hi[:, 0]), min=0.0)
+    g1 = torch.clamp(torch.maximum(lo[:, 1] - xs[:, 1], xs[:, 1] - hi[:, 1]), min=0.0)
+    g2 = torch.clamp(torch.maximum(lo[:, 2] - xs[:, 2], xs[:, 2] - hi[:, 2]), min=0.0)
+    near = g0 * g0 + g1 * g1 + g2 * g2 <= r2.unsqueeze(-1)
+    dot = (xs[:, 3] * centre[:, 0] + xs[:, 4] * centre[:, 1] + xs[:, 5] * centre[:, 2]
+           + xs[:, 6] * centre[:, 3]).abs()
+    return (near & (dot >= cos_reach.unsqueeze(1))).to(x.dtype)
+
+
+def _block_sums(x: Tensor, table: Tensor, scale: Tensor, query_density: Tensor, pair_query: Tensor,
+                pair_block: Tensor, num_blocks: int, delta_p: float, delta_q: float) -> Tensor:
+    """Σ_i w_i K(x | μ_i) per query ``(R,)`` over its (query, block) pairs.
+
+    x: ``(R, 7)`` queries; table: ``(D·nb + 1, 8, L)`` blocks (rows p, q, relative log w; kernels along
+    L); scale: ``(D, 2)``; query_density: ``(R,)`` each query's density row; pair_query, pair_block:
+    ``(P,)`` the pairs. Exact distances and the cut-offs of :meth:`PoseKDE.log_prob`.
+    """
+    density = query_density[pair_query]
+    t = table[density * num_blocks + pair_block]  # (P, 8, L)
+    xs = x[pair_query].unsqueeze(-1)  # (P, 7, 1)
+    sc = scale[density]
+    d_p = ((xs[:, 0] - t[:, 0]) ** 2 + (xs[:, 1] - t[:, 1]) ** 2 + (xs[:, 2] - t[:, 2]) ** 2) * sc[:, 0:1]
+    dot = xs[:, 3] * t[:, 3] + xs[:, 4] * t[:, 4] + xs[:, 5] * t[:, 5] + xs[:, 6] * t[:, 6]
+    d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, 1:2]
+    keep = (d_p < delta_p) & (d_q < delta_q)
+    per_pair = torch.where(keep, torch.exp(t[:, 7] - d_p - d_q), torch.zeros_like(d_p)).sum(-1)
+    return torch.zeros_like(x[:, 0]).index_add(0, pair_query, per_pair)
+
+
+_DENSE_ROW_GROUPS = 4  # at most this many kernel-count groups per dense evaluation (one call each)
+# Cost of one more fused call, in kernel evaluations (~100 µs of dispatch against ~0.5 ns per kernel
+# and query, measured on CPU): grouping rows only pays when it skips more padding than this.
+_CALL_COST_KERNELS = 200_000
+
+
+def _row_groups(counts: Tensor, queries: int, max_groups: int) -> list[tuple[Tensor | None, int]]:
+    """Rows split into groups of similar kernel counts, ``[(rows, width)]``, minimising padded work.
+
+    Candidates are 1 … ``max_groups`` quantile splits of the rows sorted by count; each group is
+    evaluated up to its largest count (≥ 1). A single group of every row is ``[(None, width)]``.
+    """
+    order = torch.argsort(counts, stable=True)
+    ordered = [max(1, int(c)) for c in counts[order].tolist()]
+    d = len(ordered)
+    best, best_cost = [(None, ordered[-1])], _CALL_COST_KERNELS + queries * d * ordered[-1]
+    for k in range(2, min(max_groups, d) + 1):
+        bounds = sorted({round(d * j / k) for j in range(1, k + 1)})
+        groups, start, cost = [], 0, 0
+        for end in bounds:
+            if end > start:
+                groups.append((order[start:end], ordered[end - 1]))
+                cost += _CALL_COST_KERNELS + queries * (end - start) * ordered[end - 1]
+                start = end
+        if cost < best_cost:
+            best, best_cost = groups, cost
+    return best
+
+
+def _kd_leaf_order(features: Tensor, valid: Tensor, leaf: int) -> Tensor:
+    """Kernel order ``(D, S)`` grouping kernels into leaf blocks of a k-d tree (median splits).
+
+    features: ``(D, N, F)`` split coordinates; valid: ``(D, N)``. ``S = leaf · 2^levels ≥ N``; index
+    ``N`` marks padding. Invalid kernels sort last and end up in padding-only blocks where possible.
+    """
+    d, n, f = features.shape
+    levels = max(0, math.ceil(math.log2(max(1.0, n / leaf))))
+    size = leaf * 2**levels
+    feats = torch.where(valid.unsqueeze(-1), features, torch.full_like(features, math.inf))
+    filler = torch.full((d, size - n, f), math.inf, dtype=feats.dtype, device=feats.device)
+    feats = torch.cat([feats, filler], 1)
+    order = torch.arange(size, device=features.device).expand(d, size).contiguous()
+    for level in range(levels):
+        nodes = 2**level
+        node = torch.gather(feats, 1, order.unsqueeze(-1).expand(-1, -1, f)).reshape(d, nodes, -1, f)
+        finite = torch.isfinite(node)
+        low = torch.where(finite, node, torch.full_like(node, math.inf)).amin(2)
+        high = torch.where(finite, node, torch.full_like(node, -math.inf)).amax(2)
+        axis = torch.nan_to_num(high - low, nan=0.0, posinf=0.0, neginf=0.0).argmax(-1)  # (D, nodes)
+        values = torch.gather(node, 3, axis[:, :, None, None].expand(-1, -1, node.shape[2], 1)).squeeze(-1)
+        split = values.argsort(dim=-1, stable=True)
+        order = torch.gather(order.reshape(d, nodes, -1), 2, split).reshape(d, size)
+    return torch.where(order < n, order, torch.full_like(order, n))
+
+
+class _FastIndex:
+    """A PoseKDE's kernels laid out for the fast path: a dense table or pruned leaf blocks."""
+
+    def __init__(self, kde: PoseKDE, leaf: int = FAST_LEAF_SIZE, blocks: bool | None = None) -> None:
+        """Lay out ``kde``'s kernels; ``blocks`` forces leaf blocks (True) or the dense table (False),
+        None chooses by size (blocks above ``FAST_DENSE_KERNELS`` kernels)."""
+        bw = kde.bandwidth
+        dtype, device = kde.dtype, kde.device
+        n = kde.num_kernels
+        self.batch_shape = kde.batch_shape
+        d = max(1, self.batch_shape.numel())
+        p = kde._p.reshape(d, n, 3)
+        q = kde._q.reshape(d, n, 4)
+        log_w = kde._log_w.reshape(d, n)
+        valid = log_w > -math.inf
+        beta = kde._beta.reshape(d, 3).double()
+        self.delta_p, self.delta_q, _ = bw.delta
+        sp = beta[:, 0] / bw.sigma_p
+        kappa = beta[:, 1] / bw.sigma_q
+        self.scale = torch.stack([sp, kappa], -1).to(dtype)  # (D, 2)
+        self.log_w_max = log_w.amax(-1)  # (D,): every element has a finite weight
+        relative = log_w - self.log_w_max.unsqueeze(-1)
+        # linear-domain sums are exact unless a kernel weighs ~e^-60 less than the largest (float32)
+        self.linear = bool((relative[valid] > math.log(torch.finfo(dtype).tiny) + 25.0).all())
+        rows = torch.cat([p, q, relative.unsqueeze(-1)], -1)  # (D, N, 8)
+        self.blocks = n > FAST_DENSE_KERNELS if blocks is None else bool(blocks)
+        if not self.blocks:
+            # Valid kernels first, and rows grouped by how many they hold, so that densities padded to
+            # a common N (experts of a product, stacked conditions) are not evaluated on their padding.
+            front = torch.argsort((~valid).to(torch.int8), dim=-1, stable=True)
+            rows = torch.gather(rows, 1, front.unsqueeze(-1).expand(-1, -1, 8))
+            self.table = rows.transpose(1, 2).contiguous()  # (D, 8, N)
+            self.counts = valid.sum(-1)
+            self.groups: dict[int, list[tuple[Tensor | None, int]]] = {}  # per query count
+            return
+        # translation reach r (β d_p < δ_p ⇔ |Δp| < r) and rotation reach θ (κ(1−|<q,μ>|) < δ_q)
+        reach_p = torch.sqrt(self.delta_p / sp)
+        cos_half = 1.0 - self.delta_q / kappa
+        reach_q = torch.where(cos_half > -1.0, 2.0 * torch.acos(cos_half.clamp(-1.0, 1.0)),
+                              torch.full_like(cos_half, 2 * math.pi))
+        self.r2 = (reach_p**2 * (1 + _BOUND_SLACK)).unsqueeze(-1).to(dtype)  # (D, 1); inf: no cut-off
+        # split coordinates: the cut-off radii map to one unit (rotation: vector part ≈ θ/2 · axis)
+        q_canon = torch.where(q[..., :1] < 0, -q, q).double()
+        p_unit = torch.where(torch.isfinite(reach_p), 1.0 / reach_p, torch.zeros_like(reach_p))
+        q_unit = torch.where(reach_q < math.pi, 2.0 / reach_q.clamp_min(1e-6), torch.zeros_like(reach_q))
+        features = torch.cat([p.double() * p_unit[:, None, None], q_canon[..., 1:] * q_unit[:, None, None]],
+                             -1)
+        order = _kd_leaf_order(features, valid, leaf)  # (D, S)
+        padding = torch.tensor([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -math.inf], dtype=dtype, device=device)
+        rows = torch.cat([rows, padding.expand(d, 1, 8)], 1)
+        blocks = torch.gather(rows, 1, order.unsqueeze(-1).expand(-1, -1, 8)).reshape(d, -1, leaf, 8)
+        self.num_blocks = blocks.shape[1]
+        live = blocks[..., 7] > -math.inf  # (D, nb, L)
+        bp = blocks[..., 0:3]
+        big = torch.finfo(dtype).max
+        lo = torch.where(live.unsqueeze(-1), bp, torch.full_like(bp, big)).amin(2)  # (D, nb, 3)
+        hi = torch.where(live.unsqueeze(-1), bp, torch.full_like(bp, -big)).amax(2)
+        self.lo, self.hi = lo.transpose(1, 2).contiguous(), hi.transpose(1, 2).contiguous()
+        bq = blocks[..., 3:7].double()
+        aligned = bq * torch.where((bq * bq[:, :, :1]).sum(-1, keepdim=True) < 0, -1.0, 1.0)
+        centre = (aligned * live.unsqueeze(-1)).sum(2)
+        centre = centre / centre.norm(dim=-1, keepdim=True).clamp_min(1e-12)  # (D, nb, 4)
+        cos_cap = (bq * centre.unsqueeze(2)).sum(-1).abs().clamp(max=1.0)
+        cap = torch.where(live, 2.0 * torch.acos(cos_cap), torch.zeros_like(cos_cap)).amax(-1)  # (D, nb)
+        half = (reach_q.unsqueeze(-1) + cap) * (1 + _BOUND_SLACK) / 2 + _BOUND_SLACK
+        cos_reach = torch.where(half < math.pi / 2, torch.cos(half.clamp(max=math.pi / 2)),
+                                torch.full_like(half, -1.0))
+        # an empty block is never reached: |cos| < 2
+        self.cos_reach = torch.where(live.any(-1), cos_reach, torch.full_like(cos_reach, 2.0)).to(dtype)
+        self.centre = centre.to(dtype).transpose(1, 2).contiguous()
+        self.table = torch.cat([blocks.transpose(-1, -2).reshape(-1, 8, leaf),
+                                padding[None, :, None].expand(1, 8, leaf)], 0).contiguous()
+
+    def log_prob(self, p: Tensor, q: Tensor) -> Tensor:
+        """Log densities of prepared queries ``p (*BB, M, 3)``, ``q (*BB, M, 4)`` → ``(*BB, M)``."""
+        batch = torch.broadcast_shapes(p.shape[:-2], self.batch_shape)
+        m = p.shape[-2]
+        x = torch.cat([p.expand(*batch, m, 3), q.expand(*batch, m, 4)], -1).reshape(-1, m, 7)
+        rows = x.shape[0]
+        if m == 0 or rows == 0:
+            return torch.empty(*batch, m, dtype=x.dtype, device=x.device)
+        if len(self.batch_shape) == 0:
+            density = torch.zeros(rows, dtype=torch.long, device=x.device)
+        else:
+            density = torch.arange(self.batch_shape.numel(), device=x.device).reshape(self.batch_shape)
+            density = density.expand(batch).reshape(-1)
+        own = tuple(batch) == tuple(self.batch_shape) or (len(self.batch_shape) == 0 and rows == 1)
+
+        def per_query(t: Tensor) -> Tensor:
+            return t if own else t[density]
+
+        compiled = fast_path_compiled(x.device)  # compiled code streams; eager code is chunked below
+        x_t = x.transpose(1, 2)  # (Q, 7, M)
+        if not self.blocks:
+            evaluate = fused_function("dense_sums", _dense_sums, x.device)
+            if own and m not in self.groups:
+                self.groups[m] = _row_groups(self.counts, m, _DENSE_ROW_GROUPS)
+            groups = self.groups[m] if own else [(None, self.table.shape[-1])]
+            total = x.new_empty(rows, m)
+            for members, width in groups:
+                if members is None:
+                    table, scale, xg = per_query(self.table)[..., :width], per_query(self.scale), x_t
+                else:
+                    table, scale, xg = self.table[members, :, :width], self.scale[members], x_t[members]
+                streamed = compiled and "dense_sums" not in _compile_failed
+                step = m if streamed else max(1, _DEFAULT_BLOCK_ELEMENTS // max(1, table.shape[0] * width))
+                part = torch.cat([evaluate(xg[..., s : s + step], table, scale, self.delta_p, self.delta_q)
+                                  for s in range(0, m, step)], -1)
+                if members is None:
+                    total = part
+                else:
+                    total[members] = part
+        else:
+            bounds = [per_query(t) for t in (self.lo, self.hi, self.centre, self.cos_reach, self.r2)]
+            # compiled reach is ~10x faster with a float result; nonzero is faster on bool
+            reach = fused_function("reach", _reachable_blocks, x.device)(x_t, *bounds) > 0
+            pair_query, pair_block = reach.reshape(rows * m, self.num_blocks).nonzero(as_tuple=True)
+            query_density = density.repeat_interleave(m)
+            flat_x = x.reshape(rows * m, 7)
+            evaluate = fused_function("block_sums", _block_sums, x.device)
+            # eager evaluation materialises (pairs, 8, L): chunk it; compiled code streams it
+            streamed = compiled and "block_sums" not in _compile_failed
+            step = pair_query.numel() if streamed else _DEFAULT_BLOCK_ELEMENTS // (8 * self.table.shape[-1])
+            total = torch.zeros(rows * m, dtype=x.dtype, device=x.device)
+            for s in range(0, pair_query.numel(), max(1, step)):
+                pairs = (pair_query[s : s + step], pair_block[s : s + step])
+                total = total + evaluate(flat_x, self.table, self.scale, query_density, *pairs,
+                                         self.num_blocks, self.delta_p, self.delta_q)
+        offset = self.log_w_max[density].unsqueeze(-1)
+        return (torch.log(total.reshape(rows, m)) + offset).reshape(*batch, m)
 
 # --------------------------------------------------------------------------------------------------
 # Product of experts
@@ -973,6 +1334,7 @@ def product_log_prob(
     expert_log_weight: Tensor | None = None,
     expert_mask: Tensor | None = None,
     chunk_size: int | None = None,
+    method: str = "dense",
 ) -> Tensor:
     """log of the product of experts, Σ_e (log w^P_e + log P_e(m)) (Eq. poe in log space).
 
@@ -983,7 +1345,7 @@ def product_log_prob(
         expert_log_weight: log w^P_e, shape ``(E,)`` or ``(E, *B)``; default 0 (w^P = 1).
         expert_mask: bool ``(E,)`` or ``(E, *B)``; False marks a padding expert that contributes nothing
             (so problems with different expert counts stack). Default: all experts count.
-        chunk_size: as :meth:`PoseKDE.log_prob`.
+        chunk_size, method: as :meth:`PoseKDE.log_prob` (``"fast"`` prunes and fuses every expert).
 
     Returns:
         ``(*broadcast(B, B'), M)``; ``-inf`` where any counted expert vetoes the pose (density 0).
@@ -1002,7 +1364,7 @@ def product_log_prob(
             f" {tuple(experts.batch_shape[1:])} (the expert dim must not appear in the queries)"
         )
     # Batch dims align from the right, so queries with at most len(B) batch dims meet (E, *B) as (*B).
-    per_expert = experts.log_prob(pose, chunk_size=chunk_size)  # (E, *BB, M)
+    per_expert = experts.log_prob(pose, chunk_size=chunk_size, method=method)  # (E, *BB, M)
     if expert_log_weight is not None:
         w = torch.as_tensor(expert_log_weight, dtype=per_expert.dtype, device=per_expert.device)
         if torch.isnan(w).any() or (w == math.inf).any():
@@ -1042,8 +1404,11 @@ class ProductOfExperts:
     def num_experts(self) -> int:
         return self.experts.batch_shape[0]
 
-    def log_prob(self, pose: Pose, chunk_size: int | None = None) -> Tensor:
-        return product_log_prob(self.experts, pose, self.expert_log_weight, self.expert_mask, chunk_size)
+    def log_prob(self, pose: Pose, chunk_size: int | None = None, method: str = "dense") -> Tensor:
+        """Σ_e (log w^P_e + log P_e(pose)), see :func:`product_log_prob`."""
+        return product_log_prob(
+            self.experts, pose, self.expert_log_weight, self.expert_mask, chunk_size, method
+        )
 
     def __call__(self, pose: Pose) -> Tensor:
         return self.log_prob(pose)

@@ -325,10 +325,14 @@ def voxel_down_sample(cloud: PointCloud, voxel_size: float = DEFAULT_VOXEL_SIZE)
             np.ascontiguousarray(cloud.view_origins.detach().cpu().numpy().astype(np.float32))
         )
     down = o3d_cloud.voxel_down_sample(float(voxel_size))
-    points = torch.from_numpy(down.point.positions.numpy().copy()).to(device=device, dtype=dtype) + shift
+    positions = down.point.positions.numpy()
+    # open3d returns the voxels in hash-map order, which changes from call to call: sort them so the
+    # same cloud always down-samples to the same point order (seeded subsets downstream depend on it)
+    order = np.lexsort((positions[:, 2], positions[:, 1], positions[:, 0]))
+    points = torch.from_numpy(positions[order]).to(device=device, dtype=dtype) + shift
     origins = None
     if cloud.view_origins is not None:
-        origins = torch.from_numpy(down.point["view_origins"].numpy().copy()).to(device=device, dtype=dtype)
+        origins = torch.from_numpy(down.point["view_origins"].numpy()[order]).to(device=device, dtype=dtype)
     return PointCloud(points, origins)
 
 

@@ -10,7 +10,8 @@ from pushtorch import viz
 def test_main_job_writes_a_recording_with_the_logged_entities(tmp_path: Path):
     run_dir = tmp_path / "run"
     result = subprocess.run(
-        [sys.executable, "-m", "pushtorch", f"hydra.run.dir={run_dir}", "experiment.objects=[cube,cylinder]"],
+        [sys.executable, "-m", "pushtorch", f"hydra.run.dir={run_dir}", "experiment=perception_demo",
+         "experiment.objects=[cube,cylinder]"],
         capture_output=True,
         text=True,
         timeout=300,

@@ -29,6 +29,9 @@ the ±10°/s actions. Measured on the cube, environment experts' kernel means we
 truth without ``g`` and the product was pulled off the manipulator expert's (0.9 cm) answer.
 ``g`` is observable at prediction (the robot start pose is chosen first) and transfers across objects
 as "where the contact is relative to the pusher".
+
+Fast path: :func:`anneal_motion_densities` anneals the products of experts of many push conditions in
+one batch, with the fused :meth:`pushtorch.kde.PoseKDE.log_prob` (``method="fast"``).
 """
 
 from __future__ import annotations
@@ -49,7 +52,15 @@ from pushtorch.models.frames import ContactFrames, embed_descriptors
 
 Tensor = torch.Tensor
 
-__all__ = ["MotionDensity", "MotionKernels", "MotionModel", "fit_motion_model", "local_motions", "motion_frames"]
+__all__ = [
+    "MotionDensity",
+    "MotionKernels",
+    "MotionModel",
+    "anneal_motion_densities",
+    "fit_motion_model",
+    "local_motions",
+    "motion_frames",
+]
 
 
 @dataclass
@@ -265,10 +276,14 @@ class MotionDensity:
     def num_experts(self) -> int:
         return int(self.experts.batch_shape[0])
 
-    def log_prob(self, final_pose: se3.Pose) -> Tensor:
-        """``log P(B1 | a)`` up to the constant of the unnormalised kernels, for poses ``(..., M)``."""
+    def log_prob(self, final_pose: se3.Pose, method: str = "dense") -> Tensor:
+        """``log P(B1 | a)`` up to the constant of the unnormalised kernels, for poses ``(..., M)``.
+
+        ``method``: ``"dense"`` (reference) or ``"fast"`` (pruned, fused experts; same values up to
+        float rounding, see :meth:`pushtorch.kde.PoseKDE.log_prob`).
+        """
         poe = ProductOfExperts(self.experts, self.expert_log_weight)
-        return poe.log_prob(final_pose)
+        return poe.log_prob(final_pose, method=method)
 
     def proposal(self, n: int, generator: torch.Generator | None = None) -> se3.Pose:
         """``n`` poses drawn from the experts' mixture (equal shares): annealing's starting candidates."""
@@ -276,10 +291,12 @@ class MotionDensity:
         flat = samples.reshape(-1)
         return flat.take(torch.randperm(flat.p.shape[0], generator=generator)[:n])
 
-    def widen_until_supported(self, candidates: se3.Pose, max_rounds: int = 10) -> se3.Pose:
+    def widen_until_supported(
+        self, candidates: se3.Pose, max_rounds: int = 10, method: str = "dense"
+    ) -> se3.Pose:
         """Trial rounds for the product: widen every expert until some candidate has non-zero density."""
         for _ in range(max_rounds + 1):
-            if torch.isfinite(self.log_prob(candidates)).any():
+            if torch.isfinite(self.log_prob(candidates, method)).any():
                 return candidates
             rounds = self.experts.trial_rounds.clone()
             rounds[..., :2] += 1  # translation and rotation of the motion kernels (no descriptors here)
@@ -295,8 +312,15 @@ class MotionDensity:
         schedule: AnnealSchedule,
         generator: torch.Generator | None = None,
         record_history: bool = False,
+        method: str = "dense",
     ) -> MotionPrediction:
-        """Simulated annealing on the product of experts from candidates drawn from the experts."""
+        """Simulated annealing on the product of experts from candidates drawn from the experts.
+
+        ``method``: ``"dense"`` (reference) or ``"fast"`` (pruned, fused product and cheaper proposals;
+        the same law, another random stream). See :func:`anneal_motion_densities` for many at once.
+        """
+        if method == "fast":
+            return anneal_motion_densities([self], n_candidates, schedule, generator, record_history)[0]
         init = self.proposal(n_candidates, generator)
         init = self.widen_until_supported(init)
         result = anneal(self.log_prob, init, schedule, generator, record_history=record_history)
@@ -312,3 +336,75 @@ class MotionDensity:
             raise ModelError("no proposal has non-zero density under the product of experts")
         idx = torch.multinomial(torch.softmax(log_w, -1), n, replacement=True, generator=generator)
         return proposals.take(idx)
+
+
+def anneal_motion_densities(
+    densities: list[MotionDensity],
+    n_candidates: int,
+    schedule: AnnealSchedule,
+    generator: torch.Generator | None = None,
+    record_history: bool = False,
+) -> list[MotionPrediction]:
+    """Anneal the products of experts of several push conditions in one batch on the fast path.
+
+    Every condition's experts are padded to common kernel and expert counts (padding kernels weigh
+    nothing, padding experts are masked out) and stacked along a problem dim, so each annealing step
+    is one pruned, fused evaluation for all conditions (:meth:`pushtorch.kde.PoseKDE.log_prob`,
+    ``method="fast"``). Each condition's start candidates and trial rounds are its own
+    (:meth:`MotionDensity.proposal`, :meth:`MotionDensity.widen_until_supported`).
+
+    Returns:
+        One :class:`MotionPrediction` per density, in order.
+
+    Raises:
+        InvalidParameterError: no densities, or densities of different dtype/bandwidth.
+        ModelError: as :meth:`MotionDensity.widen_until_supported`.
+    """
+    if not densities:
+        raise InvalidParameterError("anneal_motion_densities needs at least one density")
+    starts = []
+    for density in densities:
+        init = density.proposal(n_candidates, generator)
+        starts.append(density.widen_until_supported(init, method="fast"))
+    n_experts = max(d.num_experts for d in densities)
+    n_kernels = max(d.experts.num_kernels for d in densities)
+    first = densities[0].experts
+    dtype, device = first.dtype, first.device
+    p = torch.zeros(n_experts, len(densities), n_kernels, 3, dtype=dtype, device=device)
+    q = torch.zeros(n_experts, len(densities), n_kernels, 4, dtype=dtype, device=device)
+    q[..., 0] = 1.0
+    log_w = torch.full((n_experts, len(densities), n_kernels), -math.inf, dtype=dtype, device=device)
+    log_w[..., 0] = 0.0  # padding experts keep one (masked-out) kernel so every element is a density
+    rounds = torch.zeros(n_experts, len(densities), 3, dtype=torch.int64, device=device)
+    log_wp = torch.zeros(n_experts, len(densities), dtype=dtype, device=device)
+    mask = torch.zeros(n_experts, len(densities), dtype=torch.bool, device=device)
+    for b, density in enumerate(densities):
+        experts = density.experts
+        if experts.bandwidth != first.bandwidth or experts.dtype != dtype:
+            raise InvalidParameterError("densities annealed together need one motion bandwidth and dtype")
+        e, n = density.num_experts, experts.num_kernels
+        p[:e, b, :n], q[:e, b, :n] = experts.means.p, experts.means.q
+        log_w[:e, b, :] = -math.inf
+        log_w[:e, b, :n] = experts.log_weights
+        rounds[:e, b] = experts.trial_rounds
+        log_wp[:e, b] = density.expert_log_weight.to(dtype)
+        mask[:e, b] = True
+    # its only queries are the annealing's own (finite, normalised) proposals: no per-call validation
+    stacked = PoseKDE(se3.Pose(p, q), first.bandwidth, log_w, trial_rounds=rounds, validate_args=False)
+    product = ProductOfExperts(stacked, log_wp, mask)
+    init = se3.Pose(torch.stack([s.p for s in starts]), torch.stack([s.q for s in starts]))  # (B, C)
+    result = anneal(lambda pose: product.log_prob(pose, method="fast"), init, schedule, generator,
+                    record_history=record_history, method="fast")
+    out = []
+    for b in range(len(densities)):
+        part = AnnealResult(
+            best=se3.Pose(result.best.p[b], result.best.q[b]),
+            best_log_prob=result.best_log_prob[b],
+            candidates=se3.Pose(result.candidates.p[b], result.candidates.q[b]),
+            log_prob=result.log_prob[b],
+            history=(None if result.history is None
+                     else se3.Pose(result.history.p[:, b], result.history.q[:, b])),
+            history_log_prob=None if result.history_log_prob is None else result.history_log_prob[:, b],
+        )
+        out.append(MotionPrediction(part.best, part.best_log_prob, part))
+    return out

@@ -10,6 +10,10 @@ for a manipulator model the kernel nearest the best candidate gives the manipula
 
 The selection heuristic ``H_r`` (Eq. for H_r with d'_r) is computed at the same time
 (:func:`feature_distance_heuristic`).
+
+Fast path (``method="fast"``): the same draws without the ``(kernels × frames)`` weight matrix (fused
+group sums and a two-level categorical draw), and several densities annealed in one batch
+(:func:`optimise_query_densities`) with the pruned, fused :meth:`pushtorch.kde.PoseKDE.log_prob`.
 """
 
 from __future__ import annotations
@@ -21,9 +25,15 @@ import torch
 
 from pushtorch import se3
 from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal, initial_candidates
-from pushtorch.errors import InvalidPointCloudError, ModelError
+from pushtorch.errors import InvalidParameterError, InvalidPointCloudError, ModelError
 from pushtorch.features import SurfaceFeatures
-from pushtorch.kde import KernelBandwidth, PoseKDE, descriptor_distance, descriptor_distance_unscaled
+from pushtorch.kde import (
+    KernelBandwidth,
+    PoseKDE,
+    descriptor_distance,
+    descriptor_distance_unscaled,
+    fused_function,
+)
 from pushtorch.models.frames import DESCRIPTOR_SCALE, ContactFrames, embed_descriptors
 
 Tensor = torch.Tensor
@@ -33,12 +43,16 @@ __all__ = [
     "QueryResult",
     "build_query_density",
     "feature_distance_heuristic",
+    "optimise_query_densities",
+    "optimise_query_density",
     "neighbourhood_log_weights",
     "planar",
 ]
 
 _BLOCK = 1 << 22  # elements of one (features x frames) block
 _HEURISTIC_FEATURES = 2000  # features over which H_r's mean is estimated
+_FRAME_GROUP = 64  # frames per group of the fast path's two-level categorical draw
+_FAST_REDRAWS = 20  # rounds of redrawing unreachable features before the fast build defers to the dense one
 
 
 def neighbourhood_log_weights(
@@ -64,12 +78,25 @@ def neighbourhood_log_weights(
     return log_w.masked_fill(d >= cutoff_std**2 / 2, -math.inf)
 
 
-def feature_distance_heuristic(r_features: Tensor, r_frames: Tensor) -> Tensor:
+def _heuristic_row_sums(r_rows: Tensor, r_frames: Tensor) -> Tensor:
+    """Σ_j d'_r(r_i, r_j)^(1/4) per row ``(n,)`` (fused on the fast path)."""
+    d = (r_rows[:, None, 0] - r_frames[None, :, 0]) ** 2 + (r_rows[:, None, 1] - r_frames[None, :, 1]) ** 2
+    return torch.sqrt(torch.sqrt(d)).sum(-1)
+
+
+def feature_distance_heuristic(r_features: Tensor, r_frames: Tensor, method: str = "dense") -> Tensor:
     """``H_r``: mean over cloud features i and model frames j of ``d'_r(r_i, r_j)^(1/4)``.
 
     The paper sums over the query kernels and the model's frames; the mean orders models the same way
     when they have equal frame counts and stays fair when they do not (docs/method.md). Chunked over i.
+    ``method="fast"`` fuses the per-row sums (float32 rows, float64 total): the same value up to rounding.
     """
+    if method == "fast" and r_features.shape[-1] == 2:
+        rows = fused_function("heuristic_rows", _heuristic_row_sums, r_features.device)
+        step = max(1, _BLOCK // max(1, r_frames.shape[0]))
+        total = sum(rows(r_features[s : s + step], r_frames).double().sum()
+                    for s in range(0, len(r_features), step))
+        return (total / (r_features.shape[0] * r_frames.shape[0])).to(r_features.dtype)
     total = torch.zeros((), dtype=torch.float64, device=r_features.device)
     step = max(1, _BLOCK // max(1, r_frames.shape[0]))
     for start in range(0, r_features.shape[0], step):
@@ -108,6 +135,84 @@ class QueryResult:
     density: QueryDensity | None = None  # the density that was optimised (kernels for Rerun, H_r)
 
 
+def _group_weight_sums(
+    e_rows: Tensor, e_frames: Tensor, log_w: Tensor, scale: Tensor, delta: float
+) -> Tensor:
+    """Σ over each group of frames of ``w^c_j N2(r_i | r_j)`` (cut off), ``(n, G)``.
+
+    e_rows: ``(n, 2)`` embedded descriptors; e_frames: ``(G, S, 2)`` grouped frames; log_w: ``(G, S)``
+    log ``w^c`` relative to the largest (−inf: padding); scale: ``(2,)`` β_r/σ_r; delta: the cut-off.
+    """
+    d = ((e_rows[:, None, None, 0] - e_frames[None, :, :, 0]) ** 2 * scale[0]
+         + (e_rows[:, None, None, 1] - e_frames[None, :, :, 1]) ** 2 * scale[1])
+    return torch.where(d < delta, torch.exp(log_w - d), torch.zeros_like(d)).sum(-1)
+
+
+def _categorical_first_reaching(cumulative: Tensor, u: Tensor) -> Tensor:
+    """Index of the first entry whose cumulative weight reaches ``u ∈ (0, 1]`` of the total, ``(n,)``."""
+    target = u * cumulative[:, -1]
+    return (cumulative < target.unsqueeze(-1)).sum(-1).clamp(max=cumulative.shape[-1] - 1)
+
+
+def _fast_kernel_draws(
+    e_features: Tensor, e_frames: Tensor, frame_weight: Tensor, r_std: Tensor, cutoff_std: float,
+    n_kernels: int, generator: torch.Generator | None,
+) -> tuple[Tensor, Tensor, Tensor] | None:
+    """Features, frames and kernel log weights of a query density without the ``(K, N_c)`` matrix.
+
+    The same law as the dense build at the first trial round: each kernel's feature uniform among the
+    features with a frame in reach (unreachable draws are drawn again), its frame ∝ ``w^n_ij`` by a
+    two-level draw (a group of frames by its summed weight, then a frame in it), its weight
+    ``Σ_j w^n_ij``. Returns None (the caller builds densely) when reachable features are too rare
+    for redrawing or the weights span more than the dtype can sum in the linear domain.
+    """
+    device = e_features.device
+    log_wc = torch.log(frame_weight.clamp_min(0).to(e_features))
+    top = log_wc.max()
+    if not torch.isfinite(top):
+        return None
+    relative = log_wc - top
+    dtype = e_features.dtype
+    if relative[torch.isfinite(relative)].min() < math.log(torch.finfo(dtype).tiny) + 30.0:
+        return None
+    n_frames = e_frames.shape[0]
+    groups = math.ceil(n_frames / _FRAME_GROUP)
+    pad = groups * _FRAME_GROUP - n_frames
+    grouped = torch.cat([e_frames, e_frames.new_zeros(pad, 2)]).reshape(groups, _FRAME_GROUP, 2)
+    grouped_w = torch.cat([relative, relative.new_full((pad,), -math.inf)]).reshape(groups, _FRAME_GROUP)
+    scale = 1.0 / (2 * r_std.to(e_features) ** 2)
+    delta = cutoff_std**2 / 2
+    sums_fn = fused_function("group_weight_sums", _group_weight_sums, device)
+    step = max(1, _BLOCK // (groups * _FRAME_GROUP))
+
+    def group_sums(rows: Tensor) -> Tensor:
+        return torch.cat([sums_fn(e_features[rows[s : s + step]], grouped, grouped_w, scale, delta)
+                          for s in range(0, len(rows), step)])
+
+    pick = torch.randint(len(e_features), (n_kernels,), generator=generator).to(device)
+    sums = group_sums(pick)
+    for _ in range(_FAST_REDRAWS):
+        unreachable = sums.sum(-1) <= 0
+        count = int(unreachable.sum())
+        if count == 0:
+            break
+        if count == n_kernels:  # nothing in reach among n draws: let the dense build scan and widen
+            return None
+        redraw = torch.randint(len(e_features), (count,), generator=generator).to(device)
+        pick[unreachable] = redraw
+        sums[unreachable] = group_sums(redraw)
+    else:
+        return None
+    cumulative = sums.cumsum(-1)
+    kernel_log_w = torch.log(cumulative[:, -1]) + top
+    u = 1.0 - torch.rand(2, n_kernels, generator=generator, dtype=dtype).to(device)  # (0, 1]
+    group = _categorical_first_reaching(cumulative, u[0])
+    d = ((e_features[pick].unsqueeze(1) - grouped[group]) ** 2 * scale).sum(-1)  # (K, S)
+    inner = torch.where(d < delta, torch.exp(grouped_w[group] - d), torch.zeros_like(d))
+    frame_idx = group * _FRAME_GROUP + _categorical_first_reaching(inner.cumsum(-1), u[1])
+    return pick, frame_idx, kernel_log_w
+
+
 def build_query_density(
     frames: ContactFrames,
     features: SurfaceFeatures,
@@ -121,6 +226,7 @@ def build_query_density(
     project_planar: bool = False,
     heuristic: bool = False,
     generator: torch.Generator | None = None,
+    method: str = "dense",
 ) -> QueryDensity:
     """Build the query density of a contact/position model on a cloud's features (paper, Query Density).
 
@@ -130,6 +236,10 @@ def build_query_density(
     bandwidth widens by trial rounds (β_r = α_T^(−T_r)) up to ``max_rounds``. With ``heuristic`` the
     selection heuristic ``H_r`` is estimated on a uniform subset of the cloud's features (it is a mean).
 
+    ``method="fast"`` draws the same law without the ``(kernels × frames)`` weight matrix
+    (:func:`_fast_kernel_draws`, fused); it falls back to the dense build when features in reach are
+    rare (then trial rounds may be needed). The seed's random stream differs between the two.
+
     Raises:
         InvalidPointCloudError: no features.
         ModelError: no feature matches any frame even after ``max_rounds`` rounds.
@@ -137,15 +247,46 @@ def build_query_density(
     if len(features) == 0:
         raise InvalidPointCloudError("the query cloud has no surface features")
     r_std = r_std.to(features.r)
+    if method not in ("dense", "fast"):
+        raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
     e_features = embed_descriptors(features.r, descriptor_scale)
     e_frames = embed_descriptors(frames.r, descriptor_scale)
-    order = torch.randperm(len(features), generator=generator).to(features.r.device)
+    draws = None
+    if method == "fast":
+        draws = _fast_kernel_draws(e_features, e_frames, frames.weight, r_std, r_cutoff_std, n_kernels,
+                                   generator)
+    if draws is not None:
+        pick, frame_idx, kernel_log_w = draws
+        rounds = 0
+    else:
+        pick, frame_idx, kernel_log_w, rounds = _dense_kernel_draws(
+            e_features, e_frames, frames, r_std, r_cutoff_std, alpha_t, max_rounds, n_kernels, generator)
+    v = se3.Pose(features.p[pick], features.q[pick])
+    u = se3.Pose(frames.u.p[frame_idx], frames.u.q[frame_idx])
+    kernels = ContactFrames(v, features.r[pick], u, kernel_log_w.exp())
+    entity = se3.compose(v, u)
+    if project_planar:
+        entity = planar(entity)
+    kde = PoseKDE(entity, pose_bandwidth, log_weights=kernel_log_w)
+    h_r = None
+    if heuristic:
+        sample = torch.randperm(len(features), generator=generator)[:_HEURISTIC_FEATURES].to(features.r.device)
+        h_r = feature_distance_heuristic(features.r[sample], frames.r, method)
+    return QueryDensity(kernels, kde, h_r, rounds)
+
+
+def _dense_kernel_draws(
+    e_features: Tensor, e_frames: Tensor, frames: ContactFrames, r_std: Tensor, r_cutoff_std: float,
+    alpha_t: float, max_rounds: int, n_kernels: int, generator: torch.Generator | None,
+) -> tuple[Tensor, Tensor, Tensor, int]:
+    """The reference build's draws: features scanned in random order, dense ``(K, N_c)`` weights."""
+    order = torch.randperm(len(e_features), generator=generator).to(e_features.device)
     step = max(1, _BLOCK // max(1, len(frames)))
     for rounds in range(max_rounds + 1):
         beta_r = alpha_t ** (-rounds)
         pool_idx, pool_log_wn, found = [], [], 0
         # Blocks of features in random order until enough have a frame within reach: usually one or two.
-        for start in range(0, len(features), step):
+        for start in range(0, len(e_features), step):
             idx = order[start : start + step]
             block = neighbourhood_log_weights(e_features[idx], e_frames, frames.weight, r_std, r_cutoff_std, beta_r)
             ok = torch.isfinite(block).any(-1)
@@ -168,18 +309,7 @@ def build_query_density(
     log_wn = torch.cat(pool_log_wn)[choice]  # (K, Nc)
     frame_idx = torch.multinomial(torch.softmax(log_wn, -1), 1, generator=generator).squeeze(-1)
     kernel_log_w = torch.logsumexp(log_wn, -1)
-    v = se3.Pose(features.p[pick], features.q[pick])
-    u = se3.Pose(frames.u.p[frame_idx], frames.u.q[frame_idx])
-    kernels = ContactFrames(v, features.r[pick], u, kernel_log_w.exp())
-    entity = se3.compose(v, u)
-    if project_planar:
-        entity = planar(entity)
-    kde = PoseKDE(entity, pose_bandwidth, log_weights=kernel_log_w)
-    h_r = None
-    if heuristic:
-        sample = torch.randperm(len(features), generator=generator)[:_HEURISTIC_FEATURES].to(features.r.device)
-        h_r = feature_distance_heuristic(features.r[sample], frames.r)
-    return QueryDensity(kernels, kde, h_r, rounds)
+    return pick, frame_idx, kernel_log_w, rounds
 
 
 def optimise_query_density(
@@ -188,12 +318,67 @@ def optimise_query_density(
     schedule: AnnealSchedule,
     generator: torch.Generator | None = None,
     record_history: bool = False,
+    method: str = "dense",
 ) -> QueryResult:
-    """Simulated annealing on the query density from candidates drawn at the kernel means by weight."""
+    """Simulated annealing on the query density from candidates drawn at the kernel means by weight.
+
+    ``method``: ``"dense"`` (reference) or ``"fast"`` (pruned, fused density and cheaper proposals,
+    see :meth:`pushtorch.kde.PoseKDE.log_prob` and :func:`pushtorch.anneal.anneal`).
+    """
+    if method == "fast":
+        return optimise_query_densities([density], n_candidates, schedule, [schedule.planar], generator,
+                                        record_history)[0]
     init = initial_candidates(density.kde, n_candidates, generator)
     result = anneal(density.kde.log_prob, init, schedule, generator, record_history=record_history)
+    return _query_result(density, result)
+
+
+def _query_result(density: QueryDensity, result: AnnealResult) -> QueryResult:
     if not torch.isfinite(result.best_log_prob):
         raise ModelError("simulated annealing found no pose with non-zero query density")
     d = ((density.kde.means.p - result.best.p) ** 2).sum(-1)
     nearest = density.kernels.select(d.argmin().reshape(1))
     return QueryResult(result.best, result.best_log_prob, nearest, result, density)
+
+
+def optimise_query_densities(
+    densities: list[QueryDensity],
+    n_candidates: int,
+    schedule: AnnealSchedule,
+    planar: list[bool],
+    generator: torch.Generator | None = None,
+    record_history: bool = False,
+) -> list[QueryResult]:
+    """Anneal several query densities in one batch on the fast path (e.g. the robot's, planar, and the
+    object's pose, free), so every step costs one pruned density call for all of them.
+
+    The densities must share bandwidth and dtype; kernel counts may differ (padding). Each result is
+    the one :func:`optimise_query_density` would give with ``method="fast"`` up to the random stream.
+
+    Raises:
+        InvalidParameterError: ``planar`` does not match ``densities``.
+        ModelError: some density has no finite candidate after annealing.
+    """
+    if len(planar) != len(densities) or not densities:
+        raise InvalidParameterError(
+            f"need one planar flag per density (and at least one density), got {len(planar)} for"
+            f" {len(densities)}")
+    kde = PoseKDE.stack([d.kde for d in densities])
+    kde.validate_args = False  # its only queries are the annealing's own (finite, normalised) proposals
+    init = initial_candidates(kde, n_candidates, generator)  # (D, C)
+    mask = torch.tensor(planar, dtype=torch.bool, device=init.p.device)
+    result = anneal(lambda pose: kde.log_prob(pose, method="fast"), init, schedule, generator,
+                    record_history=record_history, planar=mask, method="fast")
+    out = []
+    for i, density in enumerate(densities):
+        history = None if result.history is None else se3.Pose(result.history.p[:, i], result.history.q[:, i])
+        part = AnnealResult(
+            best=se3.Pose(result.best.p[i], result.best.q[i]),
+            best_log_prob=result.best_log_prob[i],
+            candidates=se3.Pose(result.candidates.p[i], result.candidates.q[i]),
+            log_prob=result.log_prob[i],
+            history=history,
+            history_log_prob=None if result.history_log_prob is None else result.history_log_prob[:, i],
+        )
+        out.append(_query_result(density, part))
+    return out

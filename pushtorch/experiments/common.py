@@ -1,0 +1,711 @@
+"""Shared steps of the paper's experiments: training, test conditions, predictions, ground truth, records.
+
+Paper, Experimental Setup (Fig. prediction_accuracy_methodology): *training* — full cloud, contact models,
+simulated pushes (PDRs) under a training prior; *prediction* — a single-shot cloud of the test object,
+a push condition chosen by the model (robot start pose, contact frames, initial-pose estimate), a
+predicted final pose; *ground truth* — the same push simulated from the chosen robot start pose with
+mass and friction drawn from the test condition's prior, ``truth_samples`` times per condition and
+action. Everything here composes library calls; an experiment module only decides *what* to compare.
+
+Caching (a re-run with the same run directory resumes): training pushes are resumable shards under
+``<run_dir>/data/<object>_<friction>_<mass>/``, trained models ``<run_dir>/models/<same>.npz``, each
+group's predictions ``<run_dir>/predictions/<key>.npz`` and its ground-truth pushes
+``<run_dir>/truth/<key>/``. A cached file is reused only if it was made with the same settings.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import logging
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from pushtorch import se3
+from pushtorch.errors import InvalidParameterError, RecordFormatError
+from pushtorch.features import SurfaceFeatures, compute_surface_features
+from pushtorch.metrics import Accuracy, accuracy
+from pushtorch.models.library import ModelLibrary, ModelSettings, PushModel, load_model, train_push_model
+from pushtorch.objects import ObjectModel, load_object
+from pushtorch.perception import PointCloud
+from pushtorch.sim.priors import Prior, prior_from_config
+from pushtorch.sim.world import SimSettings
+
+__all__ = [
+    "Example",
+    "ExperimentContext",
+    "PredictionSet",
+    "as_names",
+    "compare",
+    "context_from_config",
+    "entity_label",
+    "fingerprint",
+    "load_arrays",
+    "load_test_objects",
+    "log_examples",
+    "merged_model_config",
+    "observe",
+    "plain",
+    "predict_set",
+    "progress_bar",
+    "sample_test_poses",
+    "save_arrays",
+    "simulate_truth",
+    "stable_seed",
+    "summarise",
+    "train_model",
+    "training_records",
+]
+
+log = logging.getLogger("pushtorch.experiments")
+
+
+def plain(cfg: Any) -> Any:
+    """A Hydra/OmegaConf node as plain Python containers (resolved); anything else unchanged."""
+    if isinstance(cfg, DictConfig) or OmegaConf.is_config(cfg):
+        return OmegaConf.to_container(cfg, resolve=True)
+    return cfg
+
+
+def stable_seed(*parts: Any) -> int:
+    """A 63-bit seed that is a pure function of ``parts`` (their ``str``), stable across runs and machines.
+
+    Every random quantity of an experiment gets its own seed from the run seed and a name, so results
+    do not depend on the order in which groups run or on which groups a run skips (resumption).
+    """
+    digest = hashlib.sha256("|".join(str(p) for p in parts).encode()).digest()
+    return int.from_bytes(digest[:8], "little") & ((1 << 63) - 1)
+
+
+def as_names(value: str | Sequence[str] | None) -> list[str]:
+    """One name or a list of names (a Hydra sweep gives one, an experiment's default a list)."""
+    if value is None:
+        return []
+    if isinstance(value, str):
+        return [value]
+    return [str(v) for v in value]
+
+
+@dataclass
+class ExperimentContext:
+    """Everything the experiment steps share: where to cache, how to train, simulate and log.
+
+    Attributes:
+        run_dir: the run directory (caches and outputs).
+        seed: the run seed.
+        settings: model settings for training and prediction.
+        samples_per_action: training pushes per action (paper: 500).
+        actions: ``(A, 2)`` the actions (ẋ m/s, θ̇ rad/s), float32.
+        duration: s per push.
+        sim: simulator settings (training and ground truth alike).
+        priors: ``{"friction": {name: Prior}, "mass": {name: Prior}}``.
+        workers: simulation processes (0: all cores); shard_size: pushes per shard.
+        progress: show tqdm progress bars.
+        recording: an open Rerun recording, or None.
+        log_examples: test conditions per part and object whose predictions (every action) are logged.
+    """
+
+    run_dir: Path
+    seed: int
+    settings: ModelSettings
+    samples_per_action: int
+    actions: torch.Tensor
+    duration: float
+    sim: SimSettings
+    priors: dict[str, dict[str, Prior]]
+    workers: int = 0
+    shard_size: int = 100
+    progress: bool = True
+    recording: Any = None
+    log_examples: int = 1
+    _models: dict[str, PushModel] = field(default_factory=dict, repr=False)
+    _slots: list[int] = field(default_factory=lambda: [0], repr=False)
+
+    def prior(self, kind: str, name: str) -> Prior:
+        """The prior ``priors.<kind>.<name>`` (kind: ``friction`` or ``mass``).
+
+        Raises:
+            InvalidParameterError: no such prior in the config.
+        """
+        table = self.priors.get(kind, {})
+        if name not in table:
+            raise InvalidParameterError(
+                f"no {kind} prior named {name!r} in this experiment's config (priors.{kind}: "
+                f"{', '.join(sorted(table)) or 'none'}); add it with +priors.{kind}.{name}={{kind: normal, "
+                "mean: ..., std: ...}}"
+            )
+        return table[name]
+
+    def with_model(self, model_cfg: Mapping[str, Any]) -> ExperimentContext:
+        """The same context with another model config's settings and training size."""
+        settings = ModelSettings.from_mapping(model_cfg.get("settings", {}))
+        samples = int(model_cfg.get("samples_per_action", self.samples_per_action))
+        return ExperimentContext(
+            self.run_dir, self.seed, settings, samples, self.actions, self.duration, self.sim, self.priors,
+            self.workers, self.shard_size, self.progress, self.recording, self.log_examples, self._models,
+            self._slots,
+        )
+
+    def next_slot(self) -> tuple[float, float]:
+        """Where the next logged example goes in the recording: a grid of 1.5 m cells from (0, 1.5)."""
+        k = self._slots[0]
+        self._slots[0] += 1
+        return 1.5 * (k % 8), 1.5 * (1 + k // 8)
+
+
+def merged_model_config(base: Mapping[str, Any], override: Mapping[str, Any] | None) -> dict[str, Any]:
+    """``base`` (the ``model`` config) with a part's ``model`` overrides merged in (nested dicts merge)."""
+    merged = OmegaConf.merge(OmegaConf.create(plain(base)), OmegaConf.create(plain(override or {})))
+    return OmegaConf.to_container(merged, resolve=True)
+
+
+def context_from_config(cfg: DictConfig | Mapping[str, Any], run_dir: str | Path) -> ExperimentContext:
+    """Build the context from a composed experiment config (keys ``seed``, ``model``, ``priors``, ``sim``,
+    ``experiment.actions``, ``experiment.workers``, ...).
+
+    Raises:
+        InvalidParameterError: an invalid model setting, prior or size.
+    """
+    from pushtorch.sim.push import make_actions
+
+    c = plain(cfg)
+    exp = c.get("experiment", {})
+    model_cfg = c.get("model", {})
+    actions_cfg = exp.get("actions", {})
+    priors = {
+        kind: {name: prior_from_config(p) for name, p in (c.get("priors", {}).get(kind) or {}).items()}
+        for kind in ("friction", "mass")
+    }
+    samples = int(model_cfg.get("samples_per_action", 500))
+    if samples < 1:
+        raise InvalidParameterError(f"model.samples_per_action must be >= 1, got {samples}")
+    return ExperimentContext(
+        run_dir=Path(run_dir),
+        seed=int(c.get("seed", 0)),
+        settings=ModelSettings.from_mapping(model_cfg.get("settings", {})),
+        samples_per_action=samples,
+        actions=make_actions(
+            int(actions_cfg.get("count", 3)),
+            tuple(actions_cfg.get("angle_range_deg", (-10.0, 10.0))),
+            float(actions_cfg.get("speed", 0.1)),
+        ),
+        duration=float(actions_cfg.get("duration", 4.0)),
+        sim=SimSettings(**(c.get("sim") or {})),
+        priors=priors,
+        workers=int(exp.get("workers", 0)),
+        shard_size=int(exp.get("shard_size", 100)),
+        progress=bool(exp.get("progress", True)),
+        log_examples=int(exp.get("log_examples", 1)),
+    )
+
+
+def progress_bar(ctx: ExperimentContext, total: int, desc: str):
+    """A tqdm bar of ``total`` steps (disabled when ``ctx.progress`` is false)."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="pred", disable=not ctx.progress, dynamic_ncols=True)
+
+
+def load_test_objects(cfg: DictConfig | Mapping[str, Any], default: Sequence[str]) -> list[ObjectModel]:
+    """The test objects: ``object=<name>`` (or ``object=mesh object.path=...``) if given, else ``default``."""
+    c = plain(cfg)
+    chosen = c.get("object")
+    if chosen:
+        return [load_object(chosen["name"], chosen.get("path"), float(chosen.get("scale", 1.0)))]
+    return [load_object(name) for name in default]
+
+
+# --- training ---------------------------------------------------------------------------------------
+
+
+def _model_key(obj_name: str, friction: str, mass: str) -> str:
+    return f"{obj_name}_{friction}_{mass}"
+
+
+def _training_folder(ctx: ExperimentContext, obj_name: str, friction: str, mass: str) -> Path:
+    return ctx.run_dir / "data" / _model_key(obj_name, friction, mass)
+
+
+def training_records(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str,
+                     progress: bool | None = None):
+    """The training pushes of ``obj`` under the named priors, simulated into the run's cache if missing.
+
+    Paper, Experimental Setup: the robot placed against the object, mass and friction drawn from the
+    training prior, ``samples_per_action`` pushes per action.
+    """
+    from pushtorch.sim.plan import plan_training_pushes
+    from pushtorch.sim.records import load_records
+    from pushtorch.sim.runner import run_plan
+    from pushtorch.sim.world import object_spec
+
+    plan = plan_training_pushes(
+        obj, ctx.actions, ctx.samples_per_action, ctx.prior("mass", mass), ctx.prior("friction", friction),
+        seed=stable_seed(ctx.seed, "training", obj.name, friction, mass), duration=ctx.duration,
+    )
+    folder = _training_folder(ctx, obj.name, friction, mass)
+    run_plan(object_spec(obj), plan, folder, ctx.sim, workers=ctx.workers, shard_size=ctx.shard_size,
+             progress=ctx.progress if progress is None else progress)
+    return load_records(folder)
+
+
+def train_model(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str) -> PushModel:
+    """A model of ``obj`` trained under the named friction and mass priors (cached in the run directory).
+
+    The model file is reused when its settings and training size match the context's; otherwise the
+    model is retrained from the (cached) training pushes.
+    """
+    key = _model_key(obj.name, friction, mass)
+    meta = {"friction": friction, "mass": mass, "samples_per_action": ctx.samples_per_action,
+            "seed": ctx.seed}
+    cache_key = f"{key}|{json.dumps(asdict(ctx.settings), sort_keys=True)}|{ctx.samples_per_action}"
+    if cache_key in ctx._models:
+        return ctx._models[cache_key]
+    path = ctx.run_dir / "models" / f"{key}.npz"
+    model = None
+    if path.is_file():
+        try:
+            cached = load_model(path)
+        except RecordFormatError as exc:
+            log.warning("retraining %s: %s", key, exc)
+        else:
+            if cached.settings == ctx.settings and cached.meta == meta:
+                model = cached
+    if model is None:
+        records = training_records(ctx, obj, friction, mass)
+        log.info("training %s on %d pushes (%d valid)", key, len(records), int(records.valid.sum()))
+        model = train_push_model(obj, records, ctx.settings, name=key,
+                                 generator=torch.Generator().manual_seed(stable_seed(ctx.seed, "fit", key)),
+                                 meta=meta)
+        model.save(path)
+    if ctx.recording is not None and all(m.name != model.name for m in ctx._models.values()):
+        _log_training(ctx, model, obj)
+    ctx._models[cache_key] = model
+    return model
+
+
+def _log_training(ctx: ExperimentContext, model: PushModel, obj: ObjectModel) -> None:
+    from pushtorch.viz.model import log_contact_model
+
+    # one row of trained models along +x at y = -1.5 m, clear of the experiments around the origin
+    index = len({m.name for m in ctx._models.values()})
+    log_contact_model(ctx.recording, model, obj, object_pose=obj.resting_pose(x=1.0 * index, y=-1.5))
+
+
+# --- test conditions ----------------------------------------------------------------------------------
+
+
+def sample_test_poses(obj: ObjectModel, count: int, yaw_range_deg: Sequence[float], seed: int) -> se3.Pose:
+    """``count`` test poses ``(count,)``: the object upright at the origin, yaw uniform in the range (seeded).
+
+    The robot approaches along +x and the camera looks from -x, so a yaw of 0 shows the object's -x side
+    to both (the side the training pushes touched).
+    """
+    if count < 1:
+        raise InvalidParameterError(f"the number of test conditions must be >= 1, got {count}")
+    low, high = (math.radians(float(v)) for v in yaw_range_deg)
+    if not high >= low:
+        raise InvalidParameterError(f"yaw_range_deg must be [low, high], low <= high; got {yaw_range_deg}")
+    generator = torch.Generator().manual_seed(seed)
+    yaw = low + (high - low) * torch.rand(count, generator=generator, dtype=torch.float64)
+    return se3.Pose.stack([obj.resting_pose(0.0, 0.0, float(y)) for y in yaw])
+
+
+def observe(obj: ObjectModel, pose: se3.Pose, settings: ModelSettings) -> tuple[PointCloud, SurfaceFeatures]:
+    """The single-shot cloud of ``obj`` at ``pose`` from the default camera, and its surface features."""
+    from pushtorch.perception import capture_partial_cloud
+
+    cloud = capture_partial_cloud(obj, pose, voxel_size=settings.voxel_size)
+    return cloud, compute_surface_features(cloud, radius=settings.feature_radius)
+
+
+# --- predictions --------------------------------------------------------------------------------------
+
+
+def save_arrays(path: Path, arrays: Mapping[str, torch.Tensor], meta: Mapping[str, Any]) -> None:
+    """Write tensors and a JSON-able ``meta`` atomically as one plain ``.npz`` (read without pickle)."""
+    from pushtorch.sim.records import atomic_write_bytes
+
+    buffer = io.BytesIO()
+    np.savez(buffer, __meta__=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
+             **{k: v.detach().cpu().numpy() for k, v in arrays.items()})
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def load_arrays(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """Read a file written by :func:`save_arrays`.
+
+    Raises:
+        RecordFormatError: a missing, unreadable or foreign file.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            arrays = {k: archive[k] for k in archive.files}
+        meta = json.loads(arrays.pop("__meta__").tobytes().decode())
+    except (OSError, ValueError, KeyError, EOFError) as exc:
+        raise RecordFormatError(f"{path} is not a readable pushtorch cache file: {exc}") from exc
+    return {k: torch.from_numpy(v) for k, v in arrays.items()}, meta
+
+
+def fingerprint(**inputs: Any) -> str:
+    """SHA-256 of JSON-able inputs: a cached result is reused only if what made it is unchanged."""
+    return hashlib.sha256(json.dumps(inputs, sort_keys=True, default=str).encode()).hexdigest()
+
+
+_POSE_FIELDS = ("truth_initial", "robot_start", "estimate", "final", "mean_motion", "nominal")
+
+
+@dataclass
+class PredictionSet:
+    """The predictions of one group (one test object, one model or library): N conditions × A actions.
+
+    Attributes:
+        truth_initial: true initial object poses ``(N,)``.
+        robot_start: predicted robot start poses ``(N, A)``.
+        estimate: estimated initial object poses ``B0'`` ``(N, A)`` (the no-motion baseline).
+        final: predicted final poses ``(N, A)``.
+        mean_motion: the mean-motion baseline's final poses ``(N, A)``.
+        nominal: the nominal-physics baseline's final poses ``(N, A)``, or None (not computed).
+        selected: ``(N, A)`` index into ``model_names`` of the model that made each prediction.
+        model_names: names of the candidate models.
+        fingerprint: what the set was computed from (a cached set is reused only if it matches).
+    """
+
+    truth_initial: se3.Pose
+    robot_start: se3.Pose
+    estimate: se3.Pose
+    final: se3.Pose
+    mean_motion: se3.Pose
+    nominal: se3.Pose | None
+    selected: torch.Tensor
+    model_names: list[str]
+    fingerprint: str
+
+    def save(self, path: Path) -> None:
+        """Write atomically as a plain ``.npz`` (no pickle)."""
+        arrays = {"selected": self.selected}
+        for name in _POSE_FIELDS:
+            pose = getattr(self, name)
+            if pose is not None:
+                arrays[f"{name}_p"], arrays[f"{name}_q"] = pose.p, pose.q
+        save_arrays(path, arrays, {"model_names": self.model_names, "fingerprint": self.fingerprint})
+
+    @staticmethod
+    def load(path: Path) -> PredictionSet:
+        """Read a file written by :meth:`save`.
+
+        Raises:
+            RecordFormatError: unreadable or incomplete file.
+        """
+        arrays, meta = load_arrays(path)
+        try:
+            poses = {n: se3.Pose(arrays[f"{n}_p"], arrays[f"{n}_q"]) if f"{n}_p" in arrays else None
+                     for n in _POSE_FIELDS}
+            return PredictionSet(**poses, selected=arrays["selected"], model_names=list(meta["model_names"]),
+                                 fingerprint=str(meta["fingerprint"]))
+        except KeyError as exc:
+            raise RecordFormatError(f"{path} is not a complete prediction set: missing {exc}") from exc
+
+
+@dataclass
+class Example:
+    """One prediction kept in memory for the recording (index of its condition and action)."""
+
+    condition: int
+    action: int
+    prediction: Any
+    features: SurfaceFeatures
+
+
+def predict_set(
+    ctx: ExperimentContext,
+    key: str,
+    obj: ObjectModel,
+    candidates: Sequence[PushModel],
+    poses: se3.Pose,
+    *,
+    adaptive: bool = False,
+    choose: Callable[[int], int] | None = None,
+    nominal: tuple[float, float] | None = None,
+    seed_key: str | None = None,
+    memo: dict | None = None,
+    examples: int = 0,
+    bar=None,
+) -> tuple[PredictionSet, list[Example]]:
+    """Predict every test condition and action of one group, with the motion baselines (cached).
+
+    Paper, Fig. prediction_accuracy_methodology: capture the partial cloud, generate the push condition,
+    predict. The prediction of condition ``i`` and action ``j`` is seeded with
+    ``stable_seed(seed, seed_key, i, j)``: groups that share a ``seed_key`` use common random numbers,
+    so they differ only by the model they apply (a paired comparison), and a model predicting the same
+    condition twice gives the same answer (``memo`` then skips the second prediction).
+
+    Args:
+        ctx: the experiment context.
+        key: the group's name (its cache file ``<run_dir>/predictions/<key>.npz``).
+        obj: the test object.
+        candidates: the models; with ``adaptive`` the one with the lowest ``H_r`` on each cloud is used
+            (paper, Model Selection), else ``candidates[choose(i)]`` for condition ``i`` (default 0).
+        poses: true initial poses ``(N,)``.
+        nominal: (mass kg, ground friction) of the nominal-physics baseline (the training prior's means),
+            or None to skip that baseline.
+        seed_key: the name the seeds derive from (default ``key``).
+        memo: a dict shared by groups with the same ``seed_key`` and object, keyed by (condition,
+            model name, action); holds derived poses, not predictions.
+        examples: how many conditions' predictions to return whole, with their annealing history (for
+            the recording; recomputed with the same seeds when the set comes from the cache).
+        bar: a tqdm bar advanced once per prediction.
+
+    Returns:
+        The predictions, and the kept examples.
+    """
+    from pushtorch.baselines import mean_motion_prediction, nominal_physics_prediction
+    from pushtorch.predict import predict
+
+    n, a_count = int(poses.p.shape[0]), int(ctx.actions.shape[0])
+    choose = choose or (lambda i: 0)
+    seed_key = seed_key or key
+    made_from = fingerprint(
+        key=key, seed=ctx.seed, seed_key=seed_key, models=[m.name for m in candidates], adaptive=adaptive,
+        choice=[choose(i) for i in range(n)], settings=asdict(ctx.settings),
+        poses=poses.p.tolist() + poses.q.tolist(), actions=ctx.actions.tolist(),
+        nominal=nominal, samples_per_action=ctx.samples_per_action,
+    )
+    path = ctx.run_dir / "predictions" / f"{key}.npz"
+    cached = None
+    if path.is_file():
+        try:
+            cached = PredictionSet.load(path)
+        except RecordFormatError as exc:
+            log.warning("recomputing %s: %s", key, exc)
+        if cached is not None and cached.fingerprint != made_from:
+            cached = None
+    library = ModelLibrary(list(candidates)) if adaptive else None
+    wanted = min(int(examples), n) if ctx.recording is not None else 0
+    memo = {} if memo is None else memo
+    kept: list[Example] = []
+
+    def predict_condition(i: int, features: SurfaceFeatures, record: bool) -> tuple[int, list[dict]]:
+        """Model index and, per action, the derived poses of condition ``i`` (kept predictions aside)."""
+        index = int(library.select(features)[1].argmin()) if library is not None else choose(i)
+        model = candidates[index]
+        derived = []
+        for j in range(a_count):
+            memo_key = (i, model.name, j)
+            if memo_key in memo and not record:
+                derived.append(memo[memo_key])
+                continue
+            generator = torch.Generator().manual_seed(stable_seed(ctx.seed, seed_key, i, j))
+            prediction = predict(model, features, ctx.actions[j], generator, record_history=record)
+            condition = prediction.condition
+            motion = model.motions[model.action_index(ctx.actions[j])]
+            memo[memo_key] = {
+                "robot_start": condition.robot_start, "estimate": condition.object_pose,
+                "final": prediction.final_pose,
+                "mean_motion": mean_motion_prediction(motion, condition.robot_start, condition.object_pose),
+            }
+            derived.append(memo[memo_key])
+            if record:
+                kept.append(Example(i, j, prediction, features))
+        return index, derived
+
+    if cached is not None:
+        if bar is not None:
+            bar.update(n * a_count)
+        for i in range(wanted):  # the logged examples only: same seeds, same predictions
+            _, features = observe(obj, poses.take(i), ctx.settings)
+            predict_condition(i, features, True)
+        return cached, kept
+
+    names = ("robot_start", "estimate", "final", "mean_motion", "nominal")
+    fields: dict[str, list] = {name: [] for name in names}
+    selected = torch.zeros(n, a_count, dtype=torch.int64)
+    for i in range(n):
+        _, features = observe(obj, poses.take(i), ctx.settings)
+        index, derived = predict_condition(i, features, i < wanted)
+        selected[i] = index
+        for j, poses_ij in enumerate(derived):
+            for name in ("robot_start", "estimate", "final", "mean_motion"):
+                fields[name].append(poses_ij[name])
+            if nominal is not None:
+                fields["nominal"].append(nominal_physics_prediction(
+                    obj, poses_ij["robot_start"], poses_ij["estimate"], ctx.actions[j], *nominal
+                ))
+            if bar is not None:
+                bar.update(1)
+
+    def stacked(items: list[se3.Pose]) -> se3.Pose:
+        flat = [se3.Pose(p.p.reshape(3).float().cpu(), p.q.reshape(4).float().cpu()) for p in items]
+        return se3.Pose.stack(flat).reshape(n, a_count)
+
+    result = PredictionSet(
+        truth_initial=se3.Pose(poses.p.float(), poses.q.float()),
+        **{name: stacked(fields[name]) for name in ("robot_start", "estimate", "final", "mean_motion")},
+        nominal=stacked(fields["nominal"]) if nominal is not None else None,
+        selected=selected,
+        model_names=[m.name for m in candidates],
+        fingerprint=made_from,
+    )
+    result.save(path)
+    return result, kept
+
+
+# --- ground truth -------------------------------------------------------------------------------------
+
+
+def simulate_truth(
+    ctx: ExperimentContext,
+    key: str,
+    obj: ObjectModel,
+    predictions: PredictionSet,
+    conditions: Sequence[tuple[str, str]],
+    samples: int,
+    seed_key: str | None = None,
+) -> tuple[se3.Pose, torch.Tensor]:
+    """Ground-truth final poses ``(C, N, A, S)`` of every condition, test pose, action and sample (cached).
+
+    Each push starts from the robot start pose the model chose and the true initial pose; mass and
+    friction are drawn from the test condition's priors (``conditions``: (friction name, mass name)),
+    seeded by ``seed_key`` (default ``key``) and condition, so groups sharing a ``seed_key`` face the
+    same physical parameters. Pushes run in parallel into ``<run_dir>/truth/<key>/``.
+
+    Returns:
+        The final poses, and ``(C, N, A, S)`` flags of pushes in which the object tipped or left the
+        ground (in practice: the chosen robot start pose overlapped the object and the engine threw it).
+    """
+    from pushtorch.sim.plan import PushPlan
+    from pushtorch.sim.records import load_records
+    from pushtorch.sim.runner import run_plan
+    from pushtorch.sim.world import object_spec
+
+    if samples < 1:
+        raise InvalidParameterError(f"truth_samples must be >= 1, got {samples}")
+    n, a_count = predictions.final.batch_shape
+    c_count = len(conditions)
+    shape = (c_count, n, a_count, samples)
+    masses, frictions = [], []
+    for friction, mass in conditions:
+        seed = stable_seed(ctx.seed, "truth", seed_key or key, friction, mass)
+        generator = torch.Generator().manual_seed(seed)
+        masses.append(ctx.prior("mass", mass).sample((n, a_count, samples), generator))
+        frictions.append(ctx.prior("friction", friction).sample((n, a_count, samples), generator))
+
+    def spread(pose: se3.Pose, dims: tuple[int, ...]) -> se3.Pose:
+        return se3.Pose(pose.p.double().reshape(*dims, 3).expand(*shape, 3).reshape(-1, 3),
+                        pose.q.double().reshape(*dims, 4).expand(*shape, 4).reshape(-1, 4))
+
+    action_index = torch.arange(a_count).reshape(1, 1, a_count, 1).expand(shape).reshape(-1)
+    plan = PushPlan(
+        object_name=obj.name,
+        robot_start=spread(predictions.robot_start, (1, n, a_count, 1)),
+        object_initial=spread(predictions.truth_initial, (1, n, 1, 1)),
+        action=ctx.actions.double()[action_index],
+        mass=torch.stack(masses).reshape(-1),
+        ground_friction=torch.stack(frictions).reshape(-1),
+        action_index=action_index,
+        seed=stable_seed(ctx.seed, "truth", key),
+        duration=ctx.duration,
+    )
+    folder = ctx.run_dir / "truth" / key
+    # small plans run in this process: a worker pool costs more than it saves
+    workers = 1 if len(plan) < 4 * ctx.shard_size else ctx.workers
+    run_plan(object_spec(obj), plan, folder, ctx.sim, workers=workers, shard_size=ctx.shard_size,
+             progress=False)
+    records = load_records(folder)
+    final = se3.Pose(records.object_final.p.reshape(*shape, 3), records.object_final.q.reshape(*shape, 4))
+    return final, (records.tipped | records.left_ground).reshape(shape)
+
+
+# --- records ------------------------------------------------------------------------------------------
+
+
+def compare(estimate: se3.Pose, truth: se3.Pose, obj: ObjectModel) -> Accuracy:
+    """Accuracy of estimates ``(...)`` against ground truths ``(..., S)`` (each estimate vs each sample)."""
+    shape = truth.batch_shape
+    est = se3.Pose(estimate.p.unsqueeze(-2).expand(*shape, 3), estimate.q.unsqueeze(-2).expand(*shape, 4))
+    flat = int(np.prod(shape))
+    return accuracy(est.reshape(flat), truth.reshape(flat), obj)
+
+
+def summarise(
+    task: str,
+    obj: str,
+    method: str,
+    acc: Accuracy,
+    model: str | None = None,
+    condition: str | None = None,
+    selection_rate: float | None = None,
+) -> dict[str, Any]:
+    """One results.json record: a group's H_acc mean and std, and mean raw errors, over ``n`` comparisons."""
+    h = acc.hacc.reshape(-1).double()
+    record = {
+        "task": task,
+        "object": obj,
+        "method": method,
+        "model": model,
+        "condition": condition,
+        "n": int(h.numel()),
+        "hacc_mean": float(h.mean()),
+        "hacc_std": float(h.std(unbiased=False)) if h.numel() > 1 else 0.0,
+        "linear_cm": float(acc.linear_cm.reshape(-1).double().mean()),
+        "angular_deg": float(acc.angular_deg.reshape(-1).double().mean()),
+    }
+    if task == "selection":
+        record["selection_rate"] = None if selection_rate is None else float(selection_rate)
+    return record
+
+
+# --- recording ----------------------------------------------------------------------------------------
+
+
+def entity_label(*parts: str) -> str:
+    """One Rerun entity-path part from words: anything outside ``[A-Za-z0-9_.-]`` becomes ``-``."""
+    import re
+
+    return ".".join(re.sub(r"[^A-Za-z0-9_\-]", "-", str(p)) for p in parts)
+
+
+def log_examples(
+    ctx: ExperimentContext,
+    label: str,
+    obj: ObjectModel,
+    examples: Sequence[Example],
+    predictions: PredictionSet,
+    truth_final: se3.Pose,
+) -> None:
+    """Log example predictions with their true initial and final poses, each in its own grid cell.
+
+    Every example goes under ``world/model/prediction/<label>.c<i>a<j>`` (``label`` from
+    :func:`entity_label`; entities as in :mod:`pushtorch.viz.model`), whose transform shifts it to a free
+    cell of the recording's grid; ``<root>/summary`` holds its accuracy as text.
+
+    Args:
+        truth_final: ground-truth final poses ``(N, A, S)`` of one test condition (sample 0 is shown).
+    """
+    import rerun as rr
+
+    from pushtorch.viz.model import PREDICTION, log_prediction
+
+    if ctx.recording is None:
+        return
+    for example in examples:
+        i, j = example.condition, example.action
+        name = f"{label}.c{i}a{j}"
+        x, y = ctx.next_slot()
+        ctx.recording.log(f"{PREDICTION}/{name}", rr.Transform3D(translation=[x, y, 0.0]), static=True)
+        truth = truth_final.take((i, j, 0))
+        log_prediction(ctx.recording, example.prediction, predictions.truth_initial.take(i), truth, obj,
+                       label=name, cloud=example.features)
+        acc = accuracy(predictions.final.take((i, j)), truth, obj)
+        ctx.recording.log(f"{PREDICTION}/{name}/summary", rr.TextDocument(
+            f"{label}, condition {i}, action {ctx.actions[j].tolist()}: H_acc {float(acc.hacc):.3f}, "
+            f"linear {float(acc.linear_cm):.2f} cm, angular {float(acc.angular_deg):.1f} deg"
+        ), static=True)

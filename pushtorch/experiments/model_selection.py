@@ -1,0 +1,127 @@
+"""Model selection: congruent, incongruent and adaptive contact and motion models (paper, §Model Selection).
+
+Paper, Experimental Results, Contact Model Selection (table adaptive_model_experiment_parameters,
+Fig. adaptive_results): models are trained on the cube and on the cylinder; each is tested on the cube
+and the cylinder with the model of its own shape (*congruent*), of the other shape (*incongruent*), or
+the one the system selects by the lowest surface-feature distance ``H_r`` (*adaptive*, paper, Model
+Selection). Every method sees the same test poses and predicts each of them with the same seeds (common
+random numbers: a method that picks the congruent model gives the congruent prediction), so the methods
+differ only by the model they apply. The ground truth of each push condition is simulated
+``truth_samples`` times per action. ``selection_rate`` is the share of predictions made with the
+congruent model.
+
+Decision: the paper's "Object Coefficient of Friction U(0.15, 0.35)" is sampled as our effective
+object-ground coefficient (the simulator has one sampled friction per push).
+
+Run: ``python -m pushtorch experiment=model_selection`` (sizes: ``experiment.test_conditions=...``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from pushtorch.errors import InvalidParameterError
+from pushtorch.experiments.common import (
+    ExperimentContext,
+    as_names,
+    compare,
+    entity_label,
+    log_examples,
+    plain,
+    predict_set,
+    progress_bar,
+    sample_test_poses,
+    simulate_truth,
+    stable_seed,
+    summarise,
+    train_model,
+)
+from pushtorch.objects import load_object
+
+__all__ = ["METHODS", "run", "run_part"]
+
+METHODS = ("congruent", "incongruent", "adaptive")
+
+
+def _single(model_cfg: Mapping[str, Any], kind: str) -> str:
+    names = as_names(model_cfg.get(kind))
+    if len(names) != 1:
+        raise InvalidParameterError(f"model selection trains one {kind} prior, not model.{kind}={names}")
+    return names[0]
+
+
+def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
+             model_cfg: Mapping[str, Any]) -> tuple[list[dict], dict]:
+    """Run the selection experiment described by ``part`` (the ``experiment`` node); return its records.
+
+    Args:
+        cfg: the whole composed config (unused here: the test objects are the training objects).
+        part: keys ``name``, ``objects``, ``training_objects``, ``methods``, ``test_conditions``,
+            ``truth_samples``, ``yaw_range_deg``, ``condition`` (``{friction, mass}`` names of the
+            ground truth's priors).
+        ctx: the experiment context (model settings of this part).
+        model_cfg: the part's ``model`` config (``friction``, ``mass``: one training prior each).
+
+    Raises:
+        InvalidParameterError: a test object that is not a training object, or an unknown method.
+    """
+    part = plain(part)
+    name = part.get("name", "model_selection")
+    training = as_names(part["training_objects"])
+    objects = as_names(part.get("objects", training))
+    methods = as_names(part.get("methods", METHODS))
+    for method in methods:
+        if method not in METHODS:
+            raise InvalidParameterError(f"unknown selection method {method!r}; use {', '.join(METHODS)}")
+    for obj_name in objects:
+        if obj_name not in training:
+            raise InvalidParameterError(
+                f"model selection tests the training objects ({', '.join(training)}), not {obj_name!r}"
+            )
+    if len(training) < 2 and "incongruent" in methods:
+        raise InvalidParameterError("the incongruent method needs at least two training objects")
+    friction, mass = _single(model_cfg, "friction"), _single(model_cfg, "mass")
+    models = [train_model(ctx, load_object(t), friction, mass) for t in training]
+    condition = (str(part["condition"]["friction"]), str(part["condition"]["mass"]))
+    samples = int(part["truth_samples"])
+    records: list[dict] = []
+    thrown: list[dict] = []
+    total = len(objects) * len(methods) * int(part["test_conditions"]) * int(ctx.actions.shape[0])
+    bar = progress_bar(ctx, total, f"{name}: predictions")
+    for obj_name in objects:
+        obj = load_object(obj_name)
+        poses = sample_test_poses(obj, int(part["test_conditions"]), part["yaw_range_deg"],
+                                  stable_seed(ctx.seed, "poses", obj.name))
+        congruent = training.index(obj_name)
+        others = [k for k in range(len(models)) if k != congruent]
+        choices = {"congruent": lambda i, c=congruent: c,
+                   "incongruent": lambda i, o=tuple(others): o[i % len(o)], "adaptive": None}
+        memo: dict = {}  # every method predicts a condition with the same seeds: a model's answer is shared
+        for method in methods:
+            key = f"{name}_{obj_name}_{method}"
+            predictions, examples = predict_set(
+                ctx, key, obj, models, poses, adaptive=method == "adaptive", choose=choices[method],
+                seed_key=f"{name}_{obj_name}", memo=memo, bar=bar,
+                examples=ctx.log_examples if method == "adaptive" else 0,
+            )
+            truth, broken = simulate_truth(ctx, key, obj, predictions, [condition], samples,
+                                           seed_key=f"{name}_{obj_name}")
+            rate = float((predictions.selected == congruent).double().mean())
+            acc = compare(predictions.final, truth.take(0), obj)
+            records.append(summarise("selection", obj_name, method, acc, selection_rate=rate))
+            thrown.append({"object": obj_name, "method": method, "model": None, "condition": None,
+                           "thrown": int(broken.sum()), "pushes": broken.numel()})
+            if examples:
+                label = entity_label(name, obj_name, method)
+                log_examples(ctx, label, obj, examples, predictions, truth.take(0))
+    bar.close()
+    return records, {"thrown": thrown}
+
+
+def run(cfg, out_dir: Path) -> dict:
+    """``python -m pushtorch experiment=model_selection``: the experiment alone, with its report."""
+    from pushtorch.experiments.suite import run_suite
+
+    return run_suite(cfg, out_dir, [("model_selection", cfg.experiment, cfg.model)])

@@ -1,0 +1,134 @@
+"""The training app: a push model from simulated pushes (paper, Fig. pipeline, training; §TPMM).
+
+Stage one (full cloud → manipulator contact model and position model) and stage two (push records →
+environment contact and motion models) of :func:`pushtorch.models.library.train_push_model`, as a
+Hydra app. Usage::
+
+    python -m pushtorch.simulate object=cube friction=general hydra.run.dir=runs/sim_cube
+    python -m pushtorch.train object=cube data=runs/sim_cube
+    python -m pushtorch.train object=cylinder 'data=[runs/a,runs/b]' model=quick
+
+Output in the run directory: ``model.npz`` (load with :func:`pushtorch.models.library.load_model`),
+``summary.json``, ``resolved_config.yaml`` and ``recording.rrd`` (the contact and position frames, see
+:func:`pushtorch.viz.model.log_contact_model`). Configuration reaches the library as plain arguments
+through :func:`train_from_config`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from pushtorch.errors import InvalidParameterError, PushtorchError
+
+__all__ = ["main", "train_from_config"]
+
+log = logging.getLogger("pushtorch.train")
+
+
+def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) -> dict[str, Any]:
+    """Train and save the model a ``conf/train.yaml``-shaped config describes.
+
+    Args:
+        cfg: keys ``object`` (name, path, scale), ``model.settings`` (ModelSettings), ``data`` (one folder
+            or a list), optional ``name``, ``seed``, ``recording``.
+        out_dir: the run directory (``model.npz``, ``summary.json``, ``recording.rrd``).
+
+    Returns:
+        A summary dict (also written to ``out_dir/summary.json``).
+
+    Raises:
+        InvalidParameterError: no data, data of another object, or a bad setting.
+        RecordFormatError: unreadable push records.
+        ModelError: no push record touches the object.
+    """
+    import torch
+
+    from pushtorch.experiments.common import as_names, plain
+    from pushtorch.models.library import ModelSettings, train_push_model
+    from pushtorch.objects import load_object
+    from pushtorch.sim.records import PushRecords, load_records
+
+    c = plain(cfg)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        obj_cfg = c["object"]
+        obj = load_object(obj_cfg["name"], obj_cfg.get("path"), float(obj_cfg.get("scale", 1.0)))
+        settings = ModelSettings.from_mapping((c.get("model") or {}).get("settings") or {})
+        folders = [Path(p) for p in as_names(c.get("data"))]
+    except (KeyError, TypeError) as exc:
+        raise InvalidParameterError(f"train config is missing or mistypes a key: {exc}") from exc
+    if not folders:
+        raise InvalidParameterError("no training data: set data=<a pushtorch.simulate run directory>")
+    start = time.perf_counter()
+    records = PushRecords.cat([load_records(folder) for folder in folders])
+    others = sorted(set(records.object_name) - {obj.name})
+    if others:
+        raise InvalidParameterError(
+            f"the data hold pushes of {', '.join(others)}, not only of object {obj.name!r}: "
+            "train one object at a time (object=<the simulated object>)"
+        )
+    name = c.get("name") or f"{obj.name}_{folders[-1].resolve().name}"
+    log.info("training %s on %d pushes (%d valid) of %s", name, len(records), int(records.valid.sum()),
+             obj.name)
+    model = train_push_model(
+        obj, records, settings, name=name, generator=torch.Generator().manual_seed(int(c.get("seed", 0))),
+        meta={"data": [str(f) for f in folders], "pushes": len(records)},
+    )
+    path = model.save(out_dir / "model.npz")
+    seconds = time.perf_counter() - start
+    summary: dict[str, Any] = {
+        "model": str(path),
+        "name": model.name,
+        "object": obj.name,
+        "pushes": len(records),
+        "valid_pushes": int(records.valid.sum()),
+        "actions": model.actions.tolist(),
+        "contact_frames": len(model.contact.frames),
+        "position_frames": len(model.position.frames),
+        "motion_kernels": [{"manipulator": len(m.manipulator), "environment": len(m.environment)}
+                           for m in model.motions],
+        "seconds": round(seconds, 2),
+    }
+    if c.get("recording", True):
+        from pushtorch.viz.core import open_recording
+        from pushtorch.viz.model import log_contact_model
+
+        rec = open_recording(out_dir / "recording.rrd", "pushtorch_train")
+        log_contact_model(rec, model, obj)
+        rec.disconnect()  # completes the file
+        summary["recording"] = str(out_dir / "recording.rrd")
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+    return summary
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+def _app(cfg: DictConfig) -> dict[str, Any]:
+    out_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
+    OmegaConf.save(cfg, out_dir / "resolved_config.yaml", resolve=True)
+    try:
+        summary = train_from_config(cfg, out_dir)
+    except PushtorchError as exc:  # a user error: one line naming the problem, exit status 2, no traceback
+        print(f"pushtorch.train: {exc}", file=sys.stderr)
+        sys.exit(2)
+    for key, value in summary.items():
+        print(f"{key}: {value}")
+    return summary
+
+
+def main() -> None:
+    """Entry point of ``python -m pushtorch.train`` (a user error exits with status 2 and one line)."""
+    _app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,346 @@
+"""The fast prediction path against the dense reference (kde fast path, anneal, query, motion, predict).
+
+The fused functions run eagerly here (``PUSHTORCH_COMPILE=0``) so the checks stay fast; the compiled
+path runs the same functions and is checked by the slow test at the end and by tools/bench_predict.py.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from scipy import stats
+
+from pushtorch import se3
+from pushtorch.anneal import AnnealSchedule, _vmf_offsets, anneal, initial_candidates
+from pushtorch.errors import InvalidParameterError
+from pushtorch.kde import FAST_DENSE_KERNELS, KernelBandwidth, PoseKDE, ProductOfExperts, _FastIndex
+from pushtorch.models.frames import embed_descriptors
+from pushtorch.models.library import ModelSettings, train_push_model
+from pushtorch.models.query import (
+    _fast_kernel_draws,
+    feature_distance_heuristic,
+    neighbourhood_log_weights,
+)
+from pushtorch.objects import load_object
+from pushtorch.perception import capture_partial_cloud
+from pushtorch.predict import predict, predict_many
+from pushtorch.sim.plan import plan_training_pushes
+from pushtorch.sim.priors import Normal
+from pushtorch.sim.push import make_actions
+from pushtorch.sim.records import load_records
+from pushtorch.sim.runner import run_plan
+from pushtorch.sim.world import object_spec
+
+
+@pytest.fixture(autouse=True)
+def _eager(monkeypatch):
+    monkeypatch.setenv("PUSHTORCH_COMPILE", "0")
+
+
+def _random_kde(n, batch=(), seed=0, dtype=torch.float64, spread=0.05, rot_spread=0.3, bandwidth=None,
+                rounds=None):
+    g = torch.Generator().manual_seed(seed)
+    p = torch.randn(*batch, n, 3, generator=g, dtype=dtype) * spread
+    axis = torch.randn(*batch, n, 3, generator=g, dtype=dtype) * rot_spread
+    q = pose_quaternion(axis)
+    log_w = torch.randn(*batch, n, generator=g, dtype=dtype)
+    bw = bandwidth or KernelBandwidth(p_std=0.01, rot_std=0.1)
+    return PoseKDE(se3.Pose(p, q), bw, log_w, trial_rounds=rounds)
+
+
+def pose_quaternion(rotvec):
+    """Unit quaternions (w ≥ 0) of rotation vectors ``(..., 3)``."""
+    angle = rotvec.norm(dim=-1, keepdim=True)
+    axis = rotvec / angle.clamp_min(1e-12)
+    return torch.cat([torch.cos(angle / 2), torch.sin(angle / 2) * axis], -1)
+
+
+def _queries_near(kde, m, seed, scale=1.0):
+    """Queries around the kernels: perturbed copies of random kernel means (some inside, some outside)."""
+    g = torch.Generator().manual_seed(seed)
+    means = kde.kernel_means(kde.sample_kernels(m, g))
+    p = means.p + torch.randn(means.p.shape, generator=g, dtype=means.p.dtype) * 0.02 * scale
+    turn = pose_quaternion(torch.randn(means.p.shape, generator=g, dtype=p.dtype) * 0.15 * scale)
+    return se3.Pose(p, se3.compose(means, se3.Pose(torch.zeros_like(p), turn)).q)
+
+
+@pytest.mark.parametrize("n", [300, FAST_DENSE_KERNELS + 700])  # dense fused layout, then leaf blocks
+@pytest.mark.parametrize("batch", [(), (3,), (2, 3)])
+def test_fast_log_prob_equals_dense(n, batch):
+    rounds = torch.randint(0, 3, (*batch, 3), generator=torch.Generator().manual_seed(1)) if batch else None
+    kde = _random_kde(n, batch, seed=n + len(batch), rounds=rounds)
+    queries = _queries_near(kde, 200, seed=2)
+    dense = kde.log_prob(queries)
+    fast = _FastIndex(kde).log_prob(queries.p, queries.q)
+    assert (_FastIndex(kde).blocks) == (n > FAST_DENSE_KERNELS)
+    finite = torch.isfinite(dense)
+    assert 0.2 < finite.double().mean() < 1.0  # both supported and cut-off queries are exercised
+    assert torch.equal(finite, torch.isfinite(fast))
+    assert torch.allclose(fast[finite], dense[finite], atol=1e-9, rtol=0)
+
+
+def test_fast_log_prob_broadcasts_queries_like_dense():
+    kde = _random_kde(FAST_DENSE_KERNELS + 100, (3,), seed=4)
+    single = _queries_near(_random_kde(50, (), seed=5), 40, seed=6, scale=0.5)  # (M,) against (3,)
+    per_problem = _queries_near(kde, 40, seed=7)  # (3, M)
+    for queries in (single, se3.Pose(per_problem.p[:1], per_problem.q[:1]), per_problem):
+        dense = kde.log_prob(queries)
+        fast = kde.log_prob(queries, method="fast")
+        finite = torch.isfinite(dense)
+        assert dense.shape == fast.shape
+        assert torch.equal(finite, torch.isfinite(fast))
+        assert torch.allclose(fast[finite], dense[finite], atol=1e-9, rtol=0)
+
+
+@settings(suppress_health_check=[HealthCheck.function_scoped_fixture])  # the fixture only sets an env var
+@given(
+    n=st.integers(1, 60),
+    c_p=st.sampled_from([1.0, 3.0, math.inf]),
+    c_q=st.sampled_from([0.5, 3.0, math.inf]),
+    leaf=st.sampled_from([1, 4, 16]),
+    seed=st.integers(0, 10_000),
+)
+def test_block_pruning_never_skips_a_live_kernel(n, c_p, c_q, leaf, seed):
+    """Queries put just inside (and just outside) a kernel's cut-offs get the dense values."""
+    bw = KernelBandwidth(p_std=0.01, rot_std=0.1, cutoff_std=(c_p, c_q, 5.0))
+    kde = _random_kde(n, (), seed=seed, bandwidth=bw, spread=0.03)
+    g = torch.Generator().manual_seed(seed + 1)
+    k = torch.randint(n, (64,), generator=g)
+    reach_p = 0.01 * min(c_p, 6.0)  # |Δp| at the cut-off: β d_p = |Δp|²/(2 std²) = c²/2
+    reach_q = 0.1 * min(c_q, 6.0)  # small-angle rotation reach
+    factor = torch.rand(64, 1, generator=g, dtype=torch.float64) * 1.1  # up to 10 % beyond the cut-off
+    direction = torch.nn.functional.normalize(torch.randn(64, 3, generator=g, dtype=torch.float64), dim=-1)
+    p = kde.means.p[k] + direction * reach_p * factor
+    axis = torch.nn.functional.normalize(torch.randn(64, 3, generator=g, dtype=torch.float64), dim=-1)
+    turn = pose_quaternion(axis * reach_q * factor)
+    zero = torch.zeros_like(p)
+    queries = se3.Pose(p, se3.compose(se3.Pose(zero, kde.means.q[k]), se3.Pose(zero, turn)).q)
+    dense = kde.log_prob(queries)
+    out = _FastIndex(kde, leaf=leaf, blocks=True).log_prob(queries.p, queries.q)
+    finite = torch.isfinite(dense)
+    assert torch.equal(finite, torch.isfinite(out))
+    assert torch.allclose(out[finite], dense[finite], atol=1e-9, rtol=0)
+
+
+def test_block_layout_pads_leaves_and_keeps_batches_apart():
+    kde = _random_kde(40, (2,), seed=3)
+    index = _FastIndex(kde, leaf=4, blocks=True)
+    assert index.blocks and index.num_blocks == 16
+    queries = _queries_near(kde, 50, seed=8)
+    dense, fast = kde.log_prob(queries), index.log_prob(queries.p, queries.q)
+    finite = torch.isfinite(dense)
+    assert torch.equal(finite, torch.isfinite(fast))
+    assert torch.allclose(fast[finite], dense[finite], atol=1e-9, rtol=0)
+
+
+def test_padding_and_extreme_weights_keep_the_dense_values():
+    small, large = _random_kde(30, (), seed=1), _random_kde(FAST_DENSE_KERNELS + 50, (), seed=2)
+    stacked = PoseKDE.stack([small, large])  # the small one is padded with -inf weights
+    queries = _queries_near(stacked, 60, seed=3)
+    dense, fast = stacked.log_prob(queries), stacked.log_prob(queries, method="fast")
+    finite = torch.isfinite(dense)
+    assert torch.equal(finite, torch.isfinite(fast))
+    assert torch.allclose(fast[finite], dense[finite], atol=1e-9, rtol=0)
+    # weights spanning e^300 cannot be summed linearly in float32: the fast method must fall back
+    log_w = torch.zeros(FAST_DENSE_KERNELS + 10)
+    log_w[::2] = -300.0
+    kde32 = PoseKDE(_random_kde(FAST_DENSE_KERNELS + 10, (), seed=4, dtype=torch.float32).means,
+                    KernelBandwidth(0.01, 0.1), log_w)
+    assert not kde32.fast_index().linear
+    q32 = _queries_near(kde32, 60, seed=5)
+    assert torch.equal(kde32.log_prob(q32), kde32.log_prob(q32, method="fast"))
+
+
+def test_product_of_experts_fast_equals_dense():
+    experts = PoseKDE.stack([_random_kde(n, (2,), seed=n) for n in (20, 90, 400)])  # (E=3, B=2)
+    poe = ProductOfExperts(experts, torch.tensor([0.5, 0.0, -1.0]), torch.tensor([True, True, False]))
+    queries = _queries_near(_random_kde(50, (2,), seed=9), 80, seed=10, scale=0.3)
+    dense, fast = poe.log_prob(queries), poe.log_prob(queries, method="fast")
+    finite = torch.isfinite(dense)
+    assert finite.any() and torch.equal(finite, torch.isfinite(fast))
+    assert torch.allclose(fast[finite], dense[finite], atol=1e-9, rtol=0)
+
+
+def test_float32_fast_values_are_within_rounding_of_float64():
+    kde = _random_kde(FAST_DENSE_KERNELS + 300, (2,), seed=11)
+    queries = _queries_near(kde, 100, seed=12)
+    reference = kde.log_prob(queries)
+    fast32 = kde.to(torch.float32).log_prob(se3.Pose(queries.p.float(), queries.q.float()), method="fast")
+    finite = torch.isfinite(reference) & torch.isfinite(fast32)
+    assert finite.double().mean() > 0.2
+    assert (fast32[finite].double() - reference[finite]).abs().max() < 2e-3
+
+
+def test_unknown_method_is_refused():
+    kde = _random_kde(10, (), seed=0)
+    with pytest.raises(InvalidParameterError):
+        kde.log_prob(_queries_near(kde, 3, seed=0), method="sparse")
+    with pytest.raises(InvalidParameterError):
+        anneal(kde.log_prob, initial_candidates(kde, 4), method="quick")
+    with pytest.raises(InvalidParameterError):  # a per-problem planar mask needs the fast method
+        anneal(kde.log_prob, initial_candidates(kde, 4), planar=torch.tensor(True))
+
+
+# -- annealing ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kappa", [3.0, 60.0, 1111.0])
+def test_fast_vmf_offsets_follow_the_reference_sampler(kappa):
+    n = 20_000
+    fast = _vmf_offsets(kappa, torch.Size([n]), torch.Generator().manual_seed(0), torch.float64, "cpu")
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64).expand(n, 4)
+    reference = se3.sample_vmf_quaternion(identity, kappa, torch.Generator().manual_seed(1))
+    assert torch.allclose(fast.norm(dim=-1), torch.ones(n, dtype=torch.float64), atol=1e-12)
+    assert stats.ks_2samp(fast[:, 0].numpy(), reference[:, 0].numpy()).pvalue > 1e-3  # the angle law
+    axis = torch.nn.functional.normalize(fast[:, 1:], dim=-1)
+    assert axis.mean(0).abs().max() < 0.03  # isotropic axes
+
+
+def _two_mode_kde(dtype=torch.float64):
+    """A heavy mode at (0.3, 0, 0) / yaw 0 and a light one at (−0.3, 0, 0) / yaw 1, 1,200 kernels."""
+    g = torch.Generator().manual_seed(0)
+    n = 1200
+    heavy = torch.arange(n) < 700
+    centre = torch.where(heavy.unsqueeze(-1), torch.tensor([0.3, 0.0, 0.0]), torch.tensor([-0.3, 0.0, 0.0]))
+    p = centre.to(dtype) + torch.randn(n, 3, generator=g, dtype=dtype) * 0.01
+    yaw = torch.where(heavy, 0.0, 1.0).to(dtype) + torch.randn(n, generator=g, dtype=dtype) * 0.05
+    zero = torch.zeros_like(yaw)
+    q = torch.stack([torch.cos(yaw / 2), zero, zero, torch.sin(yaw / 2)], -1)
+    return PoseKDE(se3.Pose(p, q), KernelBandwidth(p_std=0.01, rot_std=0.1))
+
+
+def test_fast_annealing_finds_the_same_mode_as_dense():
+    kde = _two_mode_kde()
+    schedule = AnnealSchedule(steps=40)
+    init = initial_candidates(kde, 64, torch.Generator().manual_seed(1))
+    dense = anneal(kde.log_prob, init, schedule, torch.Generator().manual_seed(2))
+    fast = anneal(lambda x: kde.log_prob(x, method="fast"), init, schedule, torch.Generator().manual_seed(2),
+                  method="fast")
+    for result in (dense, fast):
+        assert abs(float(result.best.p[0]) - 0.3) < 0.01 and abs(float(se3.yaw_of(result.best.q))) < 0.05
+    assert abs(float(fast.best_log_prob - dense.best_log_prob)) < 0.05
+
+
+def test_fast_annealing_mixes_planar_and_free_problems():
+    kde = PoseKDE.stack([_two_mode_kde(), _two_mode_kde()])
+    init = initial_candidates(kde, 32, torch.Generator().manual_seed(3))
+    g = torch.Generator().manual_seed(4)
+    lifted = se3.Pose(init.p + torch.tensor([0.0, 0.0, 0.004], dtype=init.p.dtype), init.q)  # off the ground
+    result = anneal(lambda x: kde.log_prob(x, method="fast"), lifted, AnnealSchedule(steps=20), g,
+                    record_history=True, planar=torch.tensor([True, False]), method="fast")
+    planar = result.history.p[:, 0, :, 2]
+    assert torch.equal(planar, lifted.p[0, :, 2].expand_as(planar))  # z kept exactly on the planar problem
+    roll_pitch = result.history.q[:, 0, :, 1:3]
+    assert roll_pitch.abs().max() < 1e-6  # started level, stays level
+    assert (result.history.p[:, 1, :, 2] != lifted.p[1, :, 2]).any()  # the free problem moves in z
+    assert torch.isfinite(result.best_log_prob).all()
+
+
+# -- query densities ---------------------------------------------------------------------------
+
+
+def test_fast_query_draws_follow_the_dense_law():
+    g = torch.Generator().manual_seed(0)
+    frames_r = torch.randn(300, 2, generator=g) * 10.0
+    weight = torch.rand(300, generator=g) + 0.1
+    e_frames = embed_descriptors(frames_r)
+    r_std = torch.full((2,), 0.5)
+    # features: one far from every frame (never reachable), one near a cluster of frames
+    e_features = torch.stack([torch.tensor([40.0, -40.0]), e_frames[7] + 0.1])
+    n = 20_000
+    pick, frame_idx, kernel_log_w = _fast_kernel_draws(e_features, e_frames, weight, r_std, 5.0, n, g)
+    assert (pick == 1).all()  # the unreachable feature is always drawn again
+    log_wn = neighbourhood_log_weights(e_features[1:], e_frames, weight, r_std, 5.0)[0]
+    assert torch.allclose(kernel_log_w, torch.logsumexp(log_wn, -1).expand(n), atol=1e-5)
+    expected = torch.softmax(log_wn, -1).double() * n
+    counts = torch.bincount(frame_idx, minlength=300).double()
+    assert (counts[~torch.isfinite(log_wn)] == 0).all()
+    kept = expected > 5
+    chi2 = (((counts - expected) ** 2) / expected)[kept].sum().item()
+    assert stats.chi2.sf(chi2, int(kept.sum()) - 1) > 1e-3
+
+
+def test_fast_heuristic_equals_dense():
+    g = torch.Generator().manual_seed(1)
+    r_features, r_frames = torch.randn(500, 2, generator=g) * 20, torch.randn(700, 2, generator=g) * 20
+    dense = feature_distance_heuristic(r_features, r_frames)
+    fast = feature_distance_heuristic(r_features, r_frames, method="fast")
+    assert torch.allclose(dense, fast, rtol=1e-5)
+
+
+# -- end to end --------------------------------------------------------------------------------
+
+SMALL = ModelSettings(query_kernels=400, anneal_candidates=60, anneal_steps=15, position_frames=800,
+                      environment_kernels=300, manipulator_kernels=40)
+
+
+@pytest.fixture(scope="module")
+def small_cube_model(tmp_path_factory):
+    cube = load_object("cube")
+    plan = plan_training_pushes(cube, make_actions(3), 8, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=0)
+    folder = tmp_path_factory.mktemp("fast_path_pushes")
+    run_plan(object_spec(cube), plan, folder, workers=2, progress=False)
+    model = train_push_model(cube, load_records(folder), SMALL, generator=torch.Generator().manual_seed(0))
+    return cube, model
+
+
+def _check_own_density(prediction):
+    """The annealed candidates' log-likelihoods are those of the prediction's own density (dense
+    reference), and the final pose is the best of them."""
+    reference = prediction.density.log_prob(prediction.candidates)
+    finite = torch.isfinite(reference)
+    assert finite.any() and torch.equal(finite, torch.isfinite(prediction.candidate_log_prob))
+    assert torch.allclose(prediction.candidate_log_prob[finite], reference[finite], atol=1e-3)
+    assert torch.isclose(prediction.log_prob, reference[finite].max(), atol=1e-3)
+
+
+def test_fast_prediction_optimises_its_own_density(small_cube_model):
+    cube, model = small_cube_model
+    cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=0.2))
+    fast = predict(model, cloud, model.actions[1], torch.Generator().manual_seed(0))
+    _check_own_density(fast)
+    value_fast = fast.density.log_prob(fast.candidates, method="fast")
+    finite = torch.isfinite(value_fast)
+    assert torch.allclose(value_fast[finite], fast.candidate_log_prob[finite], atol=1e-3)
+    robot = fast.condition.robot_start  # planar annealing of the robot's query density
+    assert float(robot.p[2]) == 0.0 and float(robot.q[1:3].abs().max()) < 1e-6
+    assert fast.condition.robot_query.anneal.candidates.p.shape == (SMALL.anneal_candidates, 3)
+
+
+def test_predict_many_batches_conditions_and_keeps_single_seeds(small_cube_model):
+    cube, model = small_cube_model
+    clouds = [capture_partial_cloud(cube, cube.resting_pose(yaw=y)) for y in (-0.3, 0.1, 0.4)]
+    actions = model.actions[torch.tensor([0, 1, 2])]
+    one_by_one = predict_many(model, clouds, actions, seed=5)
+    single = predict(model, clouds[1], actions[1], torch.Generator().manual_seed(6))
+    assert torch.equal(one_by_one[1].final_pose.p, single.final_pose.p)  # batch_size 1: predict's seeds
+    batched = predict_many(model, clouds, actions, seed=5, batch_size=3, record_history=True)
+    assert [p.action.tolist() for p in batched] == actions.tolist()
+    for prediction in batched:  # annealed together, each still on its own density
+        _check_own_density(prediction)
+        assert prediction.anneal.history.p.shape == (SMALL.anneal_steps + 1, SMALL.anneal_candidates, 3)
+    with pytest.raises(InvalidParameterError):
+        predict_many(model, clouds, actions, batch_size=0)
+    with pytest.raises(InvalidParameterError):
+        predict(model, clouds[0], actions[0], method="approximate")
+
+
+@pytest.mark.slow
+def test_compiled_fast_path_equals_dense(monkeypatch):
+    """The torch.compile'd functions (first call compiles: tens of seconds on a cold cache)."""
+    monkeypatch.setenv("PUSHTORCH_COMPILE", "auto")
+    from pushtorch.kde import fast_path_compiled
+
+    if not fast_path_compiled():
+        pytest.skip("no C++ compiler for torch.compile")
+    for n in (300, FAST_DENSE_KERNELS + 700):
+        kde = _random_kde(n, (3,), seed=n, dtype=torch.float32)
+        queries = _queries_near(kde, 200, seed=2)
+        dense, fast = kde.log_prob(queries), kde.log_prob(queries, method="fast")
+        finite = torch.isfinite(dense)
+        assert torch.equal(finite, torch.isfinite(fast))
+        assert torch.allclose(fast[finite], dense[finite], atol=2e-3)
