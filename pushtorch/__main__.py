@@ -10,40 +10,35 @@ from __future__ import annotations
 
 import importlib
 import logging
-import sys
 from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
+from pushtorch.cli import run_stage
 from pushtorch.errors import PushtorchError
 
 log = logging.getLogger("pushtorch")
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
-def _app(cfg: DictConfig) -> dict:
-    out_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
+def _run_experiment(cfg: DictConfig, out_dir: Path) -> dict:
     name = cfg.experiment.name
     try:
         module = importlib.import_module(f"pushtorch.experiments.{name}")
     except ModuleNotFoundError as exc:
         raise PushtorchError(f"no experiment module pushtorch.experiments.{name}") from exc
     log.info("experiment %s → %s", name, out_dir)
-    summary = module.run(cfg, out_dir)
-    OmegaConf.save(cfg, out_dir / "resolved_config.yaml", resolve=True)
-    for key, value in summary.items():
-        print(f"{key}: {value}")
-    return summary
+    return module.run(cfg, out_dir)
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+def _app(cfg: DictConfig) -> dict:
+    return run_stage("pushtorch", cfg, _run_experiment)
 
 
 def main() -> None:
-    """Console-script entry point (``pushtorch ...``)."""
-    try:
-        _app()
-    except PushtorchError as exc:  # a user error: say what is wrong, no traceback
-        print(f"pushtorch: {exc}", file=sys.stderr)
-        sys.exit(2)
+    """Console-script entry point (``pushtorch ...``); a user error exits with status 2 and one line."""
+    _app()
 
 
 if __name__ == "__main__":

@@ -18,15 +18,15 @@ from __future__ import annotations
 import json
 import logging
 import math
-import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from pushtorch.errors import InvalidParameterError, PushtorchError
+from pushtorch.cli import run_stage
+from pushtorch.errors import InvalidParameterError
 
 __all__ = ["main", "predict_from_config"]
 
@@ -164,16 +164,7 @@ def _accuracy_dict(acc) -> dict[str, float]:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="predict")
 def _app(cfg: DictConfig) -> dict[str, Any]:
-    out_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    OmegaConf.save(cfg, out_dir / "resolved_config.yaml", resolve=True)
-    try:
-        summary = predict_from_config(cfg, out_dir)
-    except PushtorchError as exc:  # a user error: one line naming the problem, exit status 2, no traceback
-        print(f"pushtorch.predict: {exc}", file=sys.stderr)
-        sys.exit(2)
-    for key, value in summary.items():
-        print(f"{key}: {value}")
-    return summary
+    return run_stage("pushtorch.predict", cfg, predict_from_config)
 
 
 def main() -> None:

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import logging
-import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,8 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from pushtorch.errors import InvalidParameterError, PushtorchError
+from pushtorch.cli import run_stage
+from pushtorch.errors import InvalidParameterError
 
 __all__ = ["main", "simulate_from_config"]
 
@@ -126,16 +126,7 @@ def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Pat
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="simulate")
 def _app(cfg: DictConfig) -> dict[str, Any]:
-    out_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    OmegaConf.save(cfg, out_dir / "resolved_config.yaml", resolve=True)
-    try:
-        summary = simulate_from_config(cfg, out_dir)
-    except PushtorchError as exc:  # a user error: one line naming the problem, exit status 2, no traceback
-        print(f"pushtorch.simulate: {exc}", file=sys.stderr)
-        sys.exit(2)
-    for key, value in summary.items():
-        print(f"{key}: {value}")
-    return summary
+    return run_stage("pushtorch.simulate", cfg, simulate_from_config)
 
 
 def main() -> None:
