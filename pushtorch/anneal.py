@@ -30,7 +30,7 @@ import torch
 from pytorch_kinematics import transforms as pkt
 
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
-from pushtorch.kde import PoseKDE
+from pushtorch.kde import PoseKDE, fused_function
 from pushtorch.se3 import Pose, check_unit_quaternion, perturb
 
 Tensor = torch.Tensor
@@ -149,14 +149,16 @@ def _propose(pose: Pose, temperature: float, schedule: AnnealSchedule, generator
     return Pose(p, q / q.norm(dim=-1, keepdim=True))
 
 
-def _vmf_offsets(kappa: float, shape: torch.Size, generator, dtype, device) -> Tensor:
+def _vmf_offsets(kappa: float | Tensor, shape: torch.Size, generator, dtype, device) -> Tensor:
     """Unit quaternions ``(*shape, 4)`` around identity from the vMF on S^3 of concentration ``kappa``.
 
     Exact and cheap for the annealing's large κ: s = 1 − w has density ∝ e^(−κ s) √(s (2 − s)) on
     [0, 2]; a Gamma(3/2, κ) proposal is |n|²/(2κ) for a 3-D standard normal n, whose direction n/|n| is
     independent of it and uniform, so one draw gives both the angle and the axis. The proposal is
     accepted with probability √((2 − s)/2) (≥ 1/√2, ≈ 1 − 1/(4κ)); rejected rows draw again.
+    ``kappa`` may be a tensor broadcastable to ``shape`` (one concentration per row, e.g. per step).
     """
+    kappa = torch.as_tensor(kappa, dtype=dtype, device=device).expand(shape)
     n = torch.randn(*shape, 3, generator=generator, dtype=dtype, device=device)
     s = (n * n).sum(-1) / (2.0 * kappa)
     u = torch.rand(shape, generator=generator, dtype=dtype, device=device)
@@ -164,7 +166,7 @@ def _vmf_offsets(kappa: float, shape: torch.Size, generator, dtype, device) -> T
     while bool(rejected.any()):
         count = int(rejected.sum())
         n_new = torch.randn(count, 3, generator=generator, dtype=dtype, device=device)
-        s_new = (n_new * n_new).sum(-1) / (2.0 * kappa)
+        s_new = (n_new * n_new).sum(-1) / (2.0 * kappa[rejected])
         u_new = torch.rand(count, generator=generator, dtype=dtype, device=device)
         n[rejected], s[rejected] = n_new, s_new
         rejected[rejected.clone()] = u_new * u_new * 2.0 >= 2.0 - s_new
@@ -173,36 +175,74 @@ def _vmf_offsets(kappa: float, shape: torch.Size, generator, dtype, device) -> T
     return torch.cat([(1.0 - s).unsqueeze(-1), sin_half.unsqueeze(-1) * axis], -1)
 
 
-def _propose_fast(
-    pose: Pose, temperature: float, schedule: AnnealSchedule, generator, planar: Tensor | None
-) -> Pose:
-    """The proposals of :func:`_propose` (same distributions) with fewer, cheaper draws.
+# Steps whose proposals the fast path draws at once: few generator calls, bounded memory
+# (20 steps × 32 conditions × 1,000 chains × 12 floats ≈ 31 MB).
+_DRAW_STEPS = 20
 
-    ``planar`` is a per-problem bool mask broadcastable to the candidates' batch dims ``(*B, C)``
-    (None: ``schedule.planar`` for all).
+
+def _draw_fast_proposals(
+    temperatures: list[float], shape: torch.Size, schedule: AnnealSchedule, generator, planar: Tensor | None,
+    dtype, device,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The random parts of several steps' proposals and acceptance tests, drawn in a few calls.
+
+    Returns translation offsets ``(S, *shape, 3)``, left (world yaw, planar chains) and right (body
+    vMF, free chains) rotation offsets ``(S, *shape, 4)`` — the proposal is ``left ⊗ q ⊗ right`` — and
+    the acceptance uniforms ``(S, *shape)``. The same distributions as :func:`_propose`: a planar chain
+    moves in x, y and the yaw about world z, a free chain by an isotropic translation and a vMF rotation.
     """
-    p_std = schedule.step_p_std * temperature
-    rot_std = schedule.step_rot_std * temperature
-    shape = pose.batch_shape
-    dtype, device = pose.p.dtype, pose.p.device
-    noise = torch.randn(*shape, 3, generator=generator, dtype=dtype, device=device)
+    steps = len(temperatures)
+    full = torch.Size([steps, *shape])
+    t = torch.tensor(temperatures, dtype=dtype, device=device).reshape(steps, *([1] * len(shape)))
     if planar is None and schedule.planar:
         planar = torch.ones((), dtype=torch.bool, device=device)
+    noise = torch.randn(*full, 3, generator=generator, dtype=dtype, device=device)
     if planar is not None:
         noise = torch.where(planar.unsqueeze(-1) & _Z_AXIS.to(device), torch.zeros_like(noise), noise)
-    p = pose.p + p_std * noise
-    if rot_std > 0:
-        kappa = 4.0 / rot_std**2
-        full = pkt.quaternion_raw_multiply(pose.q, _vmf_offsets(kappa, shape, generator, dtype, device))
+    step_p = noise * (schedule.step_p_std * t).unsqueeze(-1)
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dtype, device=device).expand(*full, 4)
+    left = right = identity
+    if schedule.step_rot_std > 0:
+        rot_std = schedule.step_rot_std * t
+        right = _vmf_offsets(4.0 / rot_std**2, full, generator, dtype, device)
         if planar is not None:
-            yaw = rot_std * torch.randn(shape, generator=generator, dtype=dtype, device=device)
-            # A world-frame rotation about z (left product) changes the heading only.
-            turned = pkt.quaternion_raw_multiply(_yaw_quaternion(yaw), pose.q)
-            full = torch.where(planar.unsqueeze(-1), turned, full)
-        q = full / full.norm(dim=-1, keepdim=True)
-    else:
-        q = pose.q
-    return Pose(p, q)
+            yaw = rot_std * torch.randn(full, generator=generator, dtype=dtype, device=device)
+            left = torch.where(planar.unsqueeze(-1), _yaw_quaternion(yaw), identity)
+            right = torch.where(planar.unsqueeze(-1), identity, right)
+    accept_u = torch.rand(full, generator=generator, dtype=dtype, device=device)
+    return step_p, left.contiguous(), right.contiguous(), accept_u
+
+
+def _quaternion_product(a: Tensor, b: Tensor) -> Tensor:
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
+                        aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx,
+                        aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
+def _fast_proposal(p: Tensor, q: Tensor, step_p: Tensor, left: Tensor, right: Tensor) -> tuple[Tensor, Tensor]:
+    """One step's proposals from pre-drawn offsets (fused): ``p + Δp``, ``normalise(left ⊗ q ⊗ right)``."""
+    turned = _quaternion_product(_quaternion_product(left, q), right)
+    return p + step_p, turned / turned.norm(dim=-1, keepdim=True)
+
+
+def _fast_acceptance(
+    p: Tensor, q: Tensor, lp: Tensor, best_p: Tensor, best_q: Tensor, best_lp: Tensor,
+    prop_p: Tensor, prop_q: Tensor, prop_lp: Tensor, u: Tensor, inverse_energy: Tensor, saw_nan: Tensor,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The Metropolis test and the best-so-far update of one step (fused); see :func:`anneal`.
+    ``saw_nan`` accumulates whether any proposal's log-likelihood was NaN (never accepted)."""
+    accept = (prop_lp > lp) | (torch.exp((prop_lp - lp) * inverse_energy) > u)
+    p = torch.where(accept.unsqueeze(-1), prop_p, p)
+    q = torch.where(accept.unsqueeze(-1), prop_q, q)
+    lp = torch.where(accept, prop_lp, lp)
+    improved = lp > best_lp
+    best_p = torch.where(improved.unsqueeze(-1), p, best_p)
+    best_q = torch.where(improved.unsqueeze(-1), q, best_q)
+    best_lp = torch.where(improved, lp, best_lp)
+    return p, q, lp, best_p, best_q, best_lp, saw_nan | torch.isnan(prop_lp).any()
 
 
 _Z_AXIS = torch.tensor([False, False, True])
@@ -219,6 +259,45 @@ def _evaluate(log_prob_fn: Callable[[Pose], Tensor], pose: Pose, shape: torch.Si
     if (value == math.inf).any():
         raise ModelError("log_prob_fn returned +inf log-likelihoods")
     return value
+
+
+def _anneal_fast_steps(
+    log_prob_fn: Callable[[Pose], Tensor], current: Pose, current_lp: Tensor, schedule: AnnealSchedule,
+    generator, planar: Tensor | None, record_history: bool,
+) -> tuple[Pose, Tensor, tuple[list[Tensor], list[Tensor], list[Tensor]]]:
+    """The fast path's steps: proposals pre-drawn for :data:`_DRAW_STEPS` steps at a time, proposal and
+    acceptance each one fused (compiled when possible) call, ``log_prob_fn``'s values checked once at
+    the end instead of at every step (a NaN is never accepted, so a flag records it without a sync;
+    the shape was checked on the initial evaluation)."""
+    shape = current.batch_shape
+    dtype, device = current.p.dtype, current.p.device
+    propose = fused_function("anneal_proposal", _fast_proposal, device)
+    accept = fused_function("anneal_acceptance", _fast_acceptance, device)
+    p, q, lp = current.p, current.q, current_lp
+    best_p, best_q, best_lp = p, q, lp
+    history: tuple[list[Tensor], list[Tensor], list[Tensor]] = ([p], [q], [lp])
+    saw_nan = torch.zeros((), dtype=torch.bool, device=device)
+    temperatures = schedule.temperatures()
+    for start in range(0, len(temperatures), _DRAW_STEPS):
+        chunk = temperatures[start : start + _DRAW_STEPS]
+        step_p, left, right, accept_u = _draw_fast_proposals(chunk, shape, schedule, generator, planar, dtype,
+                                                             device)
+        for k, temperature in enumerate(chunk):
+            prop_p, prop_q = propose(p, q, step_p[k], left[k], right[k])
+            with torch.no_grad():
+                prop_lp = log_prob_fn(Pose(prop_p, prop_q))
+            inverse_energy = torch.tensor(1.0 / (schedule.energy_scale * temperature), dtype=dtype, device=device)
+            p, q, lp, best_p, best_q, best_lp, saw_nan = accept(
+                p, q, lp, best_p, best_q, best_lp, prop_p, prop_q, prop_lp, accept_u[k], inverse_energy, saw_nan)
+            if record_history:
+                history[0].append(p)
+                history[1].append(q)
+                history[2].append(lp)
+    if bool(saw_nan):
+        raise ModelError("log_prob_fn returned NaN log-likelihoods (use -inf for zero density)")
+    if bool((best_lp == math.inf).any()):
+        raise ModelError("log_prob_fn returned +inf log-likelihoods")
+    return Pose(best_p, best_q), best_lp, history
 
 
 def anneal(
@@ -286,11 +365,12 @@ def anneal(
     best, best_lp = current, current_lp
     history_p, history_q, history_lp = [current.p], [current.q], [current_lp]
     dtype, device = current.p.dtype, current.p.device
-    for temperature in schedule.temperatures():
-        if method == "fast":
-            proposal = _propose_fast(current, temperature, schedule, generator, planar)
-        else:
-            proposal = _propose(current, temperature, schedule, generator)
+    if method == "fast":
+        best, best_lp, history = _anneal_fast_steps(log_prob_fn, current, current_lp, schedule, generator, planar,
+                                                    record_history)
+        history_p, history_q, history_lp = history
+    for temperature in schedule.temperatures() if method == "dense" else []:
+        proposal = _propose(current, temperature, schedule, generator)
         proposal_lp = _evaluate(log_prob_fn, proposal, shape)
         u = torch.rand(shape, generator=generator, dtype=dtype, device=device)
         # -inf - -inf is NaN: such a candidate compares False everywhere and keeps its pose.

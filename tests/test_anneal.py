@@ -169,3 +169,19 @@ def test_schedule_and_inputs_are_validated():
         anneal(kde, se3.Pose(torch.zeros(3), torch.tensor([1.0, 0, 0, 0])))
     with pytest.raises(InvalidPoseError):
         anneal(kde, se3.Pose(torch.zeros(4, 3), torch.tensor([[2.0, 0, 0, 0]]).expand(4, 4)))
+
+
+@pytest.mark.parametrize("bad_value, message", [(math.nan, "NaN"), (math.inf, r"\+inf")])
+def test_fast_annealing_reports_a_density_that_goes_bad_after_the_start(bad_value, message):
+    """The fast loop checks values once at the end: a NaN or +inf met at any step must still be raised."""
+    init = se3.Pose(torch.zeros(8, 3), torch.tensor([[1.0, 0, 0, 0]]).expand(8, 4))
+    calls = []
+
+    def density(pose):
+        calls.append(1)
+        values = -(pose.p**2).sum(-1)
+        return values if len(calls) < 30 else torch.full_like(values, bad_value)
+
+    with pytest.raises(ModelError, match=message):
+        anneal(density, init, AnnealSchedule(steps=50), torch.Generator().manual_seed(0), method="fast")
+    assert len(calls) == 51  # the initial evaluation and one per step: no early exit hides the check
