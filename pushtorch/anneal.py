@@ -274,7 +274,8 @@ def _anneal_fast_steps(
     propose = fused_function("anneal_proposal", _fast_proposal, device)
     accept = fused_function("anneal_acceptance", _fast_acceptance, device)
     p, q, lp = current.p, current.q, current_lp
-    best_p, best_q, best_lp = p, q, lp
+    # distinct tensors: aliased inputs would make torch.compile guard on the aliasing and recompile
+    best_p, best_q, best_lp = p.clone(), q.clone(), lp.clone()
     history: tuple[list[Tensor], list[Tensor], list[Tensor]] = ([p], [q], [lp])
     saw_nan = torch.zeros((), dtype=torch.bool, device=device)
     temperatures = schedule.temperatures()

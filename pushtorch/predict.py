@@ -20,7 +20,7 @@ time). Both optimise the same densities with the same schedules; their random st
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -33,7 +33,7 @@ from pushtorch.models.contact import place_environment_contacts
 from pushtorch.models.frames import ContactFrames
 from pushtorch.models.library import ModelLibrary, ModelSettings, PushModel
 from pushtorch.models.motion import MotionDensity, MotionKernels, anneal_motion_densities
-from pushtorch.models.position import PositionModel
+from pushtorch.models.position import PositionModel, verify_pose_candidates
 from pushtorch.models.query import (
     QueryDensity,
     QueryResult,
@@ -117,7 +117,9 @@ def estimate_pose(
 ) -> QueryResult:
     """Estimate an object's pose from a (partial) cloud with a position model (paper, Object Position Model).
 
-    Returns the annealed best pose (full SE(3)) with its log density and the annealing record.
+    Returns the best pose (full SE(3)) with its log density and the annealing record: the annealing's
+    candidates (hypotheses of the query density) verified by their surface fit to the cloud
+    (:func:`pushtorch.models.position.verify_pose_candidates`).
     ``method``: ``"fast"`` (default: pruned, fused densities) or ``"dense"`` (the reference); the
     same law, another random stream.
     """
@@ -125,10 +127,19 @@ def estimate_pose(
     settings = settings or ModelSettings()
     features = _as_features(cloud, settings)
     density = _pose_density(position, features, settings, generator, method)
-    return optimise_query_density(
+    result = optimise_query_density(
         density, settings.anneal_candidates, _schedule(settings, planar=False), generator, record_history,
         method,
     )
+    return _verified_pose(result, position, features, generator)
+
+
+def _verified_pose(result: QueryResult, position: PositionModel, features: SurfaceFeatures,
+                   generator: torch.Generator | None) -> QueryResult:
+    """The annealed candidate whose surface best fits the cloud (docs/method.md, pose verification)."""
+    candidates = result.anneal.candidates
+    best = verify_pose_candidates(position, features.p, candidates, result.anneal.log_prob, generator)
+    return replace(result, pose=candidates.take(best), log_prob=result.anneal.log_prob[best])
 
 
 def _check_method(method: str) -> None:
@@ -222,7 +233,7 @@ def _push_conditions_fast(
     )
     conditions = []
     for i, (f, a) in enumerate(zip(features, action_indices, strict=True)):
-        robot, pose = results[i], results[n + i]
+        robot, pose = results[i], _verified_pose(results[n + i], model.position, f, generator)
         environment = _environment_frames(model, f, a, generator)
         conditions.append(PushCondition(robot.pose, robot.nearest_kernel, environment, pose.pose,
                                         robot_densities[i].feature_distance, robot, pose))

@@ -118,19 +118,12 @@ def test_model_settings_reject_bad_values():
 # -- acceptance ------------------------------------------------------------------------------
 
 
-MODIFIED_CUBE_ORIENTATION = pytest.mark.xfail(
-    strict=True,
-    reason="known gap (issue 4 note): the notch is too small a share of the query density's kernels, so "
-    "the orientation often lands on a cube orientation that the notch rules out",
-)
-
-
 @pytest.mark.parametrize(
     "name, yaws",
     [
         ("cube", (0.3, 1.2, 2.0)),
         ("cylinder", (0.0, 1.0, 2.0)),
-        pytest.param("modified_cube", (math.pi, math.pi - 0.3, math.pi + 0.3), marks=MODIFIED_CUBE_ORIENTATION),
+        ("modified_cube", (math.pi, math.pi - 0.3, math.pi + 0.3)),
     ],
 )
 def test_position_model_beats_the_centroid_and_finds_the_orientation(name, yaws):
@@ -178,9 +171,9 @@ def test_cube_model_predicts_fresh_cube_pushes_better_than_no_motion(cube_model)
     ours, still, mean = _fresh_push_errors(cube_model, load_object("cube"), n_conditions=10, seed=3)
     assert ours < still, (ours, still)
     # Known gap (issue 4 note): under the paper's narrow default prior the pushes are nearly
-    # deterministic and the mean training motion is as good as the product of experts; ours stays
-    # within 15 % of it here.
-    assert ours < 1.15 * mean, (ours, mean)
+    # deterministic, so the mean training motion is the best point estimate there is; the product of
+    # experts' mode stays within 10 % of it (measured 0.067 against 0.064).
+    assert ours < 1.10 * mean, (ours, mean)
 
 
 def test_cube_model_transfers_to_the_thin_prism(cube_model):
