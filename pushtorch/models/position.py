@@ -36,6 +36,10 @@ VERIFY_POINTS = 512
 # Distance (m) beyond which an observed point counts as unexplained whatever its distance: a few
 # outliers (table edge, spurious returns) must not outweigh the fit of the rest.
 VERIFY_CAP = 0.02
+# Observed points every candidate is screened on, and how many of the best go on to the full score:
+# candidates gather in a few modes, so the screen only has to rank modes apart (~10x cheaper).
+VERIFY_SCREEN_POINTS = 64
+VERIFY_FINALISTS = 16
 
 
 @dataclass
@@ -111,16 +115,19 @@ def surface_fit_scores(model_points: Tensor, observed: Tensor, candidates: se3.P
 def verify_pose_candidates(
     position: PositionModel, observed: Tensor, candidates: se3.Pose, log_prob: Tensor,
     generator: torch.Generator | None = None, points: int = VERIFY_POINTS, cap: float = VERIFY_CAP,
+    screen_points: int = VERIFY_SCREEN_POINTS, finalists: int = VERIFY_FINALISTS,
 ) -> Tensor:
     """Index of the candidate (among those of non-zero density) whose surface best fits the observation.
 
-    ``observed`` ``(M, 3)`` world points are subsampled to ``points``; ties (symmetric poses) go to the
-    higher density. Raises InvalidPointCloudError without observed points.
+    Two stages keep it cheap: every candidate is scored on ``screen_points`` of the observed points
+    ``(M, 3)`` (world), the ``finalists`` best are scored again on ``points``. Ties (symmetric poses) go
+    to the higher density. Raises InvalidPointCloudError without observed points.
     """
-    if observed.shape[0] > points:
-        observed = observed[torch.randperm(observed.shape[0], generator=generator)[:points].to(observed.device)]
-    score = surface_fit_scores(position.frames.v.p, observed, candidates, cap)
-    score = torch.where(torch.isfinite(log_prob), score, torch.full_like(score, math.inf))
-    best = score.min()
-    tied = score <= best + 1e-6
-    return torch.where(tied, log_prob, torch.full_like(log_prob, -math.inf)).argmax()
+    order = torch.randperm(observed.shape[0], generator=generator).to(observed.device)
+    alive = torch.isfinite(log_prob)
+    score = surface_fit_scores(position.frames.v.p, observed[order[:screen_points]], candidates, cap)
+    score = torch.where(alive, score, torch.full_like(score, math.inf))
+    shortlist = score.argsort()[: min(finalists, int(alive.sum().clamp_min(1)))]
+    final = surface_fit_scores(position.frames.v.p, observed[order[:points]], candidates.take(shortlist), cap)
+    tied = final <= final.min() + 1e-6
+    return shortlist[torch.where(tied, log_prob[shortlist], torch.full_like(final, -math.inf)).argmax()]
