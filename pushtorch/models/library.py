@@ -36,7 +36,8 @@ from pushtorch.perception import capture_full_cloud
 __all__ = ["FORMAT", "VERSION", "ModelLibrary", "ModelSettings", "PushModel", "load_model", "train_push_model"]
 
 FORMAT = "pushtorch.push_model"
-VERSION = 1
+# 2: motion kernels expressed in the robot's start frame (version 1: at the contact point)
+VERSION = 2
 
 
 @dataclass(frozen=True)

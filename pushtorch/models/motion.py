@@ -232,6 +232,9 @@ class MotionDensity:
             after :func:`~pushtorch.models.frames.embed_descriptors` (2 stds) and ``g``, the frame's position
             in the robot's start frame (3 stds, m) — see the module docstring.
         motion_bandwidth: bandwidth of the motion kernels over the final pose.
+        drop_cut_kernels: leave out the kernels whose contact weight ``K^c`` is zero (cut off) before
+            anything is evaluated (default). False keeps every kernel, with weight 0: the same density,
+            the straightforward dense evaluation (``tools/bench_predict.py`` times it as the baseline).
     """
 
     def __init__(
@@ -243,6 +246,7 @@ class MotionDensity:
         robot_start: se3.Pose,
         contact_bandwidth: KernelBandwidth,
         motion_bandwidth: KernelBandwidth,
+        drop_cut_kernels: bool = True,
     ) -> None:
         if contact_bandwidth.descriptor_dim != 5:
             raise InvalidParameterError(
@@ -269,7 +273,8 @@ class MotionDensity:
             h = se3.relative(w, object_pose)  # (F,)
             finals = se3.compose(se3.compose(w.unsqueeze(-1), kernels.m), h.unsqueeze(-1))  # (F, N)
             for i in range(n_frames):  # a handful of experts (1 + E), not kernels
-                keep = torch.isfinite(log_w[i])  # kernels the contact kernel cut off carry no weight
+                # kernels the contact kernel cut off carry no weight
+                keep = torch.isfinite(log_w[i]) if drop_cut_kernels else torch.ones_like(log_w[i], dtype=torch.bool)
                 experts.append(PoseKDE(finals.take((i, keep)), motion_bandwidth, log_w[i, keep]))
         self.experts = PoseKDE.stack(experts)
         n_env, n_man = len(model.environment), len(model.manipulator)
