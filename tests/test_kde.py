@@ -65,7 +65,7 @@ def brute_force_log_prob(kde, pose, r=None):
         d_r = descriptor_distance(r.unsqueeze(-2), kde.descriptors.unsqueeze(-3), bw.sigma_r)
         terms.append(beta[..., 2] * d_r)
     log_k = kde.log_weights.unsqueeze(-2)
-    for term, delta in zip(terms, bw.delta):
+    for term, delta in zip(terms, bw.delta, strict=False):
         log_k = torch.where(term < delta, log_k - term, torch.full_like(term, -math.inf))
     return torch.logsumexp(log_k, -1)
 
@@ -287,7 +287,7 @@ def test_to_changes_dtype_and_keeps_values():
 # --------------------------------------------------------------------------------------------------
 
 
-def _single_kernel(p_std, rot_std, cutoff_std, rounds=TrialRounds(), dtype=torch.float64):
+def _single_kernel(p_std, rot_std, cutoff_std, rounds=None, dtype=torch.float64):
     mu = se3.Pose(torch.tensor([[0.3, -0.1, 0.2]], dtype=dtype),
                   axis_angle_quaternion([1.0, 1.0, 0.0], 1.0, dtype)[None])
     bw = KernelBandwidth(p_std=p_std, rot_std=rot_std, cutoff_std=cutoff_std)

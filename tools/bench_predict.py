@@ -35,14 +35,14 @@ from pathlib import Path
 import torch
 
 from pushtorch import metrics, se3
+from pushtorch.anneal import AnnealSchedule
 from pushtorch.errors import RecordFormatError
 from pushtorch.features import compute_surface_features
 from pushtorch.kde import fast_path_compiled
 from pushtorch.models.library import PushModel, load_model, train_push_model
+from pushtorch.models.motion import MotionDensity
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
-from pushtorch.anneal import AnnealSchedule
-from pushtorch.models.motion import MotionDensity
 from pushtorch.predict import contact_bandwidth, generate_push_condition, motion_bandwidth, predict, predict_many
 from pushtorch.sim.plan import plan_training_pushes
 from pushtorch.sim.priors import Normal
