@@ -15,9 +15,10 @@ docs/method.md and the shared lineage notes):
   z, roll and pitch stay exactly as initialised.
 
 Every candidate of every problem moves at once: the only Python loop is over steps. ``method="fast"``
-draws the same proposals with cheaper exact samplers and lets planar and free problems share one batch
-(a per-problem ``planar`` mask), which the fast prediction path uses to anneal the robot's and the
-object's query densities together.
+draws the same proposals with cheaper exact samplers, 20 steps' worth at a time, runs each step's
+proposal and Metropolis test as one fused (compiled when possible) call, and lets planar and free
+problems share one batch (a per-problem ``planar`` mask), which the fast prediction path uses to anneal
+the robot's and the object's query densities together.
 """
 
 from __future__ import annotations
