@@ -214,18 +214,9 @@ def _draw_fast_proposals(
     return step_p, left.contiguous(), right.contiguous(), accept_u
 
 
-def _quaternion_product(a: Tensor, b: Tensor) -> Tensor:
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
-                        aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx,
-                        aw * bz + ax * by - ay * bx + az * bw], -1)
-
-
 def _fast_proposal(p: Tensor, q: Tensor, step_p: Tensor, left: Tensor, right: Tensor) -> tuple[Tensor, Tensor]:
     """One step's proposals from pre-drawn offsets (fused): ``p + Δp``, ``normalise(left ⊗ q ⊗ right)``."""
-    turned = _quaternion_product(_quaternion_product(left, q), right)
+    turned = pkt.quaternion_raw_multiply(pkt.quaternion_raw_multiply(left, q), right)
     return p + step_p, turned / turned.norm(dim=-1, keepdim=True)
 
 
@@ -368,31 +359,31 @@ def anneal(
     history_p, history_q, history_lp = [current.p], [current.q], [current_lp]
     dtype, device = current.p.dtype, current.p.device
     if method == "fast":
-        best, best_lp, history = _anneal_fast_steps(log_prob_fn, current, current_lp, schedule, generator, planar,
-                                                    record_history)
-        history_p, history_q, history_lp = history
-    for temperature in schedule.temperatures() if method == "dense" else []:
-        proposal = _propose(current, temperature, schedule, generator)
-        proposal_lp = _evaluate(log_prob_fn, proposal, shape)
-        u = torch.rand(shape, generator=generator, dtype=dtype, device=device)
-        # -inf - -inf is NaN: such a candidate compares False everywhere and keeps its pose.
-        delta = proposal_lp - current_lp
-        accept = (proposal_lp > current_lp) | (torch.exp(delta / (schedule.energy_scale * temperature)) > u)
-        current = Pose(
-            torch.where(accept.unsqueeze(-1), proposal.p, current.p),
-            torch.where(accept.unsqueeze(-1), proposal.q, current.q),
-        )
-        current_lp = torch.where(accept, proposal_lp, current_lp)
-        improved = current_lp > best_lp
-        best = Pose(
-            torch.where(improved.unsqueeze(-1), current.p, best.p),
-            torch.where(improved.unsqueeze(-1), current.q, best.q),
-        )
-        best_lp = torch.where(improved, current_lp, best_lp)
-        if record_history:
-            history_p.append(current.p)
-            history_q.append(current.q)
-            history_lp.append(current_lp)
+        best, best_lp, (history_p, history_q, history_lp) = _anneal_fast_steps(
+            log_prob_fn, current, current_lp, schedule, generator, planar, record_history)
+    else:
+        for temperature in schedule.temperatures():
+            proposal = _propose(current, temperature, schedule, generator)
+            proposal_lp = _evaluate(log_prob_fn, proposal, shape)
+            u = torch.rand(shape, generator=generator, dtype=dtype, device=device)
+            # -inf - -inf is NaN: such a candidate compares False everywhere and keeps its pose.
+            delta = proposal_lp - current_lp
+            accept = (proposal_lp > current_lp) | (torch.exp(delta / (schedule.energy_scale * temperature)) > u)
+            current = Pose(
+                torch.where(accept.unsqueeze(-1), proposal.p, current.p),
+                torch.where(accept.unsqueeze(-1), proposal.q, current.q),
+            )
+            current_lp = torch.where(accept, proposal_lp, current_lp)
+            improved = current_lp > best_lp
+            best = Pose(
+                torch.where(improved.unsqueeze(-1), current.p, best.p),
+                torch.where(improved.unsqueeze(-1), current.q, best.q),
+            )
+            best_lp = torch.where(improved, current_lp, best_lp)
+            if record_history:
+                history_p.append(current.p)
+                history_q.append(current.q)
+                history_lp.append(current_lp)
     winner = best_lp.argmax(-1, keepdim=True)  # (*B, 1); an all -inf problem returns its first candidate
     top = Pose(
         torch.gather(best.p, -2, winner.unsqueeze(-1).expand(*winner.shape, 3)).squeeze(-2),

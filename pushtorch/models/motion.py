@@ -274,7 +274,7 @@ class MotionDensity:
             finals = se3.compose(se3.compose(w.unsqueeze(-1), kernels.m), h.unsqueeze(-1))  # (F, N)
             for i in range(n_frames):  # a handful of experts (1 + E), not kernels
                 # kernels the contact kernel cut off carry no weight
-                keep = torch.isfinite(log_w[i]) if drop_cut_kernels else torch.ones_like(log_w[i], dtype=torch.bool)
+                keep = torch.isfinite(log_w[i]) | (not drop_cut_kernels)
                 experts.append(PoseKDE(finals.take((i, keep)), motion_bandwidth, log_w[i, keep]))
         self.experts = PoseKDE.stack(experts)
         n_env, n_man = len(model.environment), len(model.manipulator)

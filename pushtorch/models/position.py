@@ -84,8 +84,21 @@ def centroid_pose(points: Tensor) -> se3.Pose:
     return se3.Pose(points.mean(0), q)
 
 
-def surface_fit_scores(model_points: Tensor, observed: Tensor, candidates: se3.Pose, cap: float = VERIFY_CAP
-                       ) -> Tensor:
+def _nearest_model_search(model_points: Tensor):
+    """An open3d nearest-neighbour index over the model points (object frame)."""
+    import numpy as np
+    import open3d as o3d
+
+    if model_points.shape[0] == 0:
+        raise InvalidPointCloudError("surface fit needs model points")
+    search = o3d.core.nns.NearestNeighborSearch(
+        o3d.core.Tensor(np.ascontiguousarray(model_points.detach().cpu().numpy(), dtype=np.float32)))
+    search.knn_index()
+    return search
+
+
+def surface_fit_scores(model_points: Tensor, observed: Tensor, candidates: se3.Pose, cap: float = VERIFY_CAP,
+                       search=None) -> Tensor:
     """How badly each candidate object pose explains the observed points: ``(C,)``, metres.
 
     The observed points (world) are moved into each candidate's object frame and matched to their
@@ -96,16 +109,15 @@ def surface_fit_scores(model_points: Tensor, observed: Tensor, candidates: se3.P
         model_points: ``(N, 3)`` the training surface in the object frame ``B^O``.
         observed: ``(M, 3)`` observed surface points, world frame.
         candidates: object poses ``(C,)``.
+        search: an index over ``model_points`` to reuse (built here if None).
     """
     import numpy as np
     import open3d as o3d
 
-    if model_points.shape[0] == 0 or observed.shape[0] == 0:
-        raise InvalidPointCloudError("surface fit needs model points and observed points")
+    if observed.shape[0] == 0:
+        raise InvalidPointCloudError("surface fit needs observed points")
+    search = search if search is not None else _nearest_model_search(model_points)
     local = se3.apply(se3.inverse(candidates).unsqueeze(-1), observed)  # (C, M, 3)
-    search = o3d.core.nns.NearestNeighborSearch(
-        o3d.core.Tensor(np.ascontiguousarray(model_points.detach().cpu().numpy(), dtype=np.float32)))
-    search.knn_index()
     queries = o3d.core.Tensor(np.ascontiguousarray(local.reshape(-1, 3).detach().cpu().numpy(), dtype=np.float32))
     _, squared = search.knn_search(queries, 1)
     distance = torch.from_numpy(squared.numpy()).to(observed).reshape(local.shape[:2]).clamp_min(0).sqrt()
@@ -125,9 +137,11 @@ def verify_pose_candidates(
     """
     order = torch.randperm(observed.shape[0], generator=generator).to(observed.device)
     alive = torch.isfinite(log_prob)
-    score = surface_fit_scores(position.frames.v.p, observed[order[:screen_points]], candidates, cap)
+    model_points = position.frames.v.p
+    search = _nearest_model_search(model_points)  # one index for both stages
+    score = surface_fit_scores(model_points, observed[order[:screen_points]], candidates, cap, search)
     score = torch.where(alive, score, torch.full_like(score, math.inf))
     shortlist = score.argsort()[: min(finalists, int(alive.sum().clamp_min(1)))]
-    final = surface_fit_scores(position.frames.v.p, observed[order[:points]], candidates.take(shortlist), cap)
+    final = surface_fit_scores(model_points, observed[order[:points]], candidates.take(shortlist), cap, search)
     tied = final <= final.min() + 1e-6
     return shortlist[torch.where(tied, log_prob[shortlist], torch.full_like(final, -math.inf)).argmax()]
