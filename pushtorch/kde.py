@@ -53,6 +53,7 @@ __all__ = [
     "KernelBandwidth",
     "PoseKDE",
     "ProductOfExperts",
+    "SharedKernelProduct",
     "TrialRounds",
     "descriptor_distance",
     "descriptor_distance_unscaled",
@@ -1409,6 +1410,132 @@ class ProductOfExperts:
         return product_log_prob(
             self.experts, pose, self.expert_log_weight, self.expert_mask, chunk_size, method
         )
+
+    def __call__(self, pose: Pose) -> Tensor:
+        return self.log_prob(pose)
+
+
+def _per_expert(value, name: str, n_experts: int, batch: torch.Size, dtype, device, default) -> Tensor:
+    """``(E,)`` or ``(E, *B)`` → ``(E, *B)``; None → ``default`` everywhere."""
+    if value is None:
+        return torch.full((n_experts, *batch), default, dtype=dtype, device=device)
+    t = torch.as_tensor(value, device=device)
+    if t.dtype != dtype and (dtype == torch.bool or t.dtype == torch.bool):
+        raise InvalidParameterError(f"{name} must be {'boolean' if dtype == torch.bool else 'floating'}, got {t.dtype}")
+    t = t.to(dtype)
+    if t.dim() == 1 and t.shape[0] == n_experts:
+        t = t.reshape(n_experts, *([1] * len(batch)))
+    try:
+        return t.expand(n_experts, *batch)
+    except RuntimeError as exc:
+        raise InvalidParameterError(f"{name} must have shape ({n_experts},) or {(n_experts, *batch)}, "
+                                    f"got {tuple(t.shape)}") from exc
+
+
+def _shared_kernel_product(x: Tensor, table: Tensor, weights: Tensor, scale: Tensor, offset: Tensor,
+                           mask: Tensor, delta_p: float, delta_q: float) -> Tensor:
+    """Σ_e log Σ_k w_ek K(x | μ_k) + offset_e over the counted experts: ``(B, M)`` (fused).
+
+    x: queries ``(B, M, 7)``; table: shared kernels ``(B, 7, K)`` (rows p, q); weights ``(B, K, E)``
+    linear, relative to each expert's largest; scale ``(B, 2)`` (β_p/σ_p, β_q/σ_q); offset ``(B, 1, E)``
+    (log w^P_e plus the expert's largest log weight); mask ``(B, 1, E)``. Exact distances and the cut-offs
+    of :meth:`PoseKDE.log_prob`; one kernel evaluation serves every expert through one matmul.
+    """
+    xs = x.unsqueeze(-1)  # (B, M, 7, 1)
+    t = table.unsqueeze(1)  # (B, 1, 7, K)
+    sc = scale[:, :, None, None]
+    d_p = ((xs[:, :, 0] - t[:, :, 0]) ** 2 + (xs[:, :, 1] - t[:, :, 1]) ** 2
+           + (xs[:, :, 2] - t[:, :, 2]) ** 2) * sc[:, 0]
+    dot = xs[:, :, 3] * t[:, :, 3] + xs[:, :, 4] * t[:, :, 4] + xs[:, :, 5] * t[:, :, 5] + xs[:, :, 6] * t[:, :, 6]
+    d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, 1]
+    kernels = torch.where((d_p < delta_p) & (d_q < delta_q), torch.exp(-d_p - d_q), torch.zeros_like(d_p))
+    per_expert = torch.log(torch.bmm(kernels, weights)) + offset  # (B, M, E)
+    return torch.where(mask, per_expert, torch.zeros_like(per_expert)).sum(-1)
+
+
+class SharedKernelProduct:
+    """A product of experts (Eq. poe) whose experts weigh one shared set of kernels differently.
+
+    Expert ``e`` is ``P_e(x) = Σ_k w_ek K(x | μ_k)`` over kernels ``μ`` shared by every expert, and the
+    product is ``Σ_e (log w^P_e + log P_e(x))``. Where experts share their kernel means — the motion
+    model's environment experts all transfer the same training motions and differ only in their contact
+    weights — the kernels are evaluated once per query and a ``(K × E)`` matmul gives every expert's sum,
+    instead of one evaluation per expert. Values equal :class:`ProductOfExperts` over the same experts
+    up to float rounding, except that a weight below float precision relative to its expert's largest
+    (``e^-87`` in float32) counts as zero.
+
+    Args:
+        means: shared kernel means ``p (*B, K, 3)``, ``q (*B, K, 4)``.
+        log_weights: ``(E, *B, K)`` each expert's log weights (``-inf``: the kernel is not in it);
+            each expert's row is normalised like :class:`PoseKDE`'s.
+        bandwidth: kernel bandwidth (no descriptors) shared by every expert.
+        trial_rounds: ``(*B, 3)`` or ``(3,)``, the same for every expert of a problem.
+        expert_log_weight, expert_mask: as :func:`product_log_prob`, shape ``(E,)`` or ``(E, *B)``.
+
+    Raises:
+        InvalidParameterError: misshaped tensors, descriptor dims in the bandwidth, or a counted expert
+            without a kernel.
+    """
+
+    def __init__(
+        self,
+        means: Pose,
+        log_weights: Tensor,
+        bandwidth: KernelBandwidth,
+        trial_rounds: TrialRounds | Tensor | None = None,
+        expert_log_weight: Tensor | None = None,
+        expert_mask: Tensor | None = None,
+    ) -> None:
+        if bandwidth.descriptor_dim:
+            raise InvalidParameterError("a shared-kernel product is over SE(3) alone: no descriptor stds")
+        batch = means.batch_shape[:-1]
+        if log_weights.dim() < 2 or log_weights.shape[1:] != means.batch_shape:
+            raise InvalidParameterError(
+                f"log_weights must have shape (E, {', '.join(map(str, means.batch_shape))}), "
+                f"got {tuple(log_weights.shape)}"
+            )
+        n_experts = log_weights.shape[0]
+        dtype, device = means.p.dtype, means.p.device
+        if torch.isnan(log_weights).any() or (log_weights == math.inf).any():
+            raise InvalidParameterError("log_weights hold NaN or +inf (use -inf for a kernel outside an expert)")
+        mask = _per_expert(expert_mask, "expert_mask", n_experts, batch, torch.bool, device, True)
+        log_wp = _per_expert(expert_log_weight, "expert_log_weight", n_experts, batch, dtype, device, 0.0)
+        if torch.isnan(log_wp).any() or (log_wp == math.inf).any():
+            raise InvalidParameterError("expert_log_weight holds NaN or +inf")
+        total = torch.logsumexp(log_weights, -1)  # (E, *B)
+        empty = total == -math.inf
+        if (empty & mask).any():
+            raise InvalidParameterError("a counted expert has no kernel with non-zero weight")
+        top = log_weights.amax(-1)
+        relative = log_weights - torch.where(empty, torch.zeros_like(top), top).unsqueeze(-1)
+        # log P_e = log Σ_k e^relative_k K_k + (largest − logsumexp): each row normalised as PoseKDE's
+        offset = torch.where(empty, torch.zeros_like(top), top - total) + log_wp
+        d, k = max(1, batch.numel()), means.batch_shape[-1]
+        self.batch_shape = batch
+        self.num_experts = n_experts
+        self.bandwidth = bandwidth
+        self.rounds = PoseKDE._rounds_tensor(trial_rounds, batch, device)
+        beta = torch.pow(torch.tensor(bandwidth.alpha_t, dtype=torch.float64), -self.rounds.double()).reshape(d, 3)
+        self.scale = torch.stack([beta[:, 0] / bandwidth.sigma_p, beta[:, 1] / bandwidth.sigma_q], -1).to(dtype)
+        self.table = torch.cat([means.p, means.q], -1).reshape(d, k, 7).transpose(1, 2).contiguous()  # (D, 7, K)
+        self.weights = relative.exp().reshape(n_experts, d, k).permute(1, 2, 0).contiguous()  # (D, K, E)
+        self.offset = offset.reshape(n_experts, d).transpose(0, 1).unsqueeze(1).contiguous()  # (D, 1, E)
+        self.mask = mask.reshape(n_experts, d).transpose(0, 1).unsqueeze(1).contiguous()
+        self.delta_p, self.delta_q, _ = bandwidth.delta
+
+    def log_prob(self, pose: Pose) -> Tensor:
+        """``Σ_e (log w^P_e + log P_e(pose))`` for poses ``(*B, M)`` → ``(*B, M)``; ``-inf`` where a counted
+        expert has no kernel within its cut-offs. The queries are not validated (annealing's own)."""
+        d = self.table.shape[0]
+        m = pose.p.shape[-2]
+        x = torch.cat([pose.p, pose.q], -1).expand(*self.batch_shape, m, 7).reshape(d, m, 7)
+        evaluate = fused_function("shared_kernel_product", _shared_kernel_product, x.device)
+        # chunks of problems bound the (problems × M × K) kernel values that feed the matmul
+        step = max(1, (_DEFAULT_BLOCK_ELEMENTS * 8) // max(1, m * self.table.shape[-1]))
+        out = [evaluate(x[s : s + step], self.table[s : s + step], self.weights[s : s + step],
+                        self.scale[s : s + step], self.offset[s : s + step], self.mask[s : s + step],
+                        self.delta_p, self.delta_q) for s in range(0, d, step)]
+        return torch.cat(out, 0).reshape(*self.batch_shape, m)
 
     def __call__(self, pose: Pose) -> Tensor:
         return self.log_prob(pose)

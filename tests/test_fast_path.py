@@ -17,7 +17,14 @@ from scipy import stats
 from pushtorch import se3
 from pushtorch.anneal import AnnealSchedule, _vmf_offsets, anneal, initial_candidates
 from pushtorch.errors import InvalidParameterError
-from pushtorch.kde import FAST_DENSE_KERNELS, KernelBandwidth, PoseKDE, ProductOfExperts, _FastIndex
+from pushtorch.kde import (
+    FAST_DENSE_KERNELS,
+    KernelBandwidth,
+    PoseKDE,
+    ProductOfExperts,
+    SharedKernelProduct,
+    _FastIndex,
+)
 from pushtorch.models.frames import embed_descriptors
 from pushtorch.models.library import ModelSettings, train_push_model
 from pushtorch.models.query import (
@@ -163,6 +170,50 @@ def test_product_of_experts_fast_equals_dense():
     finite = torch.isfinite(dense)
     assert finite.any() and torch.equal(finite, torch.isfinite(fast))
     assert torch.allclose(fast[finite], dense[finite], atol=1e-9, rtol=0)
+
+
+@pytest.mark.parametrize("rounds", [0, 2])
+def test_shared_kernel_product_equals_the_product_of_its_experts(rounds):
+    """Experts weighing one kernel set differently (as the motion model's environment experts do):
+    one evaluation of the shared kernels gives the same product as each expert on its own."""
+    shared = _random_kde(300, (2,), seed=21)  # B = 2 problems, K = 300 shared kernels
+    g = torch.Generator().manual_seed(22)
+    log_w = torch.randn(4, 2, 300, generator=g, dtype=torch.float64)
+    log_w[torch.rand(4, 2, 300, generator=g) < 0.6] = -math.inf  # each expert keeps its own subset
+    log_w[3, 1] = -math.inf  # a padding expert of problem 1: masked out
+    mask = torch.ones(4, 2, dtype=torch.bool)
+    mask[3, 1] = False
+    log_wp = torch.tensor([0.7, 0.0, 0.0, -0.4], dtype=torch.float64)
+    trial = torch.tensor([rounds, rounds, 0])
+    product = SharedKernelProduct(shared.means, log_w, shared.bandwidth, trial, log_wp, mask)
+    keep = torch.isfinite(log_w)
+    keep[3, 1, 0] = True  # the masked-out expert gets a dummy kernel: a PoseKDE needs one
+    log_w_own = torch.where(keep, torch.nan_to_num(log_w, neginf=0.0), log_w)
+    experts = PoseKDE.stack([
+        PoseKDE.stack([PoseKDE(shared.means.take((b, keep[e, b])), shared.bandwidth, log_w_own[e, b, keep[e, b]],
+                               trial_rounds=trial) for b in range(2)])
+        for e in range(4)
+    ])  # (E=4, B=2), each expert on its own kernels
+    reference = ProductOfExperts(experts, log_wp, mask)
+    queries = _queries_near(shared, 120, seed=23, scale=0.3)  # (2, 120)
+    want, got = reference.log_prob(queries), product.log_prob(queries)
+    finite = torch.isfinite(want)
+    assert finite.any() and (~finite).any()
+    assert torch.equal(finite, torch.isfinite(got))
+    assert torch.allclose(got[finite], want[finite], atol=1e-9, rtol=0)
+
+
+def test_shared_kernel_product_refuses_bad_layouts():
+    shared = _random_kde(10, seed=24)
+    with pytest.raises(InvalidParameterError, match="log_weights must have shape"):
+        SharedKernelProduct(shared.means, torch.zeros(2, 9, dtype=torch.float64), shared.bandwidth)
+    with pytest.raises(InvalidParameterError, match="no kernel with non-zero weight"):
+        SharedKernelProduct(shared.means, torch.full((2, 10), -math.inf, dtype=torch.float64), shared.bandwidth)
+    with pytest.raises(InvalidParameterError, match="NaN"):
+        SharedKernelProduct(shared.means, torch.full((2, 10), math.nan, dtype=torch.float64), shared.bandwidth)
+    with pytest.raises(InvalidParameterError, match="expert_mask"):
+        SharedKernelProduct(shared.means, torch.zeros(2, 10, dtype=torch.float64), shared.bandwidth,
+                            expert_mask=torch.ones(3, dtype=torch.bool))
 
 
 def test_float32_fast_values_are_within_rounding_of_float64():

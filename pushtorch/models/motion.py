@@ -50,7 +50,7 @@ from pushtorch import se3
 from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal
 from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.features import SurfaceFeatures
-from pushtorch.kde import KernelBandwidth, PoseKDE, ProductOfExperts
+from pushtorch.kde import KernelBandwidth, PoseKDE, ProductOfExperts, SharedKernelProduct
 from pushtorch.models.contact import closest_points_on_mesh, floor_relations, sample_environment_contacts
 from pushtorch.models.frames import ContactFrames, embed_descriptors
 
@@ -210,6 +210,17 @@ def fit_motion_model(
     return MotionModel(torch.as_tensor(action, dtype=x.p.dtype), manipulator, environment, se3.mean_pose(in_robot))
 
 
+def _block_diagonal(blocks: list[Tensor], fill: float) -> Tensor:
+    """Matrices placed along the diagonal of one matrix, ``fill`` elsewhere."""
+    rows, cols = sum(b.shape[0] for b in blocks), sum(b.shape[1] for b in blocks)
+    out = torch.full((rows, cols), fill, dtype=blocks[0].dtype, device=blocks[0].device)
+    r = c = 0
+    for b in blocks:
+        out[r : r + b.shape[0], c : c + b.shape[1]] = b
+        r, c = r + b.shape[0], c + b.shape[1]
+    return out
+
+
 @dataclass
 class MotionPrediction:
     """Result of :meth:`MotionDensity.predict`: the best final pose and the annealed candidates."""
@@ -255,7 +266,11 @@ class MotionDensity:
             )
         frames = [(manipulator_frame, model.manipulator), (environment_frames, model.environment)]
         to_robot = se3.inverse(robot_start)
-        experts = []
+        # Motions are expressed in the robot's start frame (motion_frames), the same for every contact
+        # frame: each kind's kernels become one set of final poses R0 ∘ m_j ∘ R0⁻¹ ∘ B0' that all of its
+        # experts share; the experts differ only in their contact weights K^c.
+        to_final = se3.relative(robot_start, object_pose)
+        experts, shared_means, shared_weights = [], [], []
         for frame, kernels in frames:
             n_frames, n_kernels = frame.r.reshape(-1, 2).shape[0], len(kernels)
             # one contact density per frame, so trial rounds widen each frame's kernels on their own
@@ -269,14 +284,18 @@ class MotionDensity:
             query_r = torch.cat([embed_descriptors(frame.r.reshape(-1, 2)), frame_g], -1).unsqueeze(-2)
             contact_kde = contact_kde.fit_trial_rounds(query_u, query_r)
             log_w = contact_kde.log_kernels(query_u, query_r).squeeze(-2)  # (F, N): log K^c(c_e | c_j)
-            w = motion_frames(frame.v.p.reshape(-1, 3), robot_start)
-            h = se3.relative(w, object_pose)  # (F,)
-            finals = se3.compose(se3.compose(w.unsqueeze(-1), kernels.m), h.unsqueeze(-1))  # (F, N)
+            finals = se3.compose(se3.compose(robot_start, kernels.m), to_final)  # (N,)
+            # kernels the contact kernel cut off carry no weight
+            keep = torch.isfinite(log_w) | (not drop_cut_kernels)  # (F, N)
             for i in range(n_frames):  # a handful of experts (1 + E), not kernels
-                # kernels the contact kernel cut off carry no weight
-                keep = torch.isfinite(log_w[i]) | (not drop_cut_kernels)
-                experts.append(PoseKDE(finals.take((i, keep)), motion_bandwidth, log_w[i, keep]))
+                experts.append(PoseKDE(finals.take(keep[i]), motion_bandwidth, log_w[i, keep[i]]))
+            used = keep.any(0)
+            shared_means.append(finals.take(used))
+            shared_weights.append(torch.where(keep, log_w, -math.inf)[:, used])
         self.experts = PoseKDE.stack(experts)
+        self._shared_means = se3.Pose(torch.cat([m.p for m in shared_means]), torch.cat([m.q for m in shared_means]))
+        self._shared_log_weights = _block_diagonal(shared_weights, -math.inf)  # (1 + E, K)
+        self._shared_product: SharedKernelProduct | None = None
         n_env, n_man = len(model.environment), len(model.manipulator)
         log_wp = torch.zeros(len(experts), dtype=object_pose.p.dtype)
         log_wp[0] = math.log(n_env / n_man)  # w^P of the manipulator expert; environment experts 1
@@ -287,14 +306,32 @@ class MotionDensity:
     def num_experts(self) -> int:
         return int(self.experts.batch_shape[0])
 
+    def shared_kernels(self) -> tuple[se3.Pose, Tensor]:
+        """The experts' kernels laid out for the fast path: final poses ``(K,)`` shared by the experts of
+        one contact kind and each expert's log weights ``(1 + E, K)`` (``-inf``: not in that expert)."""
+        return self._shared_means, self._shared_log_weights
+
+    def shared_product(self) -> SharedKernelProduct:
+        """The product of experts as a :class:`~pushtorch.kde.SharedKernelProduct` (the fast path): each
+        kind's kernels evaluated once for all of its experts."""
+        if self._shared_product is None:
+            rounds = self.experts.trial_rounds
+            if not bool((rounds == rounds[0]).all()):
+                raise ModelError("the experts of one product must share their trial rounds")
+            self._shared_product = SharedKernelProduct(self._shared_means, self._shared_log_weights,
+                                                       self.experts.bandwidth, rounds[0], self.expert_log_weight)
+        return self._shared_product
+
     def log_prob(self, final_pose: se3.Pose, method: str = "dense") -> Tensor:
         """``log P(B1 | a)`` up to the constant of the unnormalised kernels, for poses ``(..., M)``.
 
-        ``method``: ``"dense"`` (reference) or ``"fast"`` (pruned, fused experts; same values up to
-        float rounding, see :meth:`pushtorch.kde.PoseKDE.log_prob`).
+        ``method``: ``"dense"`` (reference) or ``"fast"`` (:meth:`shared_product`: each contact kind's
+        kernels evaluated once for all of its experts, fused; same values up to float rounding).
         """
-        poe = ProductOfExperts(self.experts, self.expert_log_weight)
-        return poe.log_prob(final_pose, method=method)
+        if method == "fast":
+            flat = se3.Pose(final_pose.p.reshape(-1, 3), final_pose.q.reshape(-1, 4))
+            return self.shared_product().log_prob(flat).reshape(final_pose.p.shape[:-1])
+        return ProductOfExperts(self.experts, self.expert_log_weight).log_prob(final_pose, method=method)
 
     def proposal(self, n: int, generator: torch.Generator | None = None) -> se3.Pose:
         """``n`` poses drawn from the experts' mixture (equal shares): annealing's starting candidates."""
@@ -312,6 +349,7 @@ class MotionDensity:
             rounds = self.experts.trial_rounds.clone()
             rounds[..., :2] += 1  # translation and rotation of the motion kernels (no descriptors here)
             self.experts = self.experts.with_trial_rounds(rounds)
+            self._shared_product = None
         raise ModelError(
             f"the {self.num_experts} experts share no final pose even after {max_rounds} trial rounds: "
             "the contact frames' predictions contradict each other"
@@ -358,11 +396,11 @@ def anneal_motion_densities(
 ) -> list[MotionPrediction]:
     """Anneal the products of experts of several push conditions in one batch on the fast path.
 
-    Every condition's experts are padded to common kernel and expert counts (padding kernels weigh
-    nothing, padding experts are masked out) and stacked along a problem dim, so each annealing step
-    is one pruned, fused evaluation for all conditions (:meth:`pushtorch.kde.PoseKDE.log_prob`,
-    ``method="fast"``). Each condition's start candidates and trial rounds are its own
-    (:meth:`MotionDensity.proposal`, :meth:`MotionDensity.widen_until_supported`).
+    Every condition's :meth:`MotionDensity.shared_kernels` are padded to common kernel and expert
+    counts (padding kernels weigh nothing, padding experts are masked out) and stacked along a problem
+    dim, so each annealing step is one fused evaluation for all conditions
+    (:class:`pushtorch.kde.SharedKernelProduct`). Each condition's start candidates and trial rounds are
+    its own (:meth:`MotionDensity.proposal`, :meth:`MotionDensity.widen_until_supported`).
 
     Returns:
         One :class:`MotionPrediction` per density, in order.
@@ -377,34 +415,31 @@ def anneal_motion_densities(
     for density in densities:
         init = density.proposal(n_candidates, generator)
         starts.append(density.widen_until_supported(init, method="fast"))
-    n_experts = max(d.num_experts for d in densities)
-    n_kernels = max(d.experts.num_kernels for d in densities)
+    layouts = [d.shared_kernels() for d in densities]
+    n_experts = max(w.shape[0] for _, w in layouts)
+    n_kernels = max(w.shape[1] for _, w in layouts)
     first = densities[0].experts
     dtype, device = first.dtype, first.device
-    p = torch.zeros(n_experts, len(densities), n_kernels, 3, dtype=dtype, device=device)
-    q = torch.zeros(n_experts, len(densities), n_kernels, 4, dtype=dtype, device=device)
+    p = torch.zeros(len(densities), n_kernels, 3, dtype=dtype, device=device)
+    q = torch.zeros(len(densities), n_kernels, 4, dtype=dtype, device=device)
     q[..., 0] = 1.0
     log_w = torch.full((n_experts, len(densities), n_kernels), -math.inf, dtype=dtype, device=device)
-    log_w[..., 0] = 0.0  # padding experts keep one (masked-out) kernel so every element is a density
-    rounds = torch.zeros(n_experts, len(densities), 3, dtype=torch.int64, device=device)
+    rounds = torch.zeros(len(densities), 3, dtype=torch.int64, device=device)
     log_wp = torch.zeros(n_experts, len(densities), dtype=dtype, device=device)
     mask = torch.zeros(n_experts, len(densities), dtype=torch.bool, device=device)
-    for b, density in enumerate(densities):
+    for b, (density, (means, weights)) in enumerate(zip(densities, layouts, strict=True)):
         experts = density.experts
         if experts.bandwidth != first.bandwidth or experts.dtype != dtype:
             raise InvalidParameterError("densities annealed together need one motion bandwidth and dtype")
-        e, n = density.num_experts, experts.num_kernels
-        p[:e, b, :n], q[:e, b, :n] = experts.means.p, experts.means.q
-        log_w[:e, b, :] = -math.inf
-        log_w[:e, b, :n] = experts.log_weights
-        rounds[:e, b] = experts.trial_rounds
+        e, n = weights.shape
+        p[b, :n], q[b, :n] = means.p, means.q
+        log_w[:e, b, :n] = weights
+        rounds[b] = density.shared_product().rounds
         log_wp[:e, b] = density.expert_log_weight.to(dtype)
         mask[:e, b] = True
-    # its only queries are the annealing's own (finite, normalised) proposals: no per-call validation
-    stacked = PoseKDE(se3.Pose(p, q), first.bandwidth, log_w, trial_rounds=rounds, validate_args=False)
-    product = ProductOfExperts(stacked, log_wp, mask)
+    product = SharedKernelProduct(se3.Pose(p, q), log_w, first.bandwidth, rounds, log_wp, mask)
     init = se3.Pose(torch.stack([s.p for s in starts]), torch.stack([s.q for s in starts]))  # (B, C)
-    result = anneal(lambda pose: product.log_prob(pose, method="fast"), init, schedule, generator,
+    result = anneal(product.log_prob, init, schedule, generator,
                     record_history=record_history, method="fast")
     out = []
     for b in range(len(densities)):
