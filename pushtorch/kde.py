@@ -1436,21 +1436,22 @@ def _shared_kernel_product(x: Tensor, table: Tensor, weights: Tensor, scale: Ten
                            mask: Tensor, delta_p: float, delta_q: float) -> Tensor:
     """Σ_e log Σ_k w_ek K(x | μ_k) + offset_e over the counted experts: ``(B, M)`` (fused).
 
-    x: queries ``(B, M, 7)``; table: shared kernels ``(B, 7, K)`` (rows p, q); weights ``(B, K, E)``
-    linear, relative to each expert's largest; scale ``(B, 2)`` (β_p/σ_p, β_q/σ_q); offset ``(B, 1, E)``
-    (log w^P_e plus the expert's largest log weight); mask ``(B, 1, E)``. Exact distances and the cut-offs
-    of :meth:`PoseKDE.log_prob`; one kernel evaluation serves every expert through one matmul.
+    x: queries ``(B, 7, M)`` (rows p, q); table: shared kernels ``(B, K, 7)``; weights ``(B, E, K)``
+    linear, relative to each expert's largest; scale ``(B, 2)`` (β_p/σ_p, β_q/σ_q); offset ``(B, E, 1)``
+    (log w^P_e plus the expert's largest log weight); mask ``(B, E, 1)``. Exact distances and the
+    cut-offs of :meth:`PoseKDE.log_prob`; one kernel evaluation serves every expert through one matmul,
+    laid out ``(E, K) @ (K, M)`` (with few experts ~4× faster than ``(M, K) @ (K, E)``, measured).
     """
-    xs = x.unsqueeze(-1)  # (B, M, 7, 1)
-    t = table.unsqueeze(1)  # (B, 1, 7, K)
-    sc = scale[:, :, None, None]
+    xs = x.unsqueeze(1)  # (B, 1, 7, M)
+    t = table.unsqueeze(-1)  # (B, K, 7, 1)
+    sc = scale[:, None, :, None]  # (B, 1, 2, 1)
     d_p = ((xs[:, :, 0] - t[:, :, 0]) ** 2 + (xs[:, :, 1] - t[:, :, 1]) ** 2
-           + (xs[:, :, 2] - t[:, :, 2]) ** 2) * sc[:, 0]
+           + (xs[:, :, 2] - t[:, :, 2]) ** 2) * sc[:, :, 0]
     dot = xs[:, :, 3] * t[:, :, 3] + xs[:, :, 4] * t[:, :, 4] + xs[:, :, 5] * t[:, :, 5] + xs[:, :, 6] * t[:, :, 6]
-    d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, 1]
+    d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, :, 1]
     kernels = torch.where((d_p < delta_p) & (d_q < delta_q), torch.exp(-d_p - d_q), torch.zeros_like(d_p))
-    per_expert = torch.log(torch.bmm(kernels, weights)) + offset  # (B, M, E)
-    return torch.where(mask, per_expert, torch.zeros_like(per_expert)).sum(-1)
+    per_expert = torch.log(torch.bmm(weights, kernels)) + offset  # (B, E, M)
+    return torch.where(mask, per_expert, torch.zeros_like(per_expert)).sum(1)
 
 
 class SharedKernelProduct:
@@ -1517,10 +1518,10 @@ class SharedKernelProduct:
         self.rounds = PoseKDE._rounds_tensor(trial_rounds, batch, device)
         beta = torch.pow(torch.tensor(bandwidth.alpha_t, dtype=torch.float64), -self.rounds.double()).reshape(d, 3)
         self.scale = torch.stack([beta[:, 0] / bandwidth.sigma_p, beta[:, 1] / bandwidth.sigma_q], -1).to(dtype)
-        self.table = torch.cat([means.p, means.q], -1).reshape(d, k, 7).transpose(1, 2).contiguous()  # (D, 7, K)
-        self.weights = relative.exp().reshape(n_experts, d, k).permute(1, 2, 0).contiguous()  # (D, K, E)
-        self.offset = offset.reshape(n_experts, d).transpose(0, 1).unsqueeze(1).contiguous()  # (D, 1, E)
-        self.mask = mask.reshape(n_experts, d).transpose(0, 1).unsqueeze(1).contiguous()
+        self.table = torch.cat([means.p, means.q], -1).reshape(d, k, 7).contiguous()  # (D, K, 7)
+        self.weights = relative.exp().reshape(n_experts, d, k).transpose(0, 1).contiguous()  # (D, E, K)
+        self.offset = offset.reshape(n_experts, d, 1).transpose(0, 1).contiguous()  # (D, E, 1)
+        self.mask = mask.reshape(n_experts, d, 1).transpose(0, 1).contiguous()
         self.delta_p, self.delta_q, _ = bandwidth.delta
 
     def log_prob(self, pose: Pose) -> Tensor:
@@ -1529,9 +1530,10 @@ class SharedKernelProduct:
         d = self.table.shape[0]
         m = pose.p.shape[-2]
         x = torch.cat([pose.p, pose.q], -1).expand(*self.batch_shape, m, 7).reshape(d, m, 7)
+        x = x.transpose(1, 2).contiguous()  # (D, 7, M): a strided view compiles ~6x slower (measured)
         evaluate = fused_function("shared_kernel_product", _shared_kernel_product, x.device)
-        # chunks of problems bound the (problems × M × K) kernel values that feed the matmul
-        step = max(1, (_DEFAULT_BLOCK_ELEMENTS * 8) // max(1, m * self.table.shape[-1]))
+        # chunks of problems bound the (problems × K × M) kernel values that feed the matmul
+        step = max(1, (_DEFAULT_BLOCK_ELEMENTS * 8) // max(1, m * self.table.shape[1]))
         out = [evaluate(x[s : s + step], self.table[s : s + step], self.weights[s : s + step],
                         self.scale[s : s + step], self.offset[s : s + step], self.mask[s : s + step],
                         self.delta_p, self.delta_q) for s in range(0, d, step)]
