@@ -36,7 +36,7 @@ from pushtorch.se3 import Pose, check_unit_quaternion, perturb
 
 Tensor = torch.Tensor
 
-__all__ = ["AnnealResult", "AnnealSchedule", "anneal", "initial_candidates"]
+__all__ = ["AnnealResult", "AnnealSchedule", "anneal", "initial_candidates", "polish_candidates"]
 
 
 @dataclass(frozen=True)
@@ -96,7 +96,8 @@ class AnnealResult:
             candidates with associated likelihoods").
         log_prob: their log-likelihoods ``(*B, C)``.
         history: the chains' current poses before step 1 and after every step, Pose ``(steps+1, *B, C)``,
-            if recorded (for Rerun); else None.
+            if recorded (for Rerun); else None. After :func:`polish_candidates` the polished candidates
+            are one more step.
         history_log_prob: their log-likelihoods ``(steps+1, *B, C)``, if recorded.
     """
 
@@ -384,18 +385,54 @@ def anneal(
                 history_p.append(current.p)
                 history_q.append(current.q)
                 history_lp.append(current_lp)
-    winner = best_lp.argmax(-1, keepdim=True)  # (*B, 1); an all -inf problem returns its first candidate
-    top = Pose(
-        torch.gather(best.p, -2, winner.unsqueeze(-1).expand(*winner.shape, 3)).squeeze(-2),
-        torch.gather(best.q, -2, winner.unsqueeze(-1).expand(*winner.shape, 4)).squeeze(-2),
-    )
-    result = AnnealResult(
-        best=top,
-        best_log_prob=torch.gather(best_lp, -1, winner).squeeze(-1),
-        candidates=best,
-        log_prob=best_lp,
-    )
+    result = _best_of(best, best_lp)
     if record_history:
         result.history = Pose(torch.stack(history_p), torch.stack(history_q))
         result.history_log_prob = torch.stack(history_lp)
     return result
+
+
+def polish_candidates(
+    result: AnnealResult,
+    shift_fn: Callable[[Pose], Pose],
+    log_prob_fn: Callable[[Pose], Tensor],
+    steps: int,
+) -> AnnealResult:
+    """Move every annealed candidate up to its local mode: ``steps`` mean-shift moves (``shift_fn``, e.g.
+    :meth:`pushtorch.kde.PoseKDE.mean_shift`), each kept only where it raises the log-likelihood.
+
+    The fast path's "better proposals" (docs/method.md): annealing explores with fewer steps and the
+    mean-shift fixed point, where a mode is, replaces the last steps' small random moves. The best
+    candidate is chosen again; a recorded history gains the polished candidates as its last step.
+    """
+    if isinstance(steps, bool) or int(steps) != steps or steps < 0:
+        raise InvalidParameterError(f"polish steps must be an integer >= 0, got {steps!r}")
+    if steps == 0:
+        return result
+    p, q, lp = result.candidates.p, result.candidates.q, result.log_prob
+    for _ in range(int(steps)):
+        with torch.no_grad():
+            moved = shift_fn(Pose(p, q))
+            moved_lp = log_prob_fn(moved)
+        better = moved_lp > lp  # NaN never is
+        p = torch.where(better.unsqueeze(-1), moved.p, p)
+        q = torch.where(better.unsqueeze(-1), moved.q, q)
+        lp = torch.where(better, moved_lp, lp)
+    polished = _best_of(Pose(p, q), lp)
+    if result.history is not None:  # the polished candidates as one more step, for review
+        polished.history = Pose(torch.cat([result.history.p, p.unsqueeze(0)]),
+                                torch.cat([result.history.q, q.unsqueeze(0)]))
+        polished.history_log_prob = torch.cat([result.history_log_prob, lp.unsqueeze(0)])
+    return polished
+
+
+def _best_of(candidates: Pose, log_prob: Tensor) -> AnnealResult:
+    """The result whose best is each problem's highest candidate (an all -inf problem: its first)."""
+    winner = log_prob.argmax(-1, keepdim=True)  # (*B, 1)
+    return AnnealResult(
+        best=Pose(torch.gather(candidates.p, -2, winner.unsqueeze(-1).expand(*winner.shape, 3)).squeeze(-2),
+                  torch.gather(candidates.q, -2, winner.unsqueeze(-1).expand(*winner.shape, 4)).squeeze(-2)),
+        best_log_prob=torch.gather(log_prob, -1, winner).squeeze(-1),
+        candidates=candidates,
+        log_prob=log_prob,
+    )

@@ -527,6 +527,7 @@ class PoseKDE:
         new.__dict__.update(self.__dict__)
         new.__dict__.update(changes)
         new.__dict__.pop("_fast_index", None)  # built from the old kernels / trial rounds
+        new.__dict__.pop("_fast_descriptor_table", None)
         new._precompute()
         return new
 
@@ -773,8 +774,9 @@ class PoseKDE:
                 exact distances evaluated in fused passes (compiled, see :func:`fast_path_compiled`),
                 for more than ``FAST_DENSE_KERNELS`` kernels only on the leaf blocks the cut-offs let
                 reach a query. Same values up to float rounding; the kernel layout is built on first
-                use and cached. Queries with descriptors, weights spanning more than ~e^60, and small
-                densities without a compiler take the dense path.
+                use and cached. Queries with descriptors are fused without pruning (one density, batch
+                shape ``()``); weights spanning more than ~e^60, descriptors on a batched density and
+                small densities without a compiler take the dense path.
 
         Returns:
             ``(*broadcast(B, B'), M)`` log densities (unnormalised kernels, ``K(μ|μ) = 1``); ``-inf``
@@ -796,6 +798,11 @@ class PoseKDE:
             if index.linear and (index.blocks or fast_path_compiled(self.device)):
                 p, q, _ = self._prepare_queries(pose, None)
                 return index.log_prob(p, q)
+        if method == "fast" and descriptors is not None and len(self.batch_shape) == 0:
+            table = self._descriptor_table()
+            if table is not None:
+                p, q, r = self._prepare_queries(pose, descriptors)
+                return self._fast_log_prob_descriptors(table, p, q, r)
         out = [
             _logsumexp_last(self._chunk_log_kernels(p, q, r, with_weights=True))
             for p, q, r in self._iter_chunks(pose, descriptors, chunk_size)
@@ -805,6 +812,66 @@ class PoseKDE:
             shape = torch.broadcast_shapes(p.shape[:-2], self.batch_shape) + (0,)
             return torch.empty(shape, dtype=self.dtype, device=self.device)
         return torch.cat(out, -1)
+
+    def _descriptor_table(self) -> Tensor | None:
+        """Kernels as rows ``(8 + k, N)`` (p, q, log w relative to the largest, r) for the fused pass
+        with descriptors; None when the weights span more than float32 sums in the linear domain."""
+        table = self.__dict__.get("_fast_descriptor_table")
+        if table is None:
+            top = self._log_w.amax()
+            relative = self._log_w - top
+            valid = relative > -math.inf
+            if not bool((relative[valid] > math.log(torch.finfo(self.dtype).tiny) + 25.0).all()):
+                return None
+            table = torch.cat([self._p, self._q, relative.unsqueeze(-1), self._r], -1).T.contiguous()
+            self._fast_descriptor_table = (table, top)
+            return self._fast_descriptor_table
+        return table
+
+    def _fast_log_prob_descriptors(self, table: tuple[Tensor, Tensor], p: Tensor, q: Tensor, r: Tensor) -> Tensor:
+        """log_prob of one density (batch shape ()) with descriptors in one fused pass per chunk."""
+        rows, top = table
+        shape = p.shape[:-1]
+        x = torch.cat([p, q, r], -1).reshape(-1, p.shape[-1] + q.shape[-1] + r.shape[-1]).T.contiguous()
+        bw = self.bandwidth
+        beta = self._beta.double()
+        scale = torch.stack([beta[0] / bw.sigma_p, beta[1] / bw.sigma_q, beta[2]]).to(self.dtype)
+        r_scale = (1.0 / torch.tensor(bw.sigma_r, dtype=torch.float64)).to(self.dtype)
+        evaluate = fused_function("descriptor_sums", _descriptor_sums, x.device)
+        step = max(1, _DEFAULT_BLOCK_ELEMENTS // rows.shape[1])
+        total = torch.cat([evaluate(x[:, s : s + step], rows, scale, r_scale, *bw.delta)
+                           for s in range(0, x.shape[1], step)])
+        return (torch.log(total) + top).reshape(shape)
+
+    def mean_shift(self, pose: Pose, chunk_size: int | None = None, method: str = "dense") -> Pose:
+        """One mean-shift step of every query towards a local mode of the density over SE(3).
+
+        With responsibilities ``a_i ∝ w_i K(x | μ_i)`` (cut-offs included) the step is
+        ``p ← Σ a_i μ_p,i`` and ``q ← normalise(Σ a_i s_i μ_q,i)``, ``s_i = sign<q, μ_q,i>``: the
+        fixed-point equations of a maximum of ``Σ w_i K(x | μ_i)`` (the Gaussian's and the vMF's
+        stationarity conditions), so a mode is a fixed point. A query of zero density stays where it is.
+        ``method="fast"`` sums the moments over the leaf blocks in reach (large densities only);
+        ``"dense"`` forms every query's responsibilities. Poses ``(*B', M)`` → ``(*broadcast, M)``.
+        """
+        if method not in ("dense", "fast"):
+            raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
+        if method == "fast" and self._r is None:
+            index = self.fast_index()
+            if index.linear and index.blocks:
+                p, q, _ = self._prepare_queries(pose, None)
+                return index.mean_shift(p, q)
+        new_p, new_q = [], []
+        for p, q, _ in self._iter_chunks(pose, None, chunk_size):
+            logits = self._chunk_log_kernels(p, q, None, with_weights=True)  # (*BB, m, N)
+            alive = torch.isfinite(logits).any(-1, keepdim=True)
+            a = torch.softmax(torch.where(alive, logits, torch.zeros_like(logits)), -1) * alive
+            sign = torch.where(q @ self._q.transpose(-1, -2) < 0, -1.0, 1.0).to(a.dtype)
+            moved_p = a @ self._p
+            moved_q = (a * sign) @ self._q
+            moved_q = moved_q / moved_q.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+            new_p.append(torch.where(alive, moved_p, p.expand_as(moved_p)))
+            new_q.append(torch.where(alive, moved_q, q.expand_as(moved_q)))
+        return Pose(torch.cat(new_p, -2), torch.cat(new_q, -2))
 
     def fast_index(self) -> _FastIndex:
         """The fast path's leaf blocks of this density (built on first use, then cached)."""
@@ -1088,6 +1155,20 @@ def _dense_sums(x: Tensor, table: Tensor, scale: Tensor, delta_p: float, delta_q
     return torch.where(keep, torch.exp(t[:, 7] - d_p - d_q), torch.zeros_like(d_p)).sum(-1)
 
 
+def _descriptor_sums(x: Tensor, table: Tensor, scale: Tensor, r_scale: Tensor, delta_p: float, delta_q: float,
+                     delta_r: float) -> Tensor:
+    """Σ_i w_i K(x | μ_i) with descriptors for queries ``x (7 + k, M)`` (rows p, q, r) against kernels
+    ``table (8 + k, N)`` (rows p, q, relative log w, r): ``(M,)``. scale: ``(3,)`` (β_p/σ_p, β_q/σ_q,
+    β_r), r_scale: ``(k,)`` 1/σ_r. Exact distances and every cut-off of :meth:`PoseKDE.log_prob`."""
+    xs = x.unsqueeze(-1)  # (7 + k, M, 1)
+    t = table.unsqueeze(1)  # (8 + k, 1, N)
+    d_p = ((xs[0] - t[0]) ** 2 + (xs[1] - t[1]) ** 2 + (xs[2] - t[2]) ** 2) * scale[0]
+    d_q = (1.0 - (xs[3] * t[3] + xs[4] * t[4] + xs[5] * t[5] + xs[6] * t[6]).abs()).clamp_min(0.0) * scale[1]
+    d_r = sum((xs[7 + k] - t[8 + k]) ** 2 * r_scale[k] for k in range(r_scale.shape[0])) * scale[2]
+    keep = (d_p < delta_p) & (d_q < delta_q) & (d_r < delta_r)
+    return torch.where(keep, torch.exp(t[7] - d_p - d_q - d_r), torch.zeros_like(d_p)).sum(-1)
+
+
 def _reachable_blocks(
     x: Tensor, lo: Tensor, hi: Tensor, centre: Tensor, cos_reach: Tensor, r2: Tensor
 ) -> Tensor:
@@ -1126,6 +1207,25 @@ def _block_sums(x: Tensor, table: Tensor, scale: Tensor, query_density: Tensor, 
     keep = (d_p < delta_p) & (d_q < delta_q)
     per_pair = torch.where(keep, torch.exp(t[:, 7] - d_p - d_q), torch.zeros_like(d_p)).sum(-1)
     return torch.zeros_like(x[:, 0]).index_add(0, pair_query, per_pair)
+
+
+def _block_moments(x: Tensor, table: Tensor, scale: Tensor, query_density: Tensor, pair_query: Tensor,
+                   pair_block: Tensor, num_blocks: int, delta_p: float, delta_q: float) -> Tensor:
+    """The mean-shift moments of each query over its (query, block) pairs: ``(R, 8)``, columns
+    ``Σ w K``, ``Σ w K μ_p`` (3) and ``Σ w K s μ_q`` (4) with ``s = sign<x_q, μ_q>``; arguments as
+    :func:`_block_sums`."""
+    density = query_density[pair_query]
+    t = table[density * num_blocks + pair_block]  # (P, 8, L)
+    xs = x[pair_query].unsqueeze(-1)  # (P, 7, 1)
+    sc = scale[density]
+    d_p = ((xs[:, 0] - t[:, 0]) ** 2 + (xs[:, 1] - t[:, 1]) ** 2 + (xs[:, 2] - t[:, 2]) ** 2) * sc[:, 0:1]
+    dot = xs[:, 3] * t[:, 3] + xs[:, 4] * t[:, 4] + xs[:, 5] * t[:, 5] + xs[:, 6] * t[:, 6]
+    d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, 1:2]
+    k = torch.where((d_p < delta_p) & (d_q < delta_q), torch.exp(t[:, 7] - d_p - d_q), torch.zeros_like(d_p))
+    ks = torch.where(dot < 0, -k, k)
+    moments = torch.stack([k.sum(-1)] + [(k * t[:, i]).sum(-1) for i in range(3)]
+                          + [(ks * t[:, i]).sum(-1) for i in range(3, 7)], -1)  # (P, 8)
+    return torch.zeros(x.shape[0], 8, dtype=x.dtype, device=x.device).index_add(0, pair_query, moments)
 
 
 _DENSE_ROW_GROUPS = 4  # at most this many kernel-count groups per dense evaluation (one call each)
@@ -1258,18 +1358,10 @@ class _FastIndex:
 
     def log_prob(self, p: Tensor, q: Tensor) -> Tensor:
         """Log densities of prepared queries ``p (*BB, M, 3)``, ``q (*BB, M, 4)`` → ``(*BB, M)``."""
-        batch = torch.broadcast_shapes(p.shape[:-2], self.batch_shape)
-        m = p.shape[-2]
-        x = torch.cat([p.expand(*batch, m, 3), q.expand(*batch, m, 4)], -1).reshape(-1, m, 7)
-        rows = x.shape[0]
+        x, density, own, batch = self._queries(p, q)
+        rows, m = x.shape[:2]
         if m == 0 or rows == 0:
             return torch.empty(*batch, m, dtype=x.dtype, device=x.device)
-        if len(self.batch_shape) == 0:
-            density = torch.zeros(rows, dtype=torch.long, device=x.device)
-        else:
-            density = torch.arange(self.batch_shape.numel(), device=x.device).reshape(self.batch_shape)
-            density = density.expand(batch).reshape(-1)
-        own = tuple(batch) == tuple(self.batch_shape) or (len(self.batch_shape) == 0 and rows == 1)
 
         def per_query(t: Tensor) -> Tensor:
             return t if own else t[density]
@@ -1296,23 +1388,59 @@ class _FastIndex:
                 else:
                     total[members] = part
         else:
-            bounds = [per_query(t) for t in (self.lo, self.hi, self.centre, self.cos_reach, self.r2)]
-            # compiled reach is ~10x faster with a float result; nonzero is faster on bool
-            reach = fused_function("reach", _reachable_blocks, x.device)(x_t, *bounds) > 0
-            pair_query, pair_block = reach.reshape(rows * m, self.num_blocks).nonzero(as_tuple=True)
-            query_density = density.repeat_interleave(m)
-            flat_x = x.reshape(rows * m, 7)
-            evaluate = fused_function("block_sums", _block_sums, x.device)
-            # eager evaluation materialises (pairs, 8, L): chunk it; compiled code streams it
-            streamed = compiled and "block_sums" not in _compile_failed
-            step = pair_query.numel() if streamed else _DEFAULT_BLOCK_ELEMENTS // (8 * self.table.shape[-1])
-            total = torch.zeros(rows * m, dtype=x.dtype, device=x.device)
-            for s in range(0, pair_query.numel(), max(1, step)):
-                pairs = (pair_query[s : s + step], pair_block[s : s + step])
-                total = total + evaluate(flat_x, self.table, self.scale, query_density, *pairs,
-                                         self.num_blocks, self.delta_p, self.delta_q)
+            total = self._pair_sums("block_sums", _block_sums, x, density, own, ())
         offset = self.log_w_max[density].unsqueeze(-1)
         return (torch.log(total.reshape(rows, m)) + offset).reshape(*batch, m)
+
+    def _queries(self, p: Tensor, q: Tensor) -> tuple[Tensor, Tensor, bool, torch.Size]:
+        """Queries ``(rows, M, 7)``, each row's density index, whether rows are the density's own
+        batch, and the broadcast batch shape."""
+        batch = torch.broadcast_shapes(p.shape[:-2], self.batch_shape)
+        m = p.shape[-2]
+        x = torch.cat([p.expand(*batch, m, 3), q.expand(*batch, m, 4)], -1).reshape(-1, m, 7)
+        if len(self.batch_shape) == 0:
+            density = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
+        else:
+            density = torch.arange(self.batch_shape.numel(), device=x.device).reshape(self.batch_shape)
+            density = density.expand(batch).reshape(-1)
+        own = tuple(batch) == tuple(self.batch_shape) or (len(self.batch_shape) == 0 and x.shape[0] == 1)
+        return x, density, own, batch
+
+    def _pair_sums(self, name: str, fn: Callable, x: Tensor, density: Tensor, own: bool,
+                   columns: tuple[int, ...]) -> Tensor:
+        """``fn`` (:func:`_block_sums` or :func:`_block_moments`) summed over the (query, block) pairs
+        in reach: ``(rows · M, *columns)``."""
+        rows, m = x.shape[:2]
+        bounds = [t if own else t[density] for t in (self.lo, self.hi, self.centre, self.cos_reach, self.r2)]
+        # compiled reach is ~10x faster with a float result; nonzero is faster on bool
+        reach = fused_function("reach", _reachable_blocks, x.device)(x.transpose(1, 2), *bounds) > 0
+        pair_query, pair_block = reach.reshape(rows * m, self.num_blocks).nonzero(as_tuple=True)
+        query_density = density.repeat_interleave(m)
+        flat_x = x.reshape(rows * m, 7)
+        evaluate = fused_function(name, fn, x.device)
+        # eager evaluation materialises (pairs, 8, L): chunk it; compiled code streams it
+        streamed = fast_path_compiled(x.device) and name not in _compile_failed
+        step = pair_query.numel() if streamed else _DEFAULT_BLOCK_ELEMENTS // (8 * self.table.shape[-1])
+        total = torch.zeros(rows * m, *columns, dtype=x.dtype, device=x.device)
+        for s in range(0, pair_query.numel(), max(1, step)):
+            pairs = (pair_query[s : s + step], pair_block[s : s + step])
+            total = total + evaluate(flat_x, self.table, self.scale, query_density, *pairs, self.num_blocks,
+                                     self.delta_p, self.delta_q)
+        return total
+
+    def mean_shift(self, p: Tensor, q: Tensor) -> Pose:
+        """:meth:`PoseKDE.mean_shift` of prepared queries over the leaf blocks in reach (block layout)."""
+        x, density, own, batch = self._queries(p, q)
+        m = x.shape[1]
+        if m == 0 or x.shape[0] == 0:
+            return Pose(p.expand(*batch, m, 3), q.expand(*batch, m, 4))
+        moments = self._pair_sums("block_moments", _block_moments, x, density, own, (8,)).reshape(*batch, m, 8)
+        p, q = p.expand(*batch, m, 3), q.expand(*batch, m, 4)
+        alive = moments[..., :1] > 0
+        moved_q = moments[..., 4:]
+        moved_q = moved_q / moved_q.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+        return Pose(torch.where(alive, moments[..., 1:4] / moments[..., :1].clamp_min(1e-30), p),
+                    torch.where(alive, moved_q, q))
 
 # --------------------------------------------------------------------------------------------------
 # Product of experts
@@ -1454,6 +1582,33 @@ def _shared_kernel_product(x: Tensor, table: Tensor, weights: Tensor, scale: Ten
     return torch.where(mask, per_expert, torch.zeros_like(per_expert)).sum(1)
 
 
+def _shared_kernel_shift(x: Tensor, table: Tensor, weights: Tensor, scale: Tensor, mask: Tensor,
+                         delta_p: float, delta_q: float) -> Tensor:
+    """One mean-shift step of the product of experts for queries ``x (B, 7, M)`` → ``(B, 7, M)``
+    (fused); arguments as :func:`_shared_kernel_product`.
+
+    With every kernel on one bandwidth, the stationarity conditions of ``Σ_e log P_e`` weigh kernel
+    ``k`` by ``a_k = K_k Σ_e w_ek / P_e``: ``p ← Σ a_k μ_p,k / Σ a_k``, ``q ← normalise(Σ a_k s_k μ_q,k)``.
+    A query where a counted expert is zero (the product is) stays.
+    """
+    xs = x.unsqueeze(1)  # (B, 1, 7, M)
+    t = table.unsqueeze(-1)  # (B, K, 7, 1)
+    sc = scale[:, None, :, None]
+    d_p = ((xs[:, :, 0] - t[:, :, 0]) ** 2 + (xs[:, :, 1] - t[:, :, 1]) ** 2
+           + (xs[:, :, 2] - t[:, :, 2]) ** 2) * sc[:, :, 0]
+    dot = xs[:, :, 3] * t[:, :, 3] + xs[:, :, 4] * t[:, :, 4] + xs[:, :, 5] * t[:, :, 5] + xs[:, :, 6] * t[:, :, 6]
+    d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, :, 1]
+    kernels = torch.where((d_p < delta_p) & (d_q < delta_q), torch.exp(-d_p - d_q), torch.zeros_like(d_p))
+    sums = torch.bmm(weights, kernels)  # (B, E, M)
+    alive = ((sums > 0) | ~mask).all(1, keepdim=True)  # (B, 1, M)
+    inverse = torch.where(mask & (sums > 0), 1.0 / sums.clamp_min(1e-30), torch.zeros_like(sums))
+    a = torch.bmm(weights.transpose(1, 2), inverse) * kernels  # (B, K, M)
+    moved_p = torch.bmm(table[:, :, :3].transpose(1, 2), a) / a.sum(1, keepdim=True).clamp_min(1e-30)
+    moved_q = torch.bmm(table[:, :, 3:].transpose(1, 2), torch.where(dot < 0, -a, a))
+    moved_q = moved_q / moved_q.norm(dim=1, keepdim=True).clamp_min(1e-30)
+    return torch.where(alive, torch.cat([moved_p, moved_q], 1), x)
+
+
 class SharedKernelProduct:
     """A product of experts (Eq. poe) whose experts weigh one shared set of kernels differently.
 
@@ -1532,12 +1687,25 @@ class SharedKernelProduct:
         x = torch.cat([pose.p, pose.q], -1).expand(*self.batch_shape, m, 7).reshape(d, m, 7)
         x = x.transpose(1, 2).contiguous()  # (D, 7, M): a strided view compiles ~6x slower (measured)
         evaluate = fused_function("shared_kernel_product", _shared_kernel_product, x.device)
-        # chunks of problems bound the (problems × K × M) kernel values that feed the matmul
-        step = max(1, (_DEFAULT_BLOCK_ELEMENTS * 8) // max(1, m * self.table.shape[1]))
+        # chunks of problems keep the (problems × K × M) kernel values feeding the matmul cache-sized (~8 MB)
+        step = max(1, _DEFAULT_BLOCK_ELEMENTS // max(1, m * self.table.shape[1]))
         out = [evaluate(x[s : s + step], self.table[s : s + step], self.weights[s : s + step],
                         self.scale[s : s + step], self.offset[s : s + step], self.mask[s : s + step],
                         self.delta_p, self.delta_q) for s in range(0, d, step)]
         return torch.cat(out, 0).reshape(*self.batch_shape, m)
+
+    def mean_shift(self, pose: Pose) -> Pose:
+        """One mean-shift step of every query towards a local mode of the product (see
+        :meth:`PoseKDE.mean_shift`; the experts' weights w^P do not move a mode): poses ``(*B, M)``."""
+        d, m = self.table.shape[0], pose.p.shape[-2]
+        x = torch.cat([pose.p, pose.q], -1).expand(*self.batch_shape, m, 7).reshape(d, m, 7)
+        x = x.transpose(1, 2).contiguous()
+        evaluate = fused_function("shared_kernel_shift", _shared_kernel_shift, x.device)
+        step = max(1, _DEFAULT_BLOCK_ELEMENTS // max(1, m * self.table.shape[1]))
+        out = torch.cat([evaluate(x[s : s + step], self.table[s : s + step], self.weights[s : s + step],
+                                  self.scale[s : s + step], self.mask[s : s + step], self.delta_p, self.delta_q)
+                         for s in range(0, d, step)], 0).transpose(1, 2).reshape(*self.batch_shape, m, 7)
+        return Pose(out[..., :3], out[..., 3:])
 
     def __call__(self, pose: Pose) -> Tensor:
         return self.log_prob(pose)

@@ -14,13 +14,17 @@ With a :class:`~pushtorch.models.library.ModelLibrary`, the model is chosen firs
 Two implementations of the same method: ``method="fast"`` (default) evaluates the densities only where
 the kernels' hard cut-offs let them reach, in fused (compiled when possible) passes, anneals the robot's
 and the object's query densities in one batch and, in :func:`predict_many`, many conditions at once;
-``method="dense"`` is the reference implementation (every query against every kernel, one density at a
-time). Both optimise the same densities with the same schedules; their random streams differ.
+it anneals for ``ModelSettings.fast_anneal_fraction`` of the steps and then moves every candidate to
+its local mode by mean shift (``polish_steps``, :func:`pushtorch.anneal.polish_candidates`).
+``method="dense"`` is the reference implementation of the paper (every query against every kernel, one
+density at a time, the full annealing schedule). Both optimise the same densities; their random streams
+differ; ``tools/bench_predict.py`` checks that their accuracy agrees.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import torch
 
@@ -38,6 +42,8 @@ from pushtorch.models.query import (
     QueryDensity,
     QueryResult,
     build_query_density,
+    feature_distance_heuristic,
+    heuristic_descriptors,
     optimise_query_densities,
     optimise_query_density,
 )
@@ -54,9 +60,16 @@ class PushCondition:
     manipulator_frame: ContactFrames  # (1,)
     environment_frames: ContactFrames  # (E,)
     object_pose: se3.Pose  # () estimated initial pose B0'
-    feature_distance: torch.Tensor  # H_r of the manipulator contact model on this cloud
     robot_query: QueryResult
     pose_query: QueryResult
+    features: SurfaceFeatures = field(repr=False)  # the cloud's surface features
+    model: PushModel = field(repr=False)
+
+    @cached_property
+    def feature_distance(self) -> torch.Tensor:
+        """``H_r`` of the model's manipulator contact model on this cloud (computed on first use; the
+        value :meth:`ModelLibrary.feature_distances` selects by)."""
+        return feature_distance_heuristic(heuristic_descriptors(self.features), self.model.contact.frames.r, "fast")
 
 
 @dataclass
@@ -97,8 +110,14 @@ def motion_bandwidth(settings: ModelSettings) -> KernelBandwidth:
                            alpha_t=settings.alpha_t)
 
 
-def _schedule(settings: ModelSettings, planar: bool) -> AnnealSchedule:
-    return AnnealSchedule(steps=settings.anneal_steps, planar=planar)
+def _schedule(settings: ModelSettings, planar: bool, method: str) -> AnnealSchedule:
+    """The paper's schedule for the dense reference; the fast path's shorter one (then polished)."""
+    steps = settings.fast_anneal_steps if method == "fast" else settings.anneal_steps
+    return AnnealSchedule(steps=steps, planar=planar)
+
+
+def _polish_steps(settings: ModelSettings, method: str) -> int:
+    return settings.polish_steps if method == "fast" else 0
 
 
 def _as_features(cloud: PointCloud | SurfaceFeatures, settings: ModelSettings) -> SurfaceFeatures:
@@ -128,8 +147,8 @@ def estimate_pose(
     features = _as_features(cloud, settings)
     density = _pose_density(position, features, settings, generator, method)
     result = optimise_query_density(
-        density, settings.anneal_candidates, _schedule(settings, planar=False), generator, record_history,
-        method,
+        density, settings.anneal_candidates, _schedule(settings, False, method), generator, record_history,
+        method, _polish_steps(settings, method),
     )
     return _verified_pose(result, position, features, generator)
 
@@ -164,7 +183,7 @@ def _robot_density(model: PushModel, features: SurfaceFeatures, generator: torch
     return build_query_density(
         model.contact.frames, features, settings.query_kernels, std, query_bandwidth(settings),
         r_cutoff_std=settings.descriptor_cutoff_std, alpha_t=settings.alpha_t, project_planar=True,
-        heuristic=True, generator=generator, method=method,
+        generator=generator, method=method,
     )
 
 
@@ -194,12 +213,11 @@ def generate_push_condition(
     settings = model.settings
     robot_density = _robot_density(model, features, generator, method)
     robot = optimise_query_density(
-        robot_density, settings.anneal_candidates, _schedule(settings, planar=True), generator, record_history
+        robot_density, settings.anneal_candidates, _schedule(settings, True, method), generator, record_history
     )
     environment = _environment_frames(model, features, action_index, generator)
     pose = estimate_pose(model.position, features, settings, generator, record_history, method)
-    return PushCondition(robot.pose, robot.nearest_kernel, environment, pose.pose,
-                         robot_density.feature_distance, robot, pose)
+    return PushCondition(robot.pose, robot.nearest_kernel, environment, pose.pose, robot, pose, features, model)
 
 
 def _environment_frames(model: PushModel, features: SurfaceFeatures, action_index: int,
@@ -228,15 +246,15 @@ def _push_conditions_fast(
         pose_densities.append(_pose_density(model.position, f, settings, generator, "fast"))
     n = len(features)
     results = optimise_query_densities(
-        robot_densities + pose_densities, settings.anneal_candidates, _schedule(settings, planar=False),
-        [True] * n + [False] * n, generator, record_history,
+        robot_densities + pose_densities, settings.anneal_candidates, _schedule(settings, False, "fast"),
+        [True] * n + [False] * n, generator, record_history, settings.polish_steps,
     )
     conditions = []
     for i, (f, a) in enumerate(zip(features, action_indices, strict=True)):
         robot, pose = results[i], _verified_pose(results[n + i], model.position, f, generator)
         environment = _environment_frames(model, f, a, generator)
-        conditions.append(PushCondition(robot.pose, robot.nearest_kernel, environment, pose.pose,
-                                        robot_densities[i].feature_distance, robot, pose))
+        conditions.append(PushCondition(robot.pose, robot.nearest_kernel, environment, pose.pose, robot, pose, f,
+                                        model))
     return conditions
 
 
@@ -258,9 +276,10 @@ def predict(
         record_history: keep every annealing step (for Rerun).
         method: ``"fast"`` (default): densities evaluated only where the hard cut-offs let kernels
             reach, fused (compiled when a compiler is available, :func:`pushtorch.kde.fast_path_compiled`),
-            query densities annealed together, cheaper exact proposal draws; ``"dense"``: the reference
-            implementation. Both optimise the same densities with the same schedule; their random
-            streams differ, so single predictions differ as two seeds do.
+            query densities annealed together, cheaper exact proposal draws, a shorter annealing
+            polished by mean shift (module docstring); ``"dense"``: the reference implementation, the
+            paper's full schedule. Both optimise the same densities; their random streams differ, so
+            single predictions differ as two seeds do.
 
     Raises:
         InvalidParameterError: an unknown method.
@@ -355,13 +374,13 @@ def _predict_batch(
         rows = [i for i, c in enumerate(chosen) if c is m]
         a_idx = [m.action_index(actions[i]) for i in rows]
         settings = m.settings
-        schedule = _schedule(settings, planar=False)
+        schedule = _schedule(settings, False, method)
         if method == "fast":
             shares = [features[i] for i in rows]
             conditions = _push_conditions_fast(m, shares, a_idx, generator, record_history)
             densities = [_motion_density(m, c, a, generator) for c, a in zip(conditions, a_idx, strict=True)]
             results = anneal_motion_densities(densities, settings.anneal_candidates, schedule, generator,
-                                              record_history)
+                                              record_history, settings.polish_steps)
         else:
             conditions, densities, results = [], [], []
             for i, a in zip(rows, a_idx, strict=True):

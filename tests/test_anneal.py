@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from pushtorch import se3
-from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal, initial_candidates
+from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal, initial_candidates, polish_candidates
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.kde import KernelBandwidth, PoseKDE, ProductOfExperts
 
@@ -185,3 +185,24 @@ def test_fast_annealing_reports_a_density_that_goes_bad_after_the_start(bad_valu
     with pytest.raises(ModelError, match=message):
         anneal(density, init, AnnealSchedule(steps=50), torch.Generator().manual_seed(0), method="fast")
     assert len(calls) == 51  # the initial evaluation and one per step: no early exit hides the check
+
+
+def test_polish_moves_short_annealing_onto_the_mode_and_never_loses_likelihood():
+    """Few annealing steps leave the chains scattered; the mean-shift polish takes each onto its local
+    mode (here exactly a kernel mean), never lowers a candidate's likelihood, and is recorded as a step."""
+    g = torch.Generator().manual_seed(3)
+    mode = se3.Pose(torch.tensor([0.1, -0.05, 0.02]), axis_angle([0.2, 1.0, 0.3], 0.8))
+    other = se3.Pose(torch.tensor([0.3, 0.1, 0.0]), axis_angle([1.0, 0.0, 0.0], 2.0))
+    kde = two_kernel_kde(mode, other)
+    init = scatter(initial_candidates(kde, 64, g), 0.012, 0.15, g)
+    short = anneal(kde, init, AnnealSchedule(steps=3), g, record_history=True)
+    assert (short.best.p - mode.p).norm() > 1e-4  # three steps do not reach the mode
+    polished = polish_candidates(short, kde.mean_shift, kde.log_prob, steps=2)
+    assert bool((polished.log_prob >= short.log_prob).all())
+    assert (polished.best.p - mode.p).norm() < 1e-5  # one kernel in reach: its mean in one step
+    assert polished.best_log_prob == pytest.approx(math.log(0.7), abs=1e-5)
+    assert polished.history.p.shape[0] == short.history.p.shape[0] + 1
+    assert torch.equal(polished.history.p[-1], polished.candidates.p)
+    assert polish_candidates(short, kde.mean_shift, kde.log_prob, steps=0) is short
+    with pytest.raises(InvalidParameterError):
+        polish_candidates(short, kde.mean_shift, kde.log_prob, steps=-1)

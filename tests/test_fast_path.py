@@ -373,7 +373,8 @@ def test_predict_many_batches_conditions_and_keeps_single_seeds(small_cube_model
     assert [p.action.tolist() for p in batched] == actions.tolist()
     for prediction in batched:  # annealed together, each still on its own density
         _check_own_density(prediction)
-        assert prediction.anneal.history.p.shape == (SMALL.anneal_steps + 1, SMALL.anneal_candidates, 3)
+        # the initial candidates, every annealing step and the polished candidates
+        assert prediction.anneal.history.p.shape == (SMALL.fast_anneal_steps + 2, SMALL.anneal_candidates, 3)
     with pytest.raises(InvalidParameterError):
         predict_many(model, clouds, actions, batch_size=0)
     with pytest.raises(InvalidParameterError):
@@ -395,3 +396,74 @@ def test_compiled_fast_path_equals_dense(monkeypatch):
         finite = torch.isfinite(dense)
         assert torch.equal(finite, torch.isfinite(fast))
         assert torch.allclose(fast[finite], dense[finite], atol=2e-3)
+
+
+def test_fast_descriptor_log_prob_equals_dense():
+    """The fused pass with descriptors (environment contacts are scored with it) against the reference."""
+    g = torch.Generator().manual_seed(31)
+    plain = _random_kde(700, seed=31)
+    bandwidth = KernelBandwidth(0.02, 0.3, (0.5, 0.5), cutoff_std=(3, 3, 2))
+    kde = PoseKDE(plain.means, bandwidth, plain.log_weights,
+                  descriptors=torch.randn(700, 2, generator=g, dtype=torch.float64))
+    queries = _queries_near(kde, 150, seed=32)
+    descriptors = torch.randn(150, 2, generator=g, dtype=torch.float64)
+    dense = kde.log_prob(queries, descriptors)
+    fast = kde.log_prob(queries, descriptors, method="fast")
+    finite = torch.isfinite(dense)
+    assert finite.any() and (~finite).any()  # the descriptor cut-off removes some queries entirely
+    assert torch.equal(finite, torch.isfinite(fast))
+    assert torch.allclose(fast[finite], dense[finite], atol=1e-9, rtol=0)
+
+
+@pytest.mark.parametrize("n", [300, FAST_DENSE_KERNELS + 700])  # responsibilities, then leaf-block moments
+def test_mean_shift_fast_equals_dense_and_climbs(n):
+    kde = _random_kde(n, (2,), seed=41)
+    near = _queries_near(kde, 60, seed=42, scale=0.5)
+    queries = se3.Pose(torch.cat([near.p, near.p[..., :10, :] + 1.0], -2), torch.cat([near.q, near.q[..., :10, :]], -2))
+    dense = kde.mean_shift(queries)
+    fast = kde.mean_shift(queries, method="fast")
+    assert torch.allclose(fast.p, dense.p, atol=1e-9) and torch.allclose(fast.q, dense.q, atol=1e-9)
+    before = kde.log_prob(queries)
+    moved = queries
+    for _ in range(30):
+        moved = kde.mean_shift(moved)
+    after = kde.log_prob(moved)
+    alive = torch.isfinite(before)
+    assert alive.any() and (~alive).any()
+    # from a point of non-zero density the fixed-point iteration climbs to a mode; zero-density points stay
+    assert bool((after[alive] >= before[alive] - 1e-9).all())
+    assert torch.equal(moved.p[~alive], queries.p.expand_as(moved.p)[~alive])
+    # one kernel: any point it reaches moves onto its mean in one step, and the mean is a fixed point
+    single = PoseKDE(kde.means.take((0, slice(0, 1))), kde.bandwidth)
+    offsets = torch.linspace(-1, 1, 5, dtype=torch.float64).unsqueeze(-1)
+    turn = pose_quaternion(offsets * torch.tensor([0.1, 0.05, -0.1], dtype=torch.float64))
+    turned = se3.compose(single.means, se3.Pose(torch.zeros(5, 3, dtype=torch.float64), turn))
+    around = se3.Pose(single.means.p + 0.01 * offsets, turned.q)
+    assert torch.isfinite(single.log_prob(around)).all()
+    step = single.mean_shift(around)
+    assert torch.allclose(step.p, single.means.p.expand(5, 3), atol=1e-12)
+    assert torch.allclose(step.q.abs(), single.means.q.expand(5, 4).abs(), atol=1e-12)
+
+
+def test_shared_kernel_product_mean_shift_is_the_products_fixed_point_step():
+    """Against the step written out from the experts' responsibilities: kernel k weighs Σ_e w_ek K_k / P_e."""
+    shared = _random_kde(200, seed=51)
+    g = torch.Generator().manual_seed(52)
+    log_w = torch.randn(3, 200, generator=g, dtype=torch.float64)
+    log_w[torch.rand(3, 200, generator=g) < 0.5] = -math.inf
+    product = SharedKernelProduct(shared.means, log_w, shared.bandwidth, expert_log_weight=torch.tensor([1.0, 0, 0]))
+    queries = _queries_near(shared, 80, seed=53, scale=0.2)
+    kernels = shared.log_kernels(queries).exp()  # (M, K)
+    weights = torch.nan_to_num(log_w.exp())  # (E, K)
+    per_expert = kernels @ weights.T  # (M, E)
+    alive = (per_expert > 0).all(-1)
+    a = kernels * ((1.0 / per_expert.clamp_min(1e-300)) @ weights)  # (M, K)
+    want_p = (a @ shared.means.p) / a.sum(-1, keepdim=True)
+    sign = torch.where(queries.q @ shared.means.q.T < 0, -1.0, 1.0).to(a)
+    want_q = (a * sign) @ shared.means.q
+    want_q = want_q / want_q.norm(dim=-1, keepdim=True)
+    got = product.mean_shift(queries)
+    assert alive.any() and (~alive).any()
+    assert torch.allclose(got.p[alive], want_p[alive], atol=1e-9)
+    assert torch.allclose(got.q[alive], want_q[alive], atol=1e-9)
+    assert torch.equal(got.p[~alive], queries.p[~alive])  # zero product: the query stays

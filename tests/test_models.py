@@ -22,6 +22,7 @@ from pushtorch.models.motion import local_motions, motion_frames
 from pushtorch.models.position import (
     centroid_pose,
     fit_position_model,
+    grid_fit_scores,
     surface_fit_scores,
     verify_pose_candidates,
 )
@@ -118,6 +119,14 @@ def test_model_settings_reject_bad_values():
         ModelSettings(query_kernels=0)
     with pytest.raises(InvalidParameterError, match="unknown model settings"):
         ModelSettings.from_mapping({"query_kernel": 10})
+    with pytest.raises(InvalidParameterError, match="fast_anneal_fraction"):
+        ModelSettings(fast_anneal_fraction=1.5)
+    with pytest.raises(InvalidParameterError, match="polish_steps"):
+        ModelSettings(polish_steps=-1)
+    with pytest.raises(InvalidParameterError, match="polish_steps"):
+        ModelSettings(polish_steps=1.5)
+    assert ModelSettings(polish_steps=0).polish_steps == 0  # no polish: the fast path only anneals
+    assert ModelSettings().fast_anneal_steps == 30 and ModelSettings(anneal_steps=2).fast_anneal_steps == 1
 
 
 # -- acceptance ------------------------------------------------------------------------------
@@ -247,3 +256,10 @@ def test_surface_fit_verification_prefers_the_pose_that_explains_the_cloud():
     assert int(verify_pose_candidates(position, observed, candidates, torch.tensor([0.0, -math.inf]))) == 0
     with pytest.raises(PushtorchError):
         surface_fit_scores(position.frames.v.p, observed[:0], candidates)
+    with pytest.raises(PushtorchError):
+        grid_fit_scores(position, observed[:0], candidates)
+    # the screen's grid reads the same fit to within a fraction of the gap between the two poses
+    many = se3.Pose(torch.cat([candidates.p, candidates.p + 0.01]), torch.cat([candidates.q, candidates.q]))
+    exact, grid = surface_fit_scores(position.frames.v.p, observed, many), grid_fit_scores(position, observed, many)
+    assert (grid - exact).abs().max() < 0.2 * (scores[0] - scores[1]), (grid, exact)
+    assert torch.equal(grid.argsort(), exact.argsort())

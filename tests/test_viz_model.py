@@ -39,6 +39,7 @@ from pushtorch.viz.model import (
 SETTINGS = ModelSettings(
     query_kernels=300, anneal_candidates=50, anneal_steps=10, environment_kernels=500, manipulator_kernels=100
 )
+RECORDED_STEPS = SETTINGS.fast_anneal_steps + 2  # the initial candidates, every step, the polished ones
 
 TRAINING_ENTITIES = (
     "object", "object/mesh", "object/axes", "contact/points", "contact/frames", "contact/implied_robot",
@@ -172,8 +173,9 @@ def test_prediction_entities_poses_and_annealing(tmp_path, case):
     robot = _single(path, f"{root}/robot", "Transform3D:translation").reshape(3)
     np.testing.assert_allclose(robot, prediction.condition.robot_start.p.numpy(), atol=1e-6)
 
-    # one row per annealing step (step 0: initial candidates), each with every candidate
-    steps = SETTINGS.anneal_steps + 1
+    # one row per annealing step (step 0: initial candidates) and the polished candidates, each with
+    # every candidate
+    steps = RECORDED_STEPS
     for query in ("robot_query", "pose_query"):
         rows = _rows(path, f"{root}/{query}/candidates", "Points3D:positions")
         assert sorted(step for step, _ in rows) == list(range(steps))
@@ -261,7 +263,7 @@ def test_motion_annealing_is_logged_when_the_prediction_carries_it(tmp_path, cas
     path = tmp_path / "carrying.rrd"
     assert f"/{PREDICTION}/carrying/motion/candidates" in _logged(path, prediction, "carrying")
     rows = _rows(path, f"{PREDICTION}/carrying/motion/candidates", "Points3D:positions")
-    assert sorted(step for step, _ in rows) == list(range(SETTINGS.anneal_steps + 1))
+    assert sorted(step for step, _ in rows) == list(range(RECORDED_STEPS))
     plain = dataclasses.replace(prediction, anneal=None)
     assert f"/{PREDICTION}/plain/motion/candidates" not in _logged(tmp_path / "plain.rrd", plain, "plain")
 

@@ -208,7 +208,7 @@ def place_environment_contacts(
     v = se3.Pose(features.p[pick], features.q[pick])  # (count, samples)
     u = floor_relations(v)
     r = embed_descriptors(features.r[pick])
-    log_p = density.log_prob(u, r)  # (count, samples)
+    log_p = density.log_prob(u, r, method="fast")  # (count, samples)
     if not torch.isfinite(log_p).any():  # trial rounds only when no pair survives: one pass otherwise
         density = density.fit_trial_rounds(u.reshape(1, -1), r.reshape(1, -1, 2))
         log_p = density.log_prob(u, r)

@@ -67,6 +67,11 @@ class ModelSettings:
     position_frames: int = 3000  # uniform subset of the training features kept as position frames
     anneal_candidates: int = 500
     anneal_steps: int = 100
+    # the fast path (method="fast") anneals for this fraction of anneal_steps, then moves every candidate
+    # to its local mode by polish_steps mean-shift steps (docs/method.md: measured as accurate as the
+    # full schedule, tools/bench_predict.py); the dense reference runs the paper's full schedule
+    fast_anneal_fraction: float = 0.3
+    polish_steps: int = 3
     descriptor_std: float = 0.5
     descriptor_cutoff_std: float = 5.0
     query_p_std: float = 0.01
@@ -83,10 +88,20 @@ class ModelSettings:
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+            lowest_ok = value >= 0 if f.name == "polish_steps" else value > 0
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and lowest_ok):
                 raise InvalidParameterError(f"model setting {f.name} must be a positive number, got {value!r}")
+        if int(self.polish_steps) != self.polish_steps:
+            raise InvalidParameterError(f"polish_steps must be an integer >= 0, got {self.polish_steps!r}")
+        if self.fast_anneal_fraction > 1:
+            raise InvalidParameterError(f"fast_anneal_fraction must be in (0, 1], got {self.fast_anneal_fraction}")
         if self.alpha_t <= 1:
             raise InvalidParameterError(f"alpha_t must be > 1, got {self.alpha_t}")
+
+    @property
+    def fast_anneal_steps(self) -> int:
+        """Annealing steps of the fast path: ``fast_anneal_fraction`` of ``anneal_steps`` (at least 1)."""
+        return max(1, round(self.anneal_steps * self.fast_anneal_fraction))
 
     @staticmethod
     def from_mapping(mapping) -> ModelSettings:
@@ -307,10 +322,9 @@ class ModelLibrary:
 
     def feature_distances(self, features: SurfaceFeatures) -> torch.Tensor:
         """``H_r`` of every model's manipulator contact model on the cloud's features, ``(L,)``."""
-        from pushtorch.models.query import feature_distance_heuristic
+        from pushtorch.models.query import feature_distance_heuristic, heuristic_descriptors
 
-        sample = torch.randperm(len(features), generator=torch.Generator().manual_seed(0))[:2000]
-        r = features.r[sample.to(features.r.device)]
+        r = heuristic_descriptors(features)
         return torch.stack([feature_distance_heuristic(r, m.contact.frames.r) for m in self.models])
 
     def select(self, features: SurfaceFeatures) -> tuple[PushModel, torch.Tensor]:

@@ -47,7 +47,7 @@ import torch
 import trimesh
 
 from pushtorch import se3
-from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal
+from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal, polish_candidates
 from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.features import SurfaceFeatures
 from pushtorch.kde import KernelBandwidth, PoseKDE, ProductOfExperts, SharedKernelProduct
@@ -355,6 +355,13 @@ class MotionDensity:
             "the contact frames' predictions contradict each other"
         )
 
+    def mean_shift(self, final_pose: se3.Pose) -> se3.Pose:
+        """One mean-shift step of poses ``(..., M)`` towards a local mode of the product
+        (:meth:`pushtorch.kde.SharedKernelProduct.mean_shift`)."""
+        flat = se3.Pose(final_pose.p.reshape(-1, 3), final_pose.q.reshape(-1, 4))
+        moved = self.shared_product().mean_shift(flat)
+        return se3.Pose(moved.p.reshape(final_pose.p.shape), moved.q.reshape(final_pose.q.shape))
+
     def predict(
         self,
         n_candidates: int,
@@ -362,17 +369,22 @@ class MotionDensity:
         generator: torch.Generator | None = None,
         record_history: bool = False,
         method: str = "dense",
+        polish_steps: int = 0,
     ) -> MotionPrediction:
         """Simulated annealing on the product of experts from candidates drawn from the experts.
 
         ``method``: ``"dense"`` (reference) or ``"fast"`` (pruned, fused product and cheaper proposals;
         the same law, another random stream). See :func:`anneal_motion_densities` for many at once.
+        ``polish_steps``: mean-shift moves of every candidate afterwards
+        (:func:`pushtorch.anneal.polish_candidates`).
         """
         if method == "fast":
-            return anneal_motion_densities([self], n_candidates, schedule, generator, record_history)[0]
+            return anneal_motion_densities([self], n_candidates, schedule, generator, record_history,
+                                           polish_steps)[0]
         init = self.proposal(n_candidates, generator)
         init = self.widen_until_supported(init)
         result = anneal(self.log_prob, init, schedule, generator, record_history=record_history)
+        result = polish_candidates(result, self.mean_shift, self.log_prob, polish_steps)
         return MotionPrediction(result.best, result.best_log_prob, result)
 
     def sample(self, n: int, generator: torch.Generator | None = None, oversample: int = 8) -> se3.Pose:
@@ -393,8 +405,10 @@ def anneal_motion_densities(
     schedule: AnnealSchedule,
     generator: torch.Generator | None = None,
     record_history: bool = False,
+    polish_steps: int = 0,
 ) -> list[MotionPrediction]:
-    """Anneal the products of experts of several push conditions in one batch on the fast path.
+    """Anneal the products of experts of several push conditions in one batch on the fast path, then
+    move every candidate ``polish_steps`` mean-shift steps up (:func:`pushtorch.anneal.polish_candidates`).
 
     Every condition's :meth:`MotionDensity.shared_kernels` are padded to common kernel and expert
     counts (padding kernels weigh nothing, padding experts are masked out) and stacked along a problem
@@ -439,8 +453,8 @@ def anneal_motion_densities(
         mask[:e, b] = True
     product = SharedKernelProduct(se3.Pose(p, q), log_w, first.bandwidth, rounds, log_wp, mask)
     init = se3.Pose(torch.stack([s.p for s in starts]), torch.stack([s.q for s in starts]))  # (B, C)
-    result = anneal(product.log_prob, init, schedule, generator,
-                    record_history=record_history, method="fast")
+    result = anneal(product.log_prob, init, schedule, generator, record_history=record_history, method="fast")
+    result = polish_candidates(result, product.mean_shift, product.log_prob, polish_steps)
     out = []
     for b in range(len(densities)):
         part = AnnealResult(

@@ -18,7 +18,7 @@ points wins (:func:`verify_pose_candidates`). The density still proposes every h
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -29,7 +29,10 @@ from pushtorch.models.frames import DESCRIPTOR_SCALE, ContactFrames, embed_descr
 
 Tensor = torch.Tensor
 
-__all__ = ["PositionModel", "centroid_pose", "fit_position_model", "surface_fit_scores", "verify_pose_candidates"]
+__all__ = [
+    "PositionModel", "centroid_pose", "fit_position_model", "grid_fit_scores", "surface_fit_scores",
+    "verify_pose_candidates",
+]
 
 # Observed points scored per candidate: the mean distance's standard error is then ~1/20 of its spread.
 VERIFY_POINTS = 512
@@ -40,6 +43,10 @@ VERIFY_CAP = 0.02
 # candidates gather in a few modes, so the screen only has to rank modes apart (~10x cheaper).
 VERIFY_SCREEN_POINTS = 64
 VERIFY_FINALISTS = 16
+# The screen reads distances from a grid of the capped distance field (trilinear): cells of cap / 5
+# (4 mm) keep its error below the spread between modes; at most this many cells along the longest side.
+_GRID_CELLS_PER_CAP = 5
+_GRID_MAX_CELLS = 96
 
 
 @dataclass
@@ -48,6 +55,15 @@ class PositionModel:
 
     frames: ContactFrames
     descriptor_std: Tensor  # (2,) std of the embedded r over the training cloud: σ_r of the saliency weight
+    # capped distance field of the frames' points for the verification screen, built on first use
+    _distance_grid: tuple[Tensor, Tensor, Tensor, float] | None = field(default=None, repr=False, compare=False)
+
+    def distance_grid(self, cap: float = VERIFY_CAP) -> tuple[Tensor, Tensor, Tensor, float]:
+        """``(grid (1, 1, Z, Y, X), lo (3,), hi (3,), cap)``: distances (capped at ``cap``) from grid
+        points over the frames' bounding box grown by ``cap`` to the nearest frame point (object frame)."""
+        if self._distance_grid is None or self._distance_grid[3] != cap:
+            self._distance_grid = _capped_distance_grid(self.frames.v.p, cap)
+        return self._distance_grid
 
 
 def fit_position_model(
@@ -97,6 +113,44 @@ def _nearest_model_search(model_points: Tensor):
     return search
 
 
+def _capped_distance_grid(model_points: Tensor, cap: float) -> tuple[Tensor, Tensor, Tensor, float]:
+    lo = model_points.amin(0) - cap
+    hi = model_points.amax(0) + cap
+    cell = max(cap / _GRID_CELLS_PER_CAP, float((hi - lo).max()) / _GRID_MAX_CELLS)
+    counts = [int(math.ceil(float(extent) / cell)) + 1 for extent in (hi - lo)]
+    hi = lo + cell * (torch.tensor(counts, dtype=lo.dtype, device=lo.device) - 1)
+    axes = [torch.linspace(float(lo[k]), float(hi[k]), counts[k], dtype=lo.dtype, device=lo.device) for k in range(3)]
+    z, y, x = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    nodes = torch.stack([x, y, z], -1).reshape(-1, 3)
+    distance = _nearest_distances(_nearest_model_search(model_points), nodes).clamp(max=cap)
+    return distance.reshape(1, 1, counts[2], counts[1], counts[0]), lo, hi, cap
+
+
+def _nearest_distances(search, points: Tensor) -> Tensor:
+    """Distance of each of ``points (..., 3)`` to its nearest indexed point."""
+    import numpy as np
+    import open3d as o3d
+
+    queries = o3d.core.Tensor(np.ascontiguousarray(points.reshape(-1, 3).detach().cpu().numpy(), dtype=np.float32))
+    _, squared = search.knn_search(queries, 1)
+    return torch.from_numpy(squared.numpy()).to(points).reshape(points.shape[:-1]).clamp_min(0).sqrt()
+
+
+def grid_fit_scores(position: PositionModel, observed: Tensor, candidates: se3.Pose, cap: float = VERIFY_CAP
+                    ) -> Tensor:
+    """:func:`surface_fit_scores` read from the position model's distance grid (trilinear, cells of
+    ``cap / 5``): ``(C,)``, metres; an approximation for ranking many candidates cheaply."""
+    if observed.shape[0] == 0:
+        raise InvalidPointCloudError("surface fit needs observed points")
+    grid, lo, hi, _ = position.distance_grid(cap)
+    local = se3.apply(se3.inverse(candidates).unsqueeze(-1), observed)  # (C, M, 3)
+    coords = (2.0 * (local - lo) / (hi - lo) - 1.0).to(grid.dtype)  # grid_sample's x, y, z in [-1, 1]
+    # outside the grid a point is further than cap from the model: the border cells hold cap
+    sampled = torch.nn.functional.grid_sample(grid, coords.reshape(1, *local.shape[:2], 1, 3), mode="bilinear",
+                                              padding_mode="border", align_corners=True)
+    return sampled.reshape(local.shape[:2]).to(observed.dtype).mean(-1)
+
+
 def surface_fit_scores(model_points: Tensor, observed: Tensor, candidates: se3.Pose, cap: float = VERIFY_CAP,
                        search=None) -> Tensor:
     """How badly each candidate object pose explains the observed points: ``(C,)``, metres.
@@ -111,17 +165,11 @@ def surface_fit_scores(model_points: Tensor, observed: Tensor, candidates: se3.P
         candidates: object poses ``(C,)``.
         search: an index over ``model_points`` to reuse (built here if None).
     """
-    import numpy as np
-    import open3d as o3d
-
     if observed.shape[0] == 0:
         raise InvalidPointCloudError("surface fit needs observed points")
     search = search if search is not None else _nearest_model_search(model_points)
     local = se3.apply(se3.inverse(candidates).unsqueeze(-1), observed)  # (C, M, 3)
-    queries = o3d.core.Tensor(np.ascontiguousarray(local.reshape(-1, 3).detach().cpu().numpy(), dtype=np.float32))
-    _, squared = search.knn_search(queries, 1)
-    distance = torch.from_numpy(squared.numpy()).to(observed).reshape(local.shape[:2]).clamp_min(0).sqrt()
-    return distance.clamp(max=cap).mean(-1)
+    return _nearest_distances(search, local).clamp(max=cap).mean(-1)
 
 
 def verify_pose_candidates(
@@ -131,17 +179,16 @@ def verify_pose_candidates(
 ) -> Tensor:
     """Index of the candidate (among those of non-zero density) whose surface best fits the observation.
 
-    Two stages keep it cheap: every candidate is scored on ``screen_points`` of the observed points
-    ``(M, 3)`` (world), the ``finalists`` best are scored again on ``points``. Ties (symmetric poses) go
-    to the higher density. Raises InvalidPointCloudError without observed points.
+    Two stages keep it cheap: every candidate is screened on ``screen_points`` of the observed points
+    ``(M, 3)`` (world) with distances read from the model's distance grid (:func:`grid_fit_scores`), the
+    ``finalists`` best are scored exactly on ``points`` (:func:`surface_fit_scores`). Ties (symmetric
+    poses) go to the higher density. Raises InvalidPointCloudError without observed points.
     """
     order = torch.randperm(observed.shape[0], generator=generator).to(observed.device)
     alive = torch.isfinite(log_prob)
-    model_points = position.frames.v.p
-    search = _nearest_model_search(model_points)  # one index for both stages
-    score = surface_fit_scores(model_points, observed[order[:screen_points]], candidates, cap, search)
+    score = grid_fit_scores(position, observed[order[:screen_points]], candidates, cap)
     score = torch.where(alive, score, torch.full_like(score, math.inf))
     shortlist = score.argsort()[: min(finalists, int(alive.sum().clamp_min(1)))]
-    final = surface_fit_scores(model_points, observed[order[:points]], candidates.take(shortlist), cap, search)
+    final = surface_fit_scores(position.frames.v.p, observed[order[:points]], candidates.take(shortlist), cap)
     tied = final <= final.min() + 1e-6
     return shortlist[torch.where(tied, log_prob[shortlist], torch.full_like(final, -math.inf)).argmax()]

@@ -20,11 +20,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 
 import torch
 
 from pushtorch import se3
-from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal, initial_candidates
+from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal, initial_candidates, polish_candidates
 from pushtorch.errors import InvalidParameterError, InvalidPointCloudError, ModelError
 from pushtorch.features import SurfaceFeatures
 from pushtorch.kde import (
@@ -43,6 +44,7 @@ __all__ = [
     "QueryResult",
     "build_query_density",
     "feature_distance_heuristic",
+    "heuristic_descriptors",
     "optimise_query_densities",
     "optimise_query_density",
     "neighbourhood_log_weights",
@@ -82,6 +84,13 @@ def _heuristic_row_sums(r_rows: Tensor, r_frames: Tensor) -> Tensor:
     """Σ_j d'_r(r_i, r_j)^(1/4) per row ``(n,)`` (fused on the fast path)."""
     d = (r_rows[:, None, 0] - r_frames[None, :, 0]) ** 2 + (r_rows[:, None, 1] - r_frames[None, :, 1]) ** 2
     return torch.sqrt(torch.sqrt(d)).sum(-1)
+
+
+def heuristic_descriptors(features: SurfaceFeatures) -> Tensor:
+    """The descriptors ``H_r`` is estimated on: a fixed uniform subset of the cloud's features (seed 0,
+    at most 2,000), so every model is scored on the same features and a cloud's ``H_r`` is reproducible."""
+    sample = torch.randperm(len(features), generator=torch.Generator().manual_seed(0))[:_HEURISTIC_FEATURES]
+    return features.r[sample.to(features.r.device)]
 
 
 def feature_distance_heuristic(r_features: Tensor, r_frames: Tensor, method: str = "dense") -> Tensor:
@@ -136,15 +145,16 @@ class QueryResult:
 
 
 def _group_weight_sums(
-    e_rows: Tensor, e_frames: Tensor, log_w: Tensor, scale: Tensor, delta: float
+    e_rows: Tensor, frames_0: Tensor, frames_1: Tensor, log_w: Tensor, scale: Tensor, delta: float
 ) -> Tensor:
     """Σ over each group of frames of ``w^c_j N2(r_i | r_j)`` (cut off), ``(n, G)``.
 
-    e_rows: ``(n, 2)`` embedded descriptors; e_frames: ``(G, S, 2)`` grouped frames; log_w: ``(G, S)``
-    log ``w^c`` relative to the largest (−inf: padding); scale: ``(2,)`` β_r/σ_r; delta: the cut-off.
+    e_rows: ``(n, 2)`` embedded descriptors; frames_0, frames_1: ``(G, S)`` the grouped frames' two
+    embedded coordinates (separate arrays: interleaved ones compile to scalar code, ~2x slower);
+    log_w: ``(G, S)`` log ``w^c`` relative to the largest (−inf: padding); scale: ``(2,)`` β_r/σ_r;
+    delta: the cut-off.
     """
-    d = ((e_rows[:, None, None, 0] - e_frames[None, :, :, 0]) ** 2 * scale[0]
-         + (e_rows[:, None, None, 1] - e_frames[None, :, :, 1]) ** 2 * scale[1])
+    d = ((e_rows[:, None, None, 0] - frames_0) ** 2 * scale[0] + (e_rows[:, None, None, 1] - frames_1) ** 2 * scale[1])
     return torch.where(d < delta, torch.exp(log_w - d), torch.zeros_like(d)).sum(-1)
 
 
@@ -183,10 +193,11 @@ def _fast_kernel_draws(
     scale = 1.0 / (2 * r_std.to(e_features) ** 2)
     delta = cutoff_std**2 / 2
     sums_fn = fused_function("group_weight_sums", _group_weight_sums, device)
+    grouped_0, grouped_1 = grouped[..., 0].contiguous(), grouped[..., 1].contiguous()
     step = max(1, _BLOCK // (groups * _FRAME_GROUP))
 
     def group_sums(rows: Tensor) -> Tensor:
-        return torch.cat([sums_fn(e_features[rows[s : s + step]], grouped, grouped_w, scale, delta)
+        return torch.cat([sums_fn(e_features[rows[s : s + step]], grouped_0, grouped_1, grouped_w, scale, delta)
                           for s in range(0, len(rows), step)])
 
     pick = torch.randint(len(e_features), (n_kernels,), generator=generator).to(device)
@@ -234,7 +245,7 @@ def build_query_density(
     (the lineage retries) is the same as drawing uniformly among the features that have at least one
     frame in reach, which is what is done here, vectorised. If no feature has any, the descriptor
     bandwidth widens by trial rounds (β_r = α_T^(−T_r)) up to ``max_rounds``. With ``heuristic`` the
-    selection heuristic ``H_r`` is estimated on a uniform subset of the cloud's features (it is a mean).
+    selection heuristic ``H_r`` is estimated on :func:`heuristic_descriptors` (it is a mean).
 
     ``method="fast"`` draws the same law without the ``(kernels × frames)`` weight matrix
     (:func:`_fast_kernel_draws`, fused); it falls back to the dense build when features in reach are
@@ -268,10 +279,7 @@ def build_query_density(
     if project_planar:
         entity = planar(entity)
     kde = PoseKDE(entity, pose_bandwidth, log_weights=kernel_log_w)
-    h_r = None
-    if heuristic:
-        sample = torch.randperm(len(features), generator=generator)[:_HEURISTIC_FEATURES].to(features.r.device)
-        h_r = feature_distance_heuristic(features.r[sample], frames.r, method)
+    h_r = feature_distance_heuristic(heuristic_descriptors(features), frames.r, method) if heuristic else None
     return QueryDensity(kernels, kde, h_r, rounds)
 
 
@@ -319,17 +327,20 @@ def optimise_query_density(
     generator: torch.Generator | None = None,
     record_history: bool = False,
     method: str = "dense",
+    polish_steps: int = 0,
 ) -> QueryResult:
     """Simulated annealing on the query density from candidates drawn at the kernel means by weight.
 
     ``method``: ``"dense"`` (reference) or ``"fast"`` (pruned, fused density and cheaper proposals,
-    see :meth:`pushtorch.kde.PoseKDE.log_prob` and :func:`pushtorch.anneal.anneal`).
+    see :meth:`pushtorch.kde.PoseKDE.log_prob` and :func:`pushtorch.anneal.anneal`). ``polish_steps``:
+    mean-shift moves of every candidate after annealing (:func:`pushtorch.anneal.polish_candidates`).
     """
     if method == "fast":
         return optimise_query_densities([density], n_candidates, schedule, [schedule.planar], generator,
-                                        record_history)[0]
+                                        record_history, polish_steps)[0]
     init = initial_candidates(density.kde, n_candidates, generator)
     result = anneal(density.kde.log_prob, init, schedule, generator, record_history=record_history)
+    result = polish_candidates(result, density.kde.mean_shift, density.kde.log_prob, polish_steps)
     return _query_result(density, result)
 
 
@@ -348,9 +359,11 @@ def optimise_query_densities(
     planar: list[bool],
     generator: torch.Generator | None = None,
     record_history: bool = False,
+    polish_steps: int = 0,
 ) -> list[QueryResult]:
     """Anneal several query densities in one batch on the fast path (e.g. the robot's, planar, and the
-    object's pose, free), so every step costs one pruned density call for all of them.
+    object's pose, free), so every step costs one pruned density call for all of them; then
+    ``polish_steps`` mean-shift moves of every candidate (:func:`pushtorch.anneal.polish_candidates`).
 
     The densities must share bandwidth and dtype; kernel counts may differ (padding). Each result is
     the one :func:`optimise_query_density` would give with ``method="fast"`` up to the random stream.
@@ -367,8 +380,9 @@ def optimise_query_densities(
     kde.validate_args = False  # its only queries are the annealing's own (finite, normalised) proposals
     init = initial_candidates(kde, n_candidates, generator)  # (D, C)
     mask = torch.tensor(planar, dtype=torch.bool, device=init.p.device)
-    result = anneal(lambda pose: kde.log_prob(pose, method="fast"), init, schedule, generator,
-                    record_history=record_history, planar=mask, method="fast")
+    log_prob = partial(kde.log_prob, method="fast")
+    result = anneal(log_prob, init, schedule, generator, record_history=record_history, planar=mask, method="fast")
+    result = polish_candidates(result, partial(kde.mean_shift, method="fast"), log_prob, polish_steps)
     out = []
     for i, density in enumerate(densities):
         history = None if result.history is None else se3.Pose(result.history.p[:, i], result.history.q[:, i])
