@@ -893,6 +893,22 @@ class PoseKDE:
         p, q, r = self._prepare_queries(pose, descriptors)
         return self._chunk_log_kernels(p, q, r, with_weights=False)
 
+    def fitted_log_kernels(self, pose: Pose, descriptors: Tensor | None = None) -> tuple[PoseKDE, Tensor]:
+        """:meth:`fit_trial_rounds` then :meth:`log_kernels`: ``(fitted density, (*BB, M, N))``.
+
+        The log kernels are computed first; only if some batch element has no surviving (query, kernel)
+        pair are the trial rounds fitted and the kernels evaluated again, so the common, covered case
+        costs one pass instead of a coverage pass and an evaluation.
+        """
+        log_k = self.log_kernels(pose, descriptors)
+        survivors = torch.isfinite(log_k).any(-1).any(-1).to(torch.int64)  # (*BB)
+        if survivors.dim() > len(self.batch_shape):
+            survivors = survivors.sum(tuple(range(survivors.dim() - len(self.batch_shape))))
+        if bool((survivors.sum_to_size(self.batch_shape) > 0).all()):
+            return self, log_k
+        fitted = self.fit_trial_rounds(pose, descriptors)
+        return fitted, fitted.log_kernels(pose, descriptors)
+
     def log_kernel_terms(self, pose: Pose, descriptors: Tensor | None = None) -> Tensor:
         """The scaled distances β·d of each factor, dense ``(*BB, M, N, 3)`` in order (p, q, r).
 

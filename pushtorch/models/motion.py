@@ -282,8 +282,8 @@ class MotionDensity:
             query_u = se3.Pose(frame.u.p.reshape(-1, 1, 3), frame.u.q.reshape(-1, 1, 4))
             frame_g = se3.apply(to_robot, frame.v.p.reshape(-1, 3))
             query_r = torch.cat([embed_descriptors(frame.r.reshape(-1, 2)), frame_g], -1).unsqueeze(-2)
-            contact_kde = contact_kde.fit_trial_rounds(query_u, query_r)
-            log_w = contact_kde.log_kernels(query_u, query_r).squeeze(-2)  # (F, N): log K^c(c_e | c_j)
+            _, log_w = contact_kde.fitted_log_kernels(query_u, query_r)
+            log_w = log_w.squeeze(-2)  # (F, N): log K^c(c_e | c_j)
             finals = se3.compose(se3.compose(robot_start, kernels.m), to_final)  # (N,)
             # kernels the contact kernel cut off carry no weight
             keep = torch.isfinite(log_w) | (not drop_cut_kernels)  # (F, N)
