@@ -16,8 +16,9 @@ the kernels' hard cut-offs let them reach, in fused (compiled when possible) pas
 and the object's query densities in one batch and, in :func:`predict_many`, many conditions at once;
 it anneals for ``ModelSettings.fast_anneal_fraction`` of the steps and then moves every candidate to
 its local mode by mean shift (``polish_steps``, :func:`pushtorch.anneal.polish_candidates`).
-``method="dense"`` is the reference implementation of the paper (every query against every kernel, one
-density at a time, the full annealing schedule). Both optimise the same densities; their random streams
+``method="dense"`` is the reference implementation of the paper (every query against every kernel — the
+motion kernels whose contact weight is zero included — one density at a time, the full annealing
+schedule). Both optimise the same densities; their random streams
 differ; ``tools/bench_predict.py`` checks that their accuracy agrees.
 """
 
@@ -288,8 +289,10 @@ def predict(
                         method=method)[0]
 
 
-def _motion_density(model: PushModel, condition: PushCondition, a: int,
-                    generator: torch.Generator | None) -> MotionDensity:
+def _motion_density(model: PushModel, condition: PushCondition, a: int, generator: torch.Generator | None,
+                    method: str) -> MotionDensity:
+    """The action's product of experts; the dense reference keeps every motion kernel (those the contact
+    weight cuts off weigh zero), the fast path drops them before anything is evaluated."""
     settings = model.settings
     motion = model.motions[a]
     return MotionDensity(
@@ -305,6 +308,7 @@ def _motion_density(model: PushModel, condition: PushCondition, a: int,
         condition.robot_start,
         contact_bandwidth(settings),
         motion_bandwidth(settings),
+        drop_cut_kernels=method == "fast",
     )
 
 
@@ -378,14 +382,15 @@ def _predict_batch(
         if method == "fast":
             shares = [features[i] for i in rows]
             conditions = _push_conditions_fast(m, shares, a_idx, generator, record_history)
-            densities = [_motion_density(m, c, a, generator) for c, a in zip(conditions, a_idx, strict=True)]
+            densities = [_motion_density(m, c, a, generator, method)
+                         for c, a in zip(conditions, a_idx, strict=True)]
             results = anneal_motion_densities(densities, settings.anneal_candidates, schedule, generator,
                                               record_history, settings.polish_steps)
         else:
             conditions, densities, results = [], [], []
             for i, a in zip(rows, a_idx, strict=True):
                 condition = generate_push_condition(m, features[i], a, generator, record_history, method)
-                density = _motion_density(m, condition, a, generator)
+                density = _motion_density(m, condition, a, generator, method)
                 conditions.append(condition)
                 densities.append(density)
                 results.append(

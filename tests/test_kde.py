@@ -454,6 +454,13 @@ def test_trial_rounds_are_fitted_per_batch_element():
     fitted = kde.fit_trial_rounds(queries)
     assert fitted.trial_rounds.tolist() == [[0, 0, 0], [_rounds_needed(12.5, 4.5), 0, 0]]
     assert kde.fit_trial_rounds(se3.Pose(queries.p[:0], queries.q[:0])) is kde
+    # fitted_log_kernels: the same rounds and kernels; a covered density is returned as it is
+    fitted_again, log_k = kde.fitted_log_kernels(queries)
+    assert torch.equal(fitted_again.trial_rounds, fitted.trial_rounds)
+    assert torch.equal(log_k, fitted.log_kernels(queries))
+    covered = PoseKDE(se3.Pose(means.p[:1], means.q[:1]), bw)
+    same, log_k = covered.fitted_log_kernels(queries)
+    assert same is covered and torch.equal(log_k, covered.log_kernels(queries))
 
 
 def test_exceeding_max_trial_rounds_raises_model_error():

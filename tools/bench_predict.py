@@ -7,7 +7,8 @@ predictor runs at the paper's settings (3,000 query kernels, 500 annealing candi
 
 Test conditions are the cube at the origin with a random yaw in [−45°, 45°] and the actions in turn. For
 each condition the dense reference (``method="dense"``: the paper's 100 annealing steps, every query
-against every kernel) and the fast path (``method="fast"``: pruned, fused densities, 30 annealing steps
+against every kernel, the 25,500 motion kernels of the five environment experts and the manipulator
+expert included) and the fast path (``method="fast"``: pruned, fused densities, 30 annealing steps
 then a 3-step mean-shift polish of every candidate) predict from the same precomputed surface features
 with the same seed; each prediction is timed on its own and scored
 by H_acc against pybullet run from that prediction's own robot start pose (as the paper's protocol). The
@@ -20,7 +21,7 @@ H_acc of each path.
 
     .venv/bin/python tools/bench_predict.py [--conditions 160] [--threads 0] [--batch-size 32]
 
-About 10 minutes with the default 160 conditions on 2 cores (the dense reference takes ~2.5 s each);
+About 20 minutes with the default 160 conditions on 2 cores (the dense reference takes ~5.5 s each);
 single predictions' H_acc spreads ~0.1 from the annealing's randomness, so fewer conditions cannot
 tell the two paths' means apart. Set ``PUSHTORCH_COMPILE=0`` to measure the fast path uncompiled.
 """
@@ -37,15 +38,13 @@ from pathlib import Path
 import torch
 
 from pushtorch import metrics, se3
-from pushtorch.anneal import AnnealSchedule
 from pushtorch.errors import RecordFormatError
 from pushtorch.features import compute_surface_features
 from pushtorch.kde import fast_path_compiled
 from pushtorch.models.library import PushModel, load_model, train_push_model
-from pushtorch.models.motion import MotionDensity
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
-from pushtorch.predict import contact_bandwidth, generate_push_condition, motion_bandwidth, predict, predict_many
+from pushtorch.predict import predict, predict_many
 from pushtorch.sim.plan import plan_training_pushes
 from pushtorch.sim.priors import Normal
 from pushtorch.sim.push import make_actions
@@ -82,21 +81,6 @@ def hacc(obj, prediction, truth0: se3.Pose, action: torch.Tensor) -> float:
     return float(metrics.accuracy(prediction.final_pose, truth1, obj).hacc)
 
 
-def straightforward_dense_seconds(model: PushModel, features, action: torch.Tensor, seed: int) -> float:
-    """Latency of one prediction evaluated the straightforward way: the dense reference with every motion
-    kernel kept, including those whose contact weight is zero (the issue's 25,500 kernels per step)."""
-    g = torch.Generator().manual_seed(seed)
-    s = model.settings
-    started = time.perf_counter()
-    a = model.action_index(action)
-    condition = generate_push_condition(model, features, a, g, method="dense")
-    density = MotionDensity(model.motions[a], condition.manipulator_frame, condition.environment_frames,
-                            condition.object_pose, condition.robot_start, contact_bandwidth(s),
-                            motion_bandwidth(s), drop_cut_kernels=False)
-    density.predict(s.anneal_candidates, AnnealSchedule(steps=s.anneal_steps), g)
-    return time.perf_counter() - started
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--object", default="cube", help="catalogue object trained and tested (default cube)")
@@ -106,8 +90,6 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=32,
                         help="conditions per batched fast call (default 32)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
-    parser.add_argument("--unpruned", type=int, default=3,
-                        help="conditions timed with the straightforward dense evaluation (default 3, ~40 s each)")
     parser.add_argument("--seed", type=int, default=1, help="seed of the test conditions (default 1)")
     parser.add_argument("--cache", default="runs/bench_predict", help="model cache folder")
     args = parser.parse_args()
@@ -164,11 +146,6 @@ def main() -> None:
     batched_seconds = (time.perf_counter() - started) / len(conditions)
     batched_scores = [hacc(obj, p, c[0], c[2]) for p, c in zip(batched, conditions, strict=True)]
 
-    unpruned = []
-    for i, (_, features, action) in enumerate(conditions[: args.unpruned]):
-        unpruned.append(straightforward_dense_seconds(model, features, action, i))
-        print(f"condition {i:2d} straightforward dense (every kernel, no pruning): {unpruned[-1]:.2f} s", flush=True)
-
     p50 = {m: statistics.median(v) for m, v in seconds.items()}
     mean = {m: statistics.fmean(v) for m, v in scores.items()}
     difference = [f - d for f, d in zip(scores["fast"], scores["dense"], strict=True)]
@@ -180,9 +157,6 @@ def main() -> None:
           f"± {spread:.4f} (standard error; each path's own annealing noise dominates it)")
     print(f"fast batched ({args.batch_size} conditions per call): {batched_seconds:.3f} s per condition, "
           f"mean H_acc {statistics.fmean(batched_scores):.4f}")
-    if unpruned:
-        print(f"straightforward dense (every kernel): median {statistics.median(unpruned):.2f} s over "
-              f"{len(unpruned)} conditions; ratio to fast {statistics.median(unpruned) / p50['fast']:.0f}")
     print(f"load_average={os.getloadavg()[0]:.2f}")
     print(f"p50_s={p50['fast']:.4f} ratio={p50['dense'] / p50['fast']:.1f} "
           f"hacc_fast={mean['fast']:.4f} hacc_dense={mean['dense']:.4f}")

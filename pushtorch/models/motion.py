@@ -244,8 +244,8 @@ class MotionDensity:
             in the robot's start frame (3 stds, m) — see the module docstring.
         motion_bandwidth: bandwidth of the motion kernels over the final pose.
         drop_cut_kernels: leave out the kernels whose contact weight ``K^c`` is zero (cut off) before
-            anything is evaluated (default). False keeps every kernel, with weight 0: the same density,
-            the straightforward dense evaluation (``tools/bench_predict.py`` times it as the baseline).
+            anything is evaluated (default; the fast path). False keeps every kernel, with weight 0: the
+            same density, evaluated the straightforward way (the dense reference, ``method="dense"``).
     """
 
     def __init__(
