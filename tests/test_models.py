@@ -184,10 +184,10 @@ def _fresh_push_errors(model, obj, n_conditions, seed):
 def test_cube_model_predicts_fresh_cube_pushes_better_than_no_motion(cube_model):
     ours, still, mean = _fresh_push_errors(cube_model, load_object("cube"), n_conditions=10, seed=3)
     assert ours < still, (ours, still)
-    # Known gap (issue 4 note): under the paper's narrow default prior the pushes are nearly
-    # deterministic, so the mean training motion is the best point estimate there is; the product of
-    # experts' mode stays within 10 % of it (measured 0.067 against 0.064).
-    assert ours < 1.10 * mean, (ours, mean)
+    # Known gap (issue 4 note): training repeats one placement and varies only the (unobserved) physics,
+    # so the mean training motion is the least-squares point estimate; the product of experts' mode
+    # lands on it (measured over 180 fresh pushes: ours − mean = +0.0002 ± 0.0001, i.e. 0.3 %).
+    assert ours < 1.02 * mean, (ours, mean)
 
 
 def test_cube_model_transfers_to_the_thin_prism(cube_model):

@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import resource
 import statistics
 import time
 from pathlib import Path
@@ -157,7 +158,8 @@ def main() -> None:
           f"± {spread:.4f} (standard error; each path's own annealing noise dominates it)")
     print(f"fast batched ({args.batch_size} conditions per call): {batched_seconds:.3f} s per condition, "
           f"mean H_acc {statistics.fmean(batched_scores):.4f}")
-    print(f"load_average={os.getloadavg()[0]:.2f}")
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kB on Linux
+    print(f"load_average={os.getloadavg()[0]:.2f} peak_rss={peak_mb:.0f} MB (whole run, both paths)")
     print(f"p50_s={p50['fast']:.4f} ratio={p50['dense'] / p50['fast']:.1f} "
           f"hacc_fast={mean['fast']:.4f} hacc_dense={mean['dense']:.4f}")
 
