@@ -1205,14 +1205,11 @@ def _reachable_blocks(
     return (near & (dot >= cos_reach.unsqueeze(1))).to(x.dtype)
 
 
-def _block_sums(x: Tensor, table: Tensor, scale: Tensor, query_density: Tensor, pair_query: Tensor,
-                pair_block: Tensor, num_blocks: int, delta_p: float, delta_q: float) -> Tensor:
-    """Σ_i w_i K(x | μ_i) per query ``(R,)`` over its (query, block) pairs.
-
-    x: ``(R, 7)`` queries; table: ``(D·nb + 1, 8, L)`` blocks (rows p, q, relative log w; kernels along
-    L); scale: ``(D, 2)``; query_density: ``(R,)`` each query's density row; pair_query, pair_block:
-    ``(P,)`` the pairs. Exact distances and the cut-offs of :meth:`PoseKDE.log_prob`.
-    """
+def _pair_kernels(x: Tensor, table: Tensor, scale: Tensor, query_density: Tensor, pair_query: Tensor,
+                  pair_block: Tensor, num_blocks: int, delta_p: float, delta_q: float
+                  ) -> tuple[Tensor, Tensor, Tensor]:
+    """``w K`` of every kernel of every (query, block) pair ``(P, L)``, with the pairs' blocks
+    ``(P, 8, L)`` and the quaternion dot products ``(P, L)``; arguments as :func:`_block_sums`."""
     density = query_density[pair_query]
     t = table[density * num_blocks + pair_block]  # (P, 8, L)
     xs = x[pair_query].unsqueeze(-1)  # (P, 7, 1)
@@ -1221,8 +1218,19 @@ def _block_sums(x: Tensor, table: Tensor, scale: Tensor, query_density: Tensor, 
     dot = xs[:, 3] * t[:, 3] + xs[:, 4] * t[:, 4] + xs[:, 5] * t[:, 5] + xs[:, 6] * t[:, 6]
     d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, 1:2]
     keep = (d_p < delta_p) & (d_q < delta_q)
-    per_pair = torch.where(keep, torch.exp(t[:, 7] - d_p - d_q), torch.zeros_like(d_p)).sum(-1)
-    return torch.zeros_like(x[:, 0]).index_add(0, pair_query, per_pair)
+    return torch.where(keep, torch.exp(t[:, 7] - d_p - d_q), torch.zeros_like(d_p)), t, dot
+
+
+def _block_sums(x: Tensor, table: Tensor, scale: Tensor, query_density: Tensor, pair_query: Tensor,
+                pair_block: Tensor, num_blocks: int, delta_p: float, delta_q: float) -> Tensor:
+    """Σ_i w_i K(x | μ_i) per query ``(R,)`` over its (query, block) pairs.
+
+    x: ``(R, 7)`` queries; table: ``(D·nb + 1, 8, L)`` blocks (rows p, q, relative log w; kernels along
+    L); scale: ``(D, 2)``; query_density: ``(R,)`` each query's density row; pair_query, pair_block:
+    ``(P,)`` the pairs. Exact distances and the cut-offs of :meth:`PoseKDE.log_prob`.
+    """
+    k, _, _ = _pair_kernels(x, table, scale, query_density, pair_query, pair_block, num_blocks, delta_p, delta_q)
+    return torch.zeros_like(x[:, 0]).index_add(0, pair_query, k.sum(-1))
 
 
 def _block_moments(x: Tensor, table: Tensor, scale: Tensor, query_density: Tensor, pair_query: Tensor,
@@ -1230,14 +1238,8 @@ def _block_moments(x: Tensor, table: Tensor, scale: Tensor, query_density: Tenso
     """The mean-shift moments of each query over its (query, block) pairs: ``(R, 8)``, columns
     ``Σ w K``, ``Σ w K μ_p`` (3) and ``Σ w K s μ_q`` (4) with ``s = sign<x_q, μ_q>``; arguments as
     :func:`_block_sums`."""
-    density = query_density[pair_query]
-    t = table[density * num_blocks + pair_block]  # (P, 8, L)
-    xs = x[pair_query].unsqueeze(-1)  # (P, 7, 1)
-    sc = scale[density]
-    d_p = ((xs[:, 0] - t[:, 0]) ** 2 + (xs[:, 1] - t[:, 1]) ** 2 + (xs[:, 2] - t[:, 2]) ** 2) * sc[:, 0:1]
-    dot = xs[:, 3] * t[:, 3] + xs[:, 4] * t[:, 4] + xs[:, 5] * t[:, 5] + xs[:, 6] * t[:, 6]
-    d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, 1:2]
-    k = torch.where((d_p < delta_p) & (d_q < delta_q), torch.exp(t[:, 7] - d_p - d_q), torch.zeros_like(d_p))
+    k, t, dot = _pair_kernels(x, table, scale, query_density, pair_query, pair_block, num_blocks, delta_p,
+                              delta_q)
     ks = torch.where(dot < 0, -k, k)
     moments = torch.stack([k.sum(-1)] + [(k * t[:, i]).sum(-1) for i in range(3)]
                           + [(ks * t[:, i]).sum(-1) for i in range(3, 7)], -1)  # (P, 8)
@@ -1576,6 +1578,21 @@ def _per_expert(value, name: str, n_experts: int, batch: torch.Size, dtype, devi
                                     f"got {tuple(t.shape)}") from exc
 
 
+def _shared_kernels(x: Tensor, table: Tensor, scale: Tensor, delta_p: float, delta_q: float
+                    ) -> tuple[Tensor, Tensor]:
+    """``K(x | μ_k)`` with the cut-offs ``(B, K, M)`` and the quaternion dot products ``(B, K, M)``;
+    arguments as :func:`_shared_kernel_product`."""
+    xs = x.unsqueeze(1)  # (B, 1, 7, M)
+    t = table.unsqueeze(-1)  # (B, K, 7, 1)
+    sc = scale[:, None, :, None]  # (B, 1, 2, 1)
+    d_p = ((xs[:, :, 0] - t[:, :, 0]) ** 2 + (xs[:, :, 1] - t[:, :, 1]) ** 2
+           + (xs[:, :, 2] - t[:, :, 2]) ** 2) * sc[:, :, 0]
+    dot = xs[:, :, 3] * t[:, :, 3] + xs[:, :, 4] * t[:, :, 4] + xs[:, :, 5] * t[:, :, 5] + xs[:, :, 6] * t[:, :, 6]
+    d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, :, 1]
+    keep = (d_p < delta_p) & (d_q < delta_q)
+    return torch.where(keep, torch.exp(-d_p - d_q), torch.zeros_like(d_p)), dot
+
+
 def _shared_kernel_product(x: Tensor, table: Tensor, weights: Tensor, scale: Tensor, offset: Tensor,
                            mask: Tensor, delta_p: float, delta_q: float) -> Tensor:
     """Σ_e log Σ_k w_ek K(x | μ_k) + offset_e over the counted experts: ``(B, M)`` (fused).
@@ -1586,14 +1603,7 @@ def _shared_kernel_product(x: Tensor, table: Tensor, weights: Tensor, scale: Ten
     cut-offs of :meth:`PoseKDE.log_prob`; one kernel evaluation serves every expert through one matmul,
     laid out ``(E, K) @ (K, M)`` (with few experts ~4× faster than ``(M, K) @ (K, E)``, measured).
     """
-    xs = x.unsqueeze(1)  # (B, 1, 7, M)
-    t = table.unsqueeze(-1)  # (B, K, 7, 1)
-    sc = scale[:, None, :, None]  # (B, 1, 2, 1)
-    d_p = ((xs[:, :, 0] - t[:, :, 0]) ** 2 + (xs[:, :, 1] - t[:, :, 1]) ** 2
-           + (xs[:, :, 2] - t[:, :, 2]) ** 2) * sc[:, :, 0]
-    dot = xs[:, :, 3] * t[:, :, 3] + xs[:, :, 4] * t[:, :, 4] + xs[:, :, 5] * t[:, :, 5] + xs[:, :, 6] * t[:, :, 6]
-    d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, :, 1]
-    kernels = torch.where((d_p < delta_p) & (d_q < delta_q), torch.exp(-d_p - d_q), torch.zeros_like(d_p))
+    kernels, _ = _shared_kernels(x, table, scale, delta_p, delta_q)
     per_expert = torch.log(torch.bmm(weights, kernels)) + offset  # (B, E, M)
     return torch.where(mask, per_expert, torch.zeros_like(per_expert)).sum(1)
 
@@ -1607,14 +1617,7 @@ def _shared_kernel_shift(x: Tensor, table: Tensor, weights: Tensor, scale: Tenso
     ``k`` by ``a_k = K_k Σ_e w_ek / P_e``: ``p ← Σ a_k μ_p,k / Σ a_k``, ``q ← normalise(Σ a_k s_k μ_q,k)``.
     A query where a counted expert is zero (the product is) stays.
     """
-    xs = x.unsqueeze(1)  # (B, 1, 7, M)
-    t = table.unsqueeze(-1)  # (B, K, 7, 1)
-    sc = scale[:, None, :, None]
-    d_p = ((xs[:, :, 0] - t[:, :, 0]) ** 2 + (xs[:, :, 1] - t[:, :, 1]) ** 2
-           + (xs[:, :, 2] - t[:, :, 2]) ** 2) * sc[:, :, 0]
-    dot = xs[:, :, 3] * t[:, :, 3] + xs[:, :, 4] * t[:, :, 4] + xs[:, :, 5] * t[:, :, 5] + xs[:, :, 6] * t[:, :, 6]
-    d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, :, 1]
-    kernels = torch.where((d_p < delta_p) & (d_q < delta_q), torch.exp(-d_p - d_q), torch.zeros_like(d_p))
+    kernels, dot = _shared_kernels(x, table, scale, delta_p, delta_q)
     sums = torch.bmm(weights, kernels)  # (B, E, M)
     alive = ((sums > 0) | ~mask).all(1, keepdim=True)  # (B, 1, M)
     inverse = torch.where(mask & (sums > 0), 1.0 / sums.clamp_min(1e-30), torch.zeros_like(sums))
