@@ -18,8 +18,8 @@ it anneals for ``ModelSettings.fast_anneal_fraction`` of the steps and then move
 its local mode by mean shift (``polish_steps``, :func:`pushtorch.anneal.polish_candidates`).
 ``method="dense"`` is the reference implementation of the paper (every query against every kernel — the
 motion kernels whose contact weight is zero included — one density at a time, the full annealing
-schedule). Both optimise the same densities; their random streams
-differ; ``tools/bench_predict.py`` checks that their accuracy agrees.
+schedule). Both optimise the same densities; their random streams differ; ``tools/bench_predict.py``
+checks that their accuracy agrees.
 """
 
 from __future__ import annotations

@@ -35,7 +35,8 @@ truth without ``g`` and the product was pulled off the manipulator expert's (0.9
 as "where the contact is relative to the pusher".
 
 Fast path: :func:`anneal_motion_densities` anneals the products of experts of many push conditions in
-one batch, with the fused :meth:`pushtorch.kde.PoseKDE.log_prob` (``method="fast"``).
+one batch; each kind's kernels, shared by all of its experts, are evaluated once per query
+(:class:`pushtorch.kde.SharedKernelProduct`), and the candidates are polished by mean shift.
 """
 
 from __future__ import annotations
