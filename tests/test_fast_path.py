@@ -383,7 +383,8 @@ def test_predict_many_batches_conditions_and_keeps_single_seeds(small_cube_model
 
 @pytest.mark.slow
 def test_compiled_fast_path_equals_dense(monkeypatch):
-    """The torch.compile'd functions (first call compiles: tens of seconds on a cold cache)."""
+    """The torch.compile'd functions (first call compiles: tens of seconds on a cold cache): block and
+    dense layouts, their mean shift, the shared-kernel product and its mean shift."""
     monkeypatch.setenv("PUSHTORCH_COMPILE", "auto")
     from pushtorch.kde import fast_path_compiled
 
@@ -396,6 +397,24 @@ def test_compiled_fast_path_equals_dense(monkeypatch):
         finite = torch.isfinite(dense)
         assert torch.equal(finite, torch.isfinite(fast))
         assert torch.allclose(fast[finite], dense[finite], atol=2e-3)
+        moved, moved_fast = kde.mean_shift(queries), kde.mean_shift(queries, method="fast")
+        assert torch.allclose(moved_fast.p, moved.p, atol=1e-4)
+    # the compiled shared-kernel product and its mean shift against the experts one by one
+    shared = _random_kde(300, seed=5, dtype=torch.float32)
+    log_w = torch.randn(3, 300, generator=torch.Generator().manual_seed(6))
+    log_w[1, ::2] = -math.inf
+    product = SharedKernelProduct(shared.means, log_w, shared.bandwidth)
+    experts = PoseKDE.stack([PoseKDE(shared.means.take(torch.isfinite(w)), shared.bandwidth, w[torch.isfinite(w)])
+                             for w in log_w])
+    queries = _queries_near(shared, 200, seed=7, scale=0.2)
+    dense, fast = ProductOfExperts(experts).log_prob(queries), product.log_prob(queries)
+    finite = torch.isfinite(dense)
+    assert finite.any() and torch.equal(finite, torch.isfinite(fast))
+    assert torch.allclose(fast[finite], dense[finite], atol=2e-3)
+    in_float64 = SharedKernelProduct(se3.Pose(shared.means.p.double(), shared.means.q.double()),
+                                     log_w.double(), shared.bandwidth)
+    assert torch.allclose(product.mean_shift(queries).p.double(),
+                          in_float64.mean_shift(se3.Pose(queries.p.double(), queries.q.double())).p, atol=1e-4)
 
 
 def test_fast_descriptor_log_prob_equals_dense():
