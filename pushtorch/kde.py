@@ -836,7 +836,7 @@ class PoseKDE:
         bw = self.bandwidth
         beta = self._beta.double()
         scale = torch.stack([beta[0] / bw.sigma_p, beta[1] / bw.sigma_q, beta[2]]).to(self.dtype)
-        r_scale = (1.0 / torch.tensor(bw.sigma_r, dtype=torch.float64)).to(self.dtype)
+        r_scale = (1.0 / torch.tensor(bw.sigma_r, dtype=torch.float64)).to(device=x.device, dtype=self.dtype)
         evaluate = fused_function("descriptor_sums", _descriptor_sums, x.device)
         step = max(1, _DEFAULT_BLOCK_ELEMENTS // rows.shape[1])
         total = torch.cat([evaluate(x[:, s : s + step], rows, scale, r_scale, *bw.delta)
