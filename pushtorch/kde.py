@@ -813,20 +813,16 @@ class PoseKDE:
             return torch.empty(shape, dtype=self.dtype, device=self.device)
         return torch.cat(out, -1)
 
-    def _descriptor_table(self) -> Tensor | None:
-        """Kernels as rows ``(8 + k, N)`` (p, q, log w relative to the largest, r) for the fused pass
-        with descriptors; None when the weights span more than float32 sums in the linear domain."""
-        table = self.__dict__.get("_fast_descriptor_table")
-        if table is None:
+    def _descriptor_table(self) -> tuple[Tensor, Tensor] | None:
+        """Kernels as rows ``(8 + k, N)`` (p, q, log w relative to the largest, r) and that largest log w,
+        for the fused pass with descriptors; None when the weights cannot be summed in the linear domain.
+        Built on first use and cached."""
+        if "_fast_descriptor_table" not in self.__dict__:
             top = self._log_w.amax()
             relative = self._log_w - top
-            valid = relative > -math.inf
-            if not bool((relative[valid] > math.log(torch.finfo(self.dtype).tiny) + 25.0).all()):
-                return None
-            table = torch.cat([self._p, self._q, relative.unsqueeze(-1), self._r], -1).T.contiguous()
-            self._fast_descriptor_table = (table, top)
-            return self._fast_descriptor_table
-        return table
+            rows = torch.cat([self._p, self._q, relative.unsqueeze(-1), self._r], -1).T.contiguous()
+            self._fast_descriptor_table = (rows, top) if _linear_sums_exact(relative) else None
+        return self._fast_descriptor_table
 
     def _fast_log_prob_descriptors(self, table: tuple[Tensor, Tensor], p: Tensor, q: Tensor, r: Tensor) -> Tensor:
         """log_prob of one density (batch shape ()) with descriptors in one fused pass per chunk."""
@@ -1171,6 +1167,13 @@ def _dense_sums(x: Tensor, table: Tensor, scale: Tensor, delta_p: float, delta_q
     return torch.where(keep, torch.exp(t[:, 7] - d_p - d_q), torch.zeros_like(d_p)).sum(-1)
 
 
+def _linear_sums_exact(relative_log_w: Tensor) -> bool:
+    """Whether weights given relative to the largest (``≤ 0``, ``-inf`` padding) can be summed in the
+    linear domain: exactly unless a kernel weighs ~e^-60 less than the largest (float32)."""
+    live = relative_log_w[relative_log_w > -math.inf]
+    return bool((live > math.log(torch.finfo(relative_log_w.dtype).tiny) + 25.0).all())
+
+
 def _descriptor_sums(x: Tensor, table: Tensor, scale: Tensor, r_scale: Tensor, delta_p: float, delta_q: float,
                      delta_r: float) -> Tensor:
     """Σ_i w_i K(x | μ_i) with descriptors for queries ``x (7 + k, M)`` (rows p, q, r) against kernels
@@ -1323,8 +1326,7 @@ class _FastIndex:
         self.scale = torch.stack([sp, kappa], -1).to(dtype)  # (D, 2)
         self.log_w_max = log_w.amax(-1)  # (D,): every element has a finite weight
         relative = log_w - self.log_w_max.unsqueeze(-1)
-        # linear-domain sums are exact unless a kernel weighs ~e^-60 less than the largest (float32)
-        self.linear = bool((relative[valid] > math.log(torch.finfo(dtype).tiny) + 25.0).all())
+        self.linear = _linear_sums_exact(relative)
         rows = torch.cat([p, q, relative.unsqueeze(-1)], -1)  # (D, N, 8)
         self.blocks = n > FAST_DENSE_KERNELS if blocks is None else bool(blocks)
         if not self.blocks:
@@ -1701,30 +1703,28 @@ class SharedKernelProduct:
     def log_prob(self, pose: Pose) -> Tensor:
         """``Σ_e (log w^P_e + log P_e(pose))`` for poses ``(*B, M)`` → ``(*B, M)``; ``-inf`` where a counted
         expert has no kernel within its cut-offs. The queries are not validated (annealing's own)."""
-        d = self.table.shape[0]
-        m = pose.p.shape[-2]
-        x = torch.cat([pose.p, pose.q], -1).expand(*self.batch_shape, m, 7).reshape(d, m, 7)
-        x = x.transpose(1, 2).contiguous()  # (D, 7, M): a strided view compiles ~6x slower (measured)
-        evaluate = fused_function("shared_kernel_product", _shared_kernel_product, x.device)
-        # chunks of problems keep the (problems × K × M) kernel values feeding the matmul cache-sized (~8 MB)
-        step = max(1, _DEFAULT_BLOCK_ELEMENTS // max(1, m * self.table.shape[1]))
-        out = [evaluate(x[s : s + step], self.table[s : s + step], self.weights[s : s + step],
-                        self.scale[s : s + step], self.offset[s : s + step], self.mask[s : s + step],
-                        self.delta_p, self.delta_q) for s in range(0, d, step)]
-        return torch.cat(out, 0).reshape(*self.batch_shape, m)
+        out = self._per_problem("shared_kernel_product", _shared_kernel_product, pose,
+                                self.table, self.weights, self.scale, self.offset, self.mask)
+        return out.reshape(*self.batch_shape, pose.p.shape[-2])
 
     def mean_shift(self, pose: Pose) -> Pose:
         """One mean-shift step of every query towards a local mode of the product (see
         :meth:`PoseKDE.mean_shift`; the experts' weights w^P do not move a mode): poses ``(*B, M)``."""
+        out = self._per_problem("shared_kernel_shift", _shared_kernel_shift, pose,
+                                self.table, self.weights, self.scale, self.mask)
+        out = out.transpose(1, 2).reshape(*self.batch_shape, pose.p.shape[-2], 7)
+        return Pose(out[..., :3], out[..., 3:])
+
+    def _per_problem(self, name: str, fn: Callable, pose: Pose, *layout: Tensor) -> Tensor:
+        """``fn`` (fused) over the queries ``(D, 7, M)`` and this product's per-problem ``layout`` tensors,
+        in chunks of problems that keep the ``(problems × K × M)`` kernel values cache-sized (~8 MB)."""
         d, m = self.table.shape[0], pose.p.shape[-2]
         x = torch.cat([pose.p, pose.q], -1).expand(*self.batch_shape, m, 7).reshape(d, m, 7)
-        x = x.transpose(1, 2).contiguous()
-        evaluate = fused_function("shared_kernel_shift", _shared_kernel_shift, x.device)
+        x = x.transpose(1, 2).contiguous()  # (D, 7, M): a strided view compiles ~6x slower (measured)
+        evaluate = fused_function(name, fn, x.device)
         step = max(1, _DEFAULT_BLOCK_ELEMENTS // max(1, m * self.table.shape[1]))
-        out = torch.cat([evaluate(x[s : s + step], self.table[s : s + step], self.weights[s : s + step],
-                                  self.scale[s : s + step], self.mask[s : s + step], self.delta_p, self.delta_q)
-                         for s in range(0, d, step)], 0).transpose(1, 2).reshape(*self.batch_shape, m, 7)
-        return Pose(out[..., :3], out[..., 3:])
+        return torch.cat([evaluate(x[s : s + step], *(t[s : s + step] for t in layout), self.delta_p, self.delta_q)
+                          for s in range(0, d, step)], 0)
 
     def __call__(self, pose: Pose) -> Tensor:
         return self.log_prob(pose)

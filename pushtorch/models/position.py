@@ -55,14 +55,22 @@ class PositionModel:
 
     frames: ContactFrames
     descriptor_std: Tensor  # (2,) std of the embedded r over the training cloud: σ_r of the saliency weight
-    # capped distance field of the frames' points for the verification screen, built on first use
+    # built on first use for the pose verification: the frames' points indexed for nearest-neighbour
+    # queries, and their capped distance field on a grid
+    _search: object | None = field(default=None, repr=False, compare=False)
     _distance_grid: tuple[Tensor, Tensor, Tensor, float] | None = field(default=None, repr=False, compare=False)
+
+    def nearest_search(self):
+        """An open3d nearest-neighbour index over the frames' points (object frame), built once."""
+        if self._search is None:
+            self._search = _nearest_model_search(self.frames.v.p)
+        return self._search
 
     def distance_grid(self, cap: float = VERIFY_CAP) -> tuple[Tensor, Tensor, Tensor, float]:
         """``(grid (1, 1, Z, Y, X), lo (3,), hi (3,), cap)``: distances (capped at ``cap``) from grid
         points over the frames' bounding box grown by ``cap`` to the nearest frame point (object frame)."""
         if self._distance_grid is None or self._distance_grid[3] != cap:
-            self._distance_grid = _capped_distance_grid(self.frames.v.p, cap)
+            self._distance_grid = _capped_distance_grid(self.frames.v.p, self.nearest_search(), cap)
         return self._distance_grid
 
 
@@ -113,7 +121,7 @@ def _nearest_model_search(model_points: Tensor):
     return search
 
 
-def _capped_distance_grid(model_points: Tensor, cap: float) -> tuple[Tensor, Tensor, Tensor, float]:
+def _capped_distance_grid(model_points: Tensor, search, cap: float) -> tuple[Tensor, Tensor, Tensor, float]:
     lo = model_points.amin(0) - cap
     hi = model_points.amax(0) + cap
     cell = max(cap / _GRID_CELLS_PER_CAP, float((hi - lo).max()) / _GRID_MAX_CELLS)
@@ -122,7 +130,7 @@ def _capped_distance_grid(model_points: Tensor, cap: float) -> tuple[Tensor, Ten
     axes = [torch.linspace(float(lo[k]), float(hi[k]), counts[k], dtype=lo.dtype, device=lo.device) for k in range(3)]
     z, y, x = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
     nodes = torch.stack([x, y, z], -1).reshape(-1, 3)
-    distance = _nearest_distances(_nearest_model_search(model_points), nodes).clamp(max=cap)
+    distance = _nearest_distances(search, nodes).clamp(max=cap)
     return distance.reshape(1, 1, counts[2], counts[1], counts[0]), lo, hi, cap
 
 
@@ -189,6 +197,7 @@ def verify_pose_candidates(
     score = grid_fit_scores(position, observed[order[:screen_points]], candidates, cap)
     score = torch.where(alive, score, torch.full_like(score, math.inf))
     shortlist = score.argsort()[: min(finalists, int(alive.sum().clamp_min(1)))]
-    final = surface_fit_scores(position.frames.v.p, observed[order[:points]], candidates.take(shortlist), cap)
+    final = surface_fit_scores(position.frames.v.p, observed[order[:points]], candidates.take(shortlist), cap,
+                               position.nearest_search())
     tied = final <= final.min() + 1e-6
     return shortlist[torch.where(tied, log_prob[shortlist], torch.full_like(final, -math.inf)).argmax()]
