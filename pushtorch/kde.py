@@ -1094,6 +1094,10 @@ _COMPILE_ENV = "PUSHTORCH_COMPILE"
 _compiled_functions: dict[str, Callable] = {}
 _compile_failed: set[str] = set()
 _compiler_found: list[bool] = []  # cached shutil.which answer
+# Inductor stores an intermediate that is read twice (the distance d in `where(d < δ, exp(w − d), 0)`)
+# as a full (queries × kernels) buffer and reduces it in a second loop; recomputing it in the one fused
+# loop is ~7× faster on CPU (measured on the query density's group sums: 12.3 → 1.6 ms).
+_INDUCTOR_OPTIONS = {"realize_reads_threshold": 1000}
 
 
 def _compile_mode() -> str:
@@ -1133,7 +1137,7 @@ def fused_function(name: str, fn: Callable, device: torch.device | str) -> Calla
         return fn
     key = f"{name}:{device.type}"
     if key not in _compiled_functions:
-        compiled = torch.compile(fn, dynamic=None)
+        compiled = torch.compile(fn, dynamic=None, options=_INDUCTOR_OPTIONS)
 
         def call(*args):
             if name in _compile_failed:

@@ -24,11 +24,13 @@ from pushtorch.kde import (
     ProductOfExperts,
     SharedKernelProduct,
     _FastIndex,
+    fused_function,
 )
 from pushtorch.models.frames import embed_descriptors
 from pushtorch.models.library import ModelSettings, train_push_model
 from pushtorch.models.query import (
     _fast_kernel_draws,
+    _group_weight_sums,
     feature_distance_heuristic,
     neighbourhood_log_weights,
 )
@@ -415,6 +417,15 @@ def test_compiled_fast_path_equals_dense(monkeypatch):
                                      log_w.double(), shared.bandwidth)
     assert torch.allclose(product.mean_shift(queries).p.double(),
                           in_float64.mean_shift(se3.Pose(queries.p.double(), queries.q.double())).p, atol=1e-4)
+    # the query density's group sums, fused into one loop by the compile options (nothing stored between)
+    g = torch.Generator().manual_seed(8)
+    rows, frames = torch.randn(500, 2, generator=g) * 2, torch.randn(2, 40, 64, generator=g) * 2
+    log_w = -torch.rand(40, 64, generator=g) * 5
+    log_w[-1, 30:] = -math.inf
+    scale = torch.tensor([2.0, 0.5])
+    compiled = fused_function("group_weight_sums", _group_weight_sums, "cpu")(rows, *frames, log_w, scale, 12.5)
+    eager = _group_weight_sums(rows, *frames, log_w, scale, 12.5)
+    assert (eager == 0).any() and torch.allclose(compiled, eager, rtol=1e-5, atol=1e-7)
 
 
 def test_fast_descriptor_log_prob_equals_dense():
