@@ -1137,7 +1137,11 @@ def fused_function(name: str, fn: Callable, device: torch.device | str) -> Calla
         return fn
     key = f"{name}:{device.type}"
     if key not in _compiled_functions:
-        compiled = torch.compile(fn, dynamic=None, options=_INDUCTOR_OPTIONS)
+        from torch._inductor import config as inductor_config
+
+        # torch.compile refuses option names its Inductor does not know (older torch): leave those out
+        options = {k: v for k, v in _INDUCTOR_OPTIONS.items() if hasattr(inductor_config, k)}
+        compiled = torch.compile(fn, dynamic=None, options=options)
 
         def call(*args):
             if name in _compile_failed:
