@@ -1158,6 +1158,16 @@ def fused_function(name: str, fn: Callable, device: torch.device | str) -> Calla
     return _compiled_functions[key]
 
 
+def _pose_distances(x: Sequence[Tensor], t: Sequence[Tensor], scale_p: Tensor, scale_q: Tensor
+                    ) -> tuple[Tensor, Tensor, Tensor]:
+    """The fused passes' kernel distances from the rows of queries ``x`` and kernels ``t`` (p then q, in
+    any broadcastable layout): ``(β_p/σ_p |x_p − μ_p|², <x_q, μ_q>, β_q/σ_q (1 − |<x_q, μ_q>|))`` — the
+    scaled terms :meth:`PoseKDE.log_prob` cuts off and sums (written out: compiled, nothing is stored)."""
+    d_p = ((x[0] - t[0]) ** 2 + (x[1] - t[1]) ** 2 + (x[2] - t[2]) ** 2) * scale_p
+    dot = x[3] * t[3] + x[4] * t[4] + x[5] * t[5] + x[6] * t[6]
+    return d_p, dot, (1.0 - dot.abs()).clamp_min(0.0) * scale_q
+
+
 def _dense_sums(x: Tensor, table: Tensor, scale: Tensor, delta_p: float, delta_q: float) -> Tensor:
     """Σ_i w_i K(x | μ_i) for every query against every kernel of its density: ``(Q, M)``.
 
@@ -1165,12 +1175,9 @@ def _dense_sums(x: Tensor, table: Tensor, scale: Tensor, delta_p: float, delta_q
     largest); scale: ``(Q, 2)`` (β_p/σ_p, β_q/σ_q). Exact distances, the cut-offs of
     :meth:`PoseKDE.log_prob`; compiled, no ``(Q, M, N)`` tensor is stored.
     """
-    xs = x.unsqueeze(-1)  # (Q, 7, M, 1)
     t = table.unsqueeze(2)  # (Q, 8, 1, N)
     sc = scale[:, :, None, None]
-    d_p = ((xs[:, 0] - t[:, 0]) ** 2 + (xs[:, 1] - t[:, 1]) ** 2 + (xs[:, 2] - t[:, 2]) ** 2) * sc[:, 0]
-    dot = xs[:, 3] * t[:, 3] + xs[:, 4] * t[:, 4] + xs[:, 5] * t[:, 5] + xs[:, 6] * t[:, 6]
-    d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, 1]
+    d_p, _, d_q = _pose_distances(x.unsqueeze(-1).unbind(1), t.unbind(1), sc[:, 0], sc[:, 1])  # x: (Q, 7, M, 1)
     keep = (d_p < delta_p) & (d_q < delta_q)
     return torch.where(keep, torch.exp(t[:, 7] - d_p - d_q), torch.zeros_like(d_p)).sum(-1)
 
@@ -1189,8 +1196,7 @@ def _descriptor_sums(x: Tensor, table: Tensor, scale: Tensor, r_scale: Tensor, d
     β_r), r_scale: ``(k,)`` 1/σ_r. Exact distances and every cut-off of :meth:`PoseKDE.log_prob`."""
     xs = x.unsqueeze(-1)  # (7 + k, M, 1)
     t = table.unsqueeze(1)  # (8 + k, 1, N)
-    d_p = ((xs[0] - t[0]) ** 2 + (xs[1] - t[1]) ** 2 + (xs[2] - t[2]) ** 2) * scale[0]
-    d_q = (1.0 - (xs[3] * t[3] + xs[4] * t[4] + xs[5] * t[5] + xs[6] * t[6]).abs()).clamp_min(0.0) * scale[1]
+    d_p, _, d_q = _pose_distances(xs, t, scale[0], scale[1])
     d_r = sum((xs[7 + k] - t[8 + k]) ** 2 * r_scale[k] for k in range(r_scale.shape[0])) * scale[2]
     keep = (d_p < delta_p) & (d_q < delta_q) & (d_r < delta_r)
     return torch.where(keep, torch.exp(t[7] - d_p - d_q - d_r), torch.zeros_like(d_p)).sum(-1)
@@ -1225,9 +1231,7 @@ def _pair_kernels(x: Tensor, table: Tensor, scale: Tensor, query_density: Tensor
     t = table[density * num_blocks + pair_block]  # (P, 8, L)
     xs = x[pair_query].unsqueeze(-1)  # (P, 7, 1)
     sc = scale[density]
-    d_p = ((xs[:, 0] - t[:, 0]) ** 2 + (xs[:, 1] - t[:, 1]) ** 2 + (xs[:, 2] - t[:, 2]) ** 2) * sc[:, 0:1]
-    dot = xs[:, 3] * t[:, 3] + xs[:, 4] * t[:, 4] + xs[:, 5] * t[:, 5] + xs[:, 6] * t[:, 6]
-    d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, 1:2]
+    d_p, dot, d_q = _pose_distances(xs.unbind(1), t.unbind(1), sc[:, 0:1], sc[:, 1:2])
     keep = (d_p < delta_p) & (d_q < delta_q)
     return torch.where(keep, torch.exp(t[:, 7] - d_p - d_q), torch.zeros_like(d_p)), t, dot
 
@@ -1595,10 +1599,7 @@ def _shared_kernels(x: Tensor, table: Tensor, scale: Tensor, delta_p: float, del
     xs = x.unsqueeze(1)  # (B, 1, 7, M)
     t = table.unsqueeze(-1)  # (B, K, 7, 1)
     sc = scale[:, None, :, None]  # (B, 1, 2, 1)
-    d_p = ((xs[:, :, 0] - t[:, :, 0]) ** 2 + (xs[:, :, 1] - t[:, :, 1]) ** 2
-           + (xs[:, :, 2] - t[:, :, 2]) ** 2) * sc[:, :, 0]
-    dot = xs[:, :, 3] * t[:, :, 3] + xs[:, :, 4] * t[:, :, 4] + xs[:, :, 5] * t[:, :, 5] + xs[:, :, 6] * t[:, :, 6]
-    d_q = (1.0 - dot.abs()).clamp_min(0.0) * sc[:, :, 1]
+    d_p, dot, d_q = _pose_distances(xs.unbind(2), t.unbind(2), sc[:, :, 0], sc[:, :, 1])
     keep = (d_p < delta_p) & (d_q < delta_q)
     return torch.where(keep, torch.exp(-d_p - d_q), torch.zeros_like(d_p)), dot
 

@@ -248,18 +248,18 @@ def test_surface_fit_verification_prefers_the_pose_that_explains_the_cloud():
     observed = capture_partial_cloud(obj, truth).points
     turned = obj.resting_pose(0.02, -0.03, math.pi + math.pi / 2)
     candidates = se3.Pose(torch.stack([turned.p, truth.p]), torch.stack([turned.q, truth.q]))
-    scores = surface_fit_scores(position.frames.v.p, observed, candidates)
+    scores = surface_fit_scores(position, observed, candidates)
     assert scores[1] < 0.005 < scores[0], scores  # mm-level fit against points left unexplained
     # the density would prefer the turned pose; the fit overrules it, and a zero-density pose never wins
     chosen = verify_pose_candidates(position, observed, candidates, torch.tensor([0.0, -5.0]))
     assert int(chosen) == 1
     assert int(verify_pose_candidates(position, observed, candidates, torch.tensor([0.0, -math.inf]))) == 0
     with pytest.raises(PushtorchError):
-        surface_fit_scores(position.frames.v.p, observed[:0], candidates)
+        surface_fit_scores(position, observed[:0], candidates)
     with pytest.raises(PushtorchError):
         grid_fit_scores(position, observed[:0], candidates)
     # the screen's grid reads the same fit to within a fraction of the gap between the two poses
     many = se3.Pose(torch.cat([candidates.p, candidates.p + 0.01]), torch.cat([candidates.q, candidates.q]))
-    exact, grid = surface_fit_scores(position.frames.v.p, observed, many), grid_fit_scores(position, observed, many)
+    exact, grid = surface_fit_scores(position, observed, many), grid_fit_scores(position, observed, many)
     assert (grid - exact).abs().max() < 0.2 * (scores[0] - scores[1]), (grid, exact)
     assert torch.equal(grid.argsort(), exact.argsort())

@@ -159,25 +159,24 @@ def grid_fit_scores(position: PositionModel, observed: Tensor, candidates: se3.P
     return sampled.reshape(local.shape[:2]).to(observed.dtype).mean(-1)
 
 
-def surface_fit_scores(model_points: Tensor, observed: Tensor, candidates: se3.Pose, cap: float = VERIFY_CAP,
-                       search=None) -> Tensor:
+def surface_fit_scores(position: PositionModel, observed: Tensor, candidates: se3.Pose, cap: float = VERIFY_CAP
+                       ) -> Tensor:
     """How badly each candidate object pose explains the observed points: ``(C,)``, metres.
 
     The observed points (world) are moved into each candidate's object frame and matched to their
-    nearest model point (the training cloud, object frame; open3d's nearest-neighbour search); the
-    score is the mean of those distances, each capped at ``cap``.
+    nearest point of the position model's frames (the training cloud, object frame; open3d's
+    nearest-neighbour search, :meth:`PositionModel.nearest_search`); the score is the mean of those
+    distances, each capped at ``cap``.
 
     Args:
-        model_points: ``(N, 3)`` the training surface in the object frame ``B^O``.
+        position: the model whose frames' points are the surface ``B^O``.
         observed: ``(M, 3)`` observed surface points, world frame.
         candidates: object poses ``(C,)``.
-        search: an index over ``model_points`` to reuse (built here if None).
     """
     if observed.shape[0] == 0:
         raise InvalidPointCloudError("surface fit needs observed points")
-    search = search if search is not None else _nearest_model_search(model_points)
     local = se3.apply(se3.inverse(candidates).unsqueeze(-1), observed)  # (C, M, 3)
-    return _nearest_distances(search, local).clamp(max=cap).mean(-1)
+    return _nearest_distances(position.nearest_search(), local).clamp(max=cap).mean(-1)
 
 
 def verify_pose_candidates(
@@ -197,7 +196,6 @@ def verify_pose_candidates(
     score = grid_fit_scores(position, observed[order[:screen_points]], candidates, cap)
     score = torch.where(alive, score, torch.full_like(score, math.inf))
     shortlist = score.argsort()[: min(finalists, int(alive.sum().clamp_min(1)))]
-    final = surface_fit_scores(position.frames.v.p, observed[order[:points]], candidates.take(shortlist), cap,
-                               position.nearest_search())
+    final = surface_fit_scores(position, observed[order[:points]], candidates.take(shortlist), cap)
     tied = final <= final.min() + 1e-6
     return shortlist[torch.where(tied, log_prob[shortlist], torch.full_like(final, -math.inf)).argmax()]
