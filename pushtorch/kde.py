@@ -1479,16 +1479,6 @@ class _FastIndex:
 # --------------------------------------------------------------------------------------------------
 
 
-def _expert_aligned(t: Tensor, name: str, experts: PoseKDE) -> Tensor:
-    """Shape ``(E,)`` or ``(E, *B)`` → ``(E, *B or 1s, 1)`` to align with ``(E, *B, M)`` log densities."""
-    batch = experts.batch_shape
-    if t.dim() == 0 or t.shape[0] != batch[0] or (t.dim() > 1 and t.shape != batch):
-        raise InvalidParameterError(
-            f"{name} must have shape ({batch[0]},) or {tuple(batch)} (experts first), got {tuple(t.shape)}"
-        )
-    return t.reshape(*t.shape, *([1] * (len(batch) + 1 - t.dim())))
-
-
 def product_log_prob(
     experts: PoseKDE,
     pose: Pose,
@@ -1526,16 +1516,14 @@ def product_log_prob(
         )
     # Batch dims align from the right, so queries with at most len(B) batch dims meet (E, *B) as (*B).
     per_expert = experts.log_prob(pose, chunk_size=chunk_size, method=method)  # (E, *BB, M)
+    n_experts, batch = experts.batch_shape[0], experts.batch_shape[1:]
+    dtype, device = per_expert.dtype, per_expert.device
     if expert_log_weight is not None:
-        w = torch.as_tensor(expert_log_weight, dtype=per_expert.dtype, device=per_expert.device)
-        if torch.isnan(w).any() or (w == math.inf).any():
-            raise InvalidParameterError("expert_log_weight holds NaN or +inf")
-        per_expert = per_expert + _expert_aligned(w, "expert_log_weight", experts)
+        log_wp = _per_expert(expert_log_weight, "expert_log_weight", n_experts, batch, dtype, device, 0.0)
+        per_expert = per_expert + log_wp.unsqueeze(-1)
     if expert_mask is not None:
-        mask = torch.as_tensor(expert_mask, device=per_expert.device)
-        if mask.dtype != torch.bool:
-            raise InvalidParameterError(f"expert_mask must be boolean, got {mask.dtype}")
-        per_expert = per_expert.masked_fill(~_expert_aligned(mask, "expert_mask", experts), 0.0)
+        mask = _per_expert(expert_mask, "expert_mask", n_experts, batch, torch.bool, device, True)
+        per_expert = per_expert.masked_fill(~mask.unsqueeze(-1), 0.0)
     return per_expert.sum(0)
 
 
@@ -1576,20 +1564,27 @@ class ProductOfExperts:
 
 
 def _per_expert(value, name: str, n_experts: int, batch: torch.Size, dtype, device, default) -> Tensor:
-    """``(E,)`` or ``(E, *B)`` → ``(E, *B)``; None → ``default`` everywhere."""
+    """Per-expert weights or mask, ``(E,)`` or ``(E, *B)`` (size-1 dims broadcast) → ``(E, *B)``;
+    None → ``default`` everywhere. Refuses a mask that is not boolean, weights that are, and NaN or +inf
+    weights (−inf is an expert that vetoes everything)."""
     if value is None:
         return torch.full((n_experts, *batch), default, dtype=dtype, device=device)
     t = torch.as_tensor(value, device=device)
     if t.dtype != dtype and (dtype == torch.bool or t.dtype == torch.bool):
         raise InvalidParameterError(f"{name} must be {'boolean' if dtype == torch.bool else 'floating'}, got {t.dtype}")
     t = t.to(dtype)
-    if t.dim() == 1 and t.shape[0] == n_experts:
-        t = t.reshape(n_experts, *([1] * len(batch)))
+    if dtype != torch.bool and (torch.isnan(t).any() or (t == math.inf).any()):
+        raise InvalidParameterError(f"{name} holds NaN or +inf")
+    wrong = InvalidParameterError(f"{name} must have shape ({n_experts},) or {(n_experts, *batch)} "
+                                  f"(experts first), got {tuple(t.shape)}")
+    # experts first and never broadcast into: a (B,) tensor must not pass for per-expert values
+    if t.dim() == 0 or t.dim() > len(batch) + 1 or t.shape[0] != n_experts:
+        raise wrong
+    t = t.reshape(*t.shape, *([1] * (len(batch) + 1 - t.dim())))
     try:
         return t.expand(n_experts, *batch)
     except RuntimeError as exc:
-        raise InvalidParameterError(f"{name} must have shape ({n_experts},) or {(n_experts, *batch)}, "
-                                    f"got {tuple(t.shape)}") from exc
+        raise wrong from exc
 
 
 def _shared_kernels(x: Tensor, table: Tensor, scale: Tensor, delta_p: float, delta_q: float
@@ -1686,8 +1681,6 @@ class SharedKernelProduct:
             raise InvalidParameterError("log_weights hold NaN or +inf (use -inf for a kernel outside an expert)")
         mask = _per_expert(expert_mask, "expert_mask", n_experts, batch, torch.bool, device, True)
         log_wp = _per_expert(expert_log_weight, "expert_log_weight", n_experts, batch, dtype, device, 0.0)
-        if torch.isnan(log_wp).any() or (log_wp == math.inf).any():
-            raise InvalidParameterError("expert_log_weight holds NaN or +inf")
         total = torch.logsumexp(log_weights, -1)  # (E, *B)
         empty = total == -math.inf
         if (empty & mask).any():
