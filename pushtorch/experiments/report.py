@@ -171,27 +171,21 @@ def make_figures(out_dir: Path, records: Sequence[Mapping[str, Any]],
         plt.close(fig)
         paths.append(path)
 
-    selection = _select(records, task="selection")
-    if selection:
-        objects = _ordered(r["object"] for r in selection)
-        methods = _ordered((r["method"] for r in selection), _SELECTION_ORDER)
-        stats = {(o, m): pool(_select(selection, object=o, method=m)) for o in objects for m in methods}
+    for task, order, title, filename in (
+        ("selection", _SELECTION_ORDER, "Contact model selection", "model_selection.png"),
+        ("pose", _POSE_ORDER, "Pose estimation", "pose_estimation.png"),
+    ):
+        part = _select(records, task=task)
+        if not part:
+            continue
+        objects = _ordered(r["object"] for r in part)
+        methods = _ordered((r["method"] for r in part), order)
+        stats = {(o, m): pool(_select(part, object=o, method=m)) for o in objects for m in methods}
         fig, ax = plt.subplots(figsize=(5, 3.5))
         _bars(ax, objects, methods, stats)
-        ax.set_title("Contact model selection")
+        ax.set_title(title)
         ax.legend(fontsize=8)
-        save(fig, "model_selection.png")
-
-    pose = _select(records, task="pose")
-    if pose:
-        objects = _ordered(r["object"] for r in pose)
-        methods = _ordered((r["method"] for r in pose), _POSE_ORDER)
-        stats = {(o, m): pool(_select(pose, object=o, method=m)) for o in objects for m in methods}
-        fig, ax = plt.subplots(figsize=(5, 3.5))
-        _bars(ax, objects, methods, stats)
-        ax.set_title("Pose estimation")
-        ax.legend(fontsize=8)
-        save(fig, "pose_estimation.png")
+        save(fig, filename)
 
     prediction = _select(records, task="prediction")
     for bias in _ordered(_bias_of(r["model"]) for r in prediction):
