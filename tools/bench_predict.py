@@ -15,6 +15,10 @@ by H_acc against pybullet run from that prediction's own robot start pose (as th
 fast path is compiled and warmed up on one extra condition first (compilation time reported apart), and
 the batched fast path (``predict_many(batch_size=…)``) is timed on all conditions at once.
 
+For scale, the line before the last times one annealing step evaluated the way the issue measured its
+34 s per prediction (eager ``cdist`` + ``exp``, every candidate against every motion kernel, nothing
+pruned or fused), which the dense reference's chunked matmul evaluation beats several times over.
+
 The last line is exactly ``p50_s=<fast> ratio=<dense/fast> hacc_fast=<..> hacc_dense=<..>``: the median
 latency of one fast prediction from surface features, the ratio of the dense median to it, and the mean
 H_acc of each path.
@@ -80,6 +84,26 @@ def hacc(obj, prediction, truth0: se3.Pose, action: torch.Tensor) -> float:
     outcome = simulate_pushes(obj, prediction.condition.robot_start, truth0, action, MASS, FRICTION)
     truth1 = se3.Pose(outcome.object_final.p[0].float(), outcome.object_final.q[0].float())
     return float(metrics.accuracy(prediction.final_pose, truth1, obj).hacc)
+
+
+def straightforward_step_seconds(n_candidates: int, n_kernels: int, p_std: float, rot_std: float) -> float:
+    """One annealing step evaluated the way the issue measured its 34 s (eager cdist + exp, nothing
+    pruned or fused): every candidate against every motion kernel, median of 3. For scale only; the dense
+    reference above is the comparison the ratio uses."""
+    g = torch.Generator().manual_seed(0)
+    x, mu = torch.randn(n_candidates, 3, generator=g), torch.randn(n_kernels, 3, generator=g)
+    q = torch.nn.functional.normalize(torch.randn(n_candidates, 4, generator=g), dim=-1)
+    mu_q = torch.nn.functional.normalize(torch.randn(n_kernels, 4, generator=g), dim=-1)
+    log_w = torch.randn(n_kernels, generator=g)
+    times = []
+    for _ in range(3):
+        started = time.perf_counter()
+        distance = torch.cdist(x, mu)
+        angle = 2 * torch.arccos((q @ mu_q.T).abs().clamp(max=1.0))
+        kernel = torch.exp(log_w - 0.5 * (distance / p_std) ** 2 - 0.5 * (angle / rot_std) ** 2)
+        kernel.sum(-1).log()
+        times.append(time.perf_counter() - started)
+    return statistics.median(times)
 
 
 def main() -> None:
@@ -158,6 +182,11 @@ def main() -> None:
           f"± {spread:.4f} (standard error; each path's own annealing noise dominates it)")
     print(f"fast batched ({args.batch_size} conditions per call): {batched_seconds:.3f} s per condition, "
           f"mean H_acc {statistics.fmean(batched_scores):.4f}")
+    n_kernels = s.environment_contacts * s.environment_kernels + s.manipulator_kernels
+    step = straightforward_step_seconds(s.anneal_candidates, n_kernels, s.motion_p_std, s.motion_rot_std)
+    print(f"for scale, one straightforward step (eager cdist + exp, {s.anneal_candidates} x {n_kernels}): "
+          f"{step:.3f} s, x {s.anneal_steps} steps = {step * s.anneal_steps:.1f} s per prediction, "
+          f"{step * s.anneal_steps / p50['fast']:.0f}x the fast median")
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kB on Linux
     print(f"load_average={os.getloadavg()[0]:.2f} peak_rss={peak_mb:.0f} MB (whole run, both paths)")
     print(f"p50_s={p50['fast']:.4f} ratio={p50['dense'] / p50['fast']:.1f} "
