@@ -72,6 +72,28 @@ def test_model_config_lists_every_model_setting_at_its_default():
     assert quick_settings.query_kernels < ModelSettings().query_kernels
 
 
+def test_training_placement_comes_from_the_model_config_and_keeps_its_own_caches(tmp_path):
+    from pushtorch.experiments.common import context_from_config, training_records
+    from pushtorch.sim.plan import Placement
+
+    paper = context_from_config(_compose(["experiment=quickstart"]), tmp_path)
+    assert paper.placement == Placement()  # the paper repeats one placement
+    spread_cfg = _compose(["experiment=quickstart", "model.placement.lateral_jitter=0.05",
+                           "model.samples_per_action=2", "experiment.progress=false"])
+    spread = context_from_config(spread_cfg, tmp_path)
+    assert spread.placement.lateral_jitter == 0.05
+    assert spread.with_model(OmegaConf.to_container(spread_cfg.model)).placement == spread.placement
+    cube = load_object("cube")
+    records = training_records(spread, cube, "paper_default", "paper_default")
+    offsets = records.robot_start.p[:, 1]  # the robot approaches along +x: jitter moves it along y
+    assert len(set(offsets.tolist())) == len(records) and offsets.abs().max() <= 0.05
+    assert [p.name for p in (tmp_path / "data").iterdir()] == [
+        "cube_paper_default_paper_default_gap0.002_lateral_jitter0.05_yaw_jitter_deg0_object_yaw_deg0"
+    ]
+    with pytest.raises(InvalidParameterError, match="model.placement"):
+        context_from_config(_compose(["experiment=quickstart", "+model.placement.lateral=0.05"]), tmp_path)
+
+
 def test_quickstart_runs_every_experiment_smaller():
     cfg = _compose(["experiment=quickstart"])
     parts = cfg.experiment.parts

@@ -21,7 +21,7 @@ import json
 import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +36,7 @@ from pushtorch.metrics import Accuracy, accuracy
 from pushtorch.models.library import ModelLibrary, ModelSettings, PushModel, load_model, train_push_model
 from pushtorch.objects import ObjectModel, load_object
 from pushtorch.perception import PointCloud
+from pushtorch.sim.plan import Placement
 from pushtorch.sim.priors import Prior, prior_from_config
 from pushtorch.sim.world import SimSettings
 
@@ -111,6 +112,8 @@ class ExperimentContext:
         progress: show tqdm progress bars.
         recording: an open Rerun recording, or None.
         log_examples: test conditions per part and object whose predictions (every action) are logged.
+        placement: how training places the robot (``model.placement``; default the paper's single
+            placement, see docs/method.md "Training placement").
     """
 
     run_dir: Path
@@ -126,6 +129,7 @@ class ExperimentContext:
     progress: bool = True
     recording: Any = None
     log_examples: int = 1
+    placement: Placement = Placement()
     _models: dict[str, PushModel] = field(default_factory=dict, repr=False)
     _slots: list[int] = field(default_factory=lambda: [0], repr=False)
 
@@ -145,14 +149,12 @@ class ExperimentContext:
         return table[name]
 
     def with_model(self, model_cfg: Mapping[str, Any]) -> ExperimentContext:
-        """The same context with another model config's settings and training size."""
+        """The same context with another model config's settings, training size and placement."""
         settings = ModelSettings.from_mapping(model_cfg.get("settings", {}))
         samples = int(model_cfg.get("samples_per_action", self.samples_per_action))
-        return ExperimentContext(
-            self.run_dir, self.seed, settings, samples, self.actions, self.duration, self.sim, self.priors,
-            self.workers, self.shard_size, self.progress, self.recording, self.log_examples, self._models,
-            self._slots,
-        )
+        placement = _placement(model_cfg) if "placement" in model_cfg else self.placement
+        # the model and slot caches stay shared: replace passes the same dict and list on
+        return replace(self, settings=settings, samples_per_action=samples, placement=placement)
 
     def next_slot(self) -> tuple[float, float]:
         """Where the next logged example goes in the recording: a grid of 1.5 m cells from (0, 1.5)."""
@@ -165,6 +167,15 @@ def merged_model_config(base: Mapping[str, Any], override: Mapping[str, Any] | N
     """``base`` (the ``model`` config) with a part's ``model`` overrides merged in (nested dicts merge)."""
     merged = OmegaConf.merge(OmegaConf.create(plain(base)), OmegaConf.create(plain(override or {})))
     return OmegaConf.to_container(merged, resolve=True)
+
+
+def _placement(model_cfg: Mapping[str, Any]) -> Placement:
+    entry = model_cfg.get("placement") or {}
+    unknown = set(entry) - {"gap", "lateral_jitter", "yaw_jitter_deg", "object_yaw_deg"}
+    if unknown:
+        raise InvalidParameterError(f"unknown model.placement keys {sorted(unknown)}; known: gap, "
+                                    "lateral_jitter, yaw_jitter_deg, object_yaw_deg")
+    return Placement(**{k: float(v) for k, v in entry.items()})
 
 
 def context_from_config(cfg: DictConfig | Mapping[str, Any], run_dir: str | Path) -> ExperimentContext:
@@ -204,6 +215,7 @@ def context_from_config(cfg: DictConfig | Mapping[str, Any], run_dir: str | Path
         shard_size=int(exp.get("shard_size", 100)),
         progress=bool(exp.get("progress", True)),
         log_examples=int(exp.get("log_examples", 1)),
+        placement=_placement(model_cfg),
     )
 
 
@@ -230,8 +242,15 @@ def _model_key(obj_name: str, friction: str, mass: str) -> str:
     return f"{obj_name}_{friction}_{mass}"
 
 
+def _placement_tag(placement: Placement) -> str:
+    """'' for the paper's placement, else a suffix naming it (cached pushes and models keep apart)."""
+    if placement == Placement():
+        return ""
+    return "_" + "_".join(f"{k}{v:g}" for k, v in asdict(placement).items())
+
+
 def _training_folder(ctx: ExperimentContext, obj_name: str, friction: str, mass: str) -> Path:
-    return ctx.run_dir / "data" / _model_key(obj_name, friction, mass)
+    return ctx.run_dir / "data" / (_model_key(obj_name, friction, mass) + _placement_tag(ctx.placement))
 
 
 def training_records(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str,
@@ -249,6 +268,7 @@ def training_records(ctx: ExperimentContext, obj: ObjectModel, friction: str, ma
     plan = plan_training_pushes(
         obj, ctx.actions, ctx.samples_per_action, ctx.prior("mass", mass), ctx.prior("friction", friction),
         seed=stable_seed(ctx.seed, "training", obj.name, friction, mass), duration=ctx.duration,
+        placement=ctx.placement,
     )
     folder = _training_folder(ctx, obj.name, friction, mass)
     run_plan(object_spec(obj), plan, folder, ctx.sim, workers=ctx.workers, shard_size=ctx.shard_size,
@@ -265,10 +285,13 @@ def train_model(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: s
     key = _model_key(obj.name, friction, mass)
     meta = {"friction": friction, "mass": mass, "samples_per_action": ctx.samples_per_action,
             "seed": ctx.seed}
-    cache_key = f"{key}|{json.dumps(asdict(ctx.settings), sort_keys=True)}|{ctx.samples_per_action}"
+    if ctx.placement != Placement():  # absent at the paper's placement, so earlier caches stay valid
+        meta["placement"] = asdict(ctx.placement)
+    cache_key = (f"{key}|{json.dumps(asdict(ctx.settings), sort_keys=True)}|{ctx.samples_per_action}"
+                 f"|{_placement_tag(ctx.placement)}")
     if cache_key in ctx._models:
         return ctx._models[cache_key]
-    path = ctx.run_dir / "models" / f"{key}.npz"
+    path = ctx.run_dir / "models" / f"{key}{_placement_tag(ctx.placement)}.npz"
     model = None
     if path.is_file():
         try:
