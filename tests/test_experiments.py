@@ -88,7 +88,7 @@ def test_training_placement_comes_from_the_model_config_and_keeps_its_own_caches
     offsets = records.robot_start.p[:, 1]  # the robot approaches along +x: jitter moves it along y
     assert len(set(offsets.tolist())) == len(records) and offsets.abs().max() <= 0.05
     assert [p.name for p in (tmp_path / "data").iterdir()] == [
-        "cube_paper_default_paper_default_gap0.002_lateral_jitter0.05_yaw_jitter_deg0_object_yaw_deg0"
+        "cube_paper_default_paper_default_lateral_jitter0.05"
     ]
     with pytest.raises(InvalidParameterError, match="model.placement"):
         context_from_config(_compose(["experiment=quickstart", "+model.placement.lateral=0.05"]), tmp_path)

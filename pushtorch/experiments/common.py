@@ -243,10 +243,10 @@ def _model_key(obj_name: str, friction: str, mass: str) -> str:
 
 
 def _placement_tag(placement: Placement) -> str:
-    """'' for the paper's placement, else a suffix naming it (cached pushes and models keep apart)."""
-    if placement == Placement():
-        return ""
-    return "_" + "_".join(f"{k}{v:g}" for k, v in asdict(placement).items())
+    """'' for the paper's placement, else a suffix naming what differs from it, e.g. ``_lateral_jitter0.05``
+    (cached pushes and models of each placement keep apart)."""
+    paper = asdict(Placement())
+    return "".join(f"_{k}{v:g}" for k, v in asdict(placement).items() if v != paper[k])
 
 
 def _training_folder(ctx: ExperimentContext, obj_name: str, friction: str, mass: str) -> Path:
