@@ -30,15 +30,20 @@ descriptors, up to that same constant — the paper's "descriptor distance is om
 Two evaluation paths give the same values: ``method="dense"`` (the reference, every query against every
 kernel with matmuls) and ``method="fast"`` (exact distances in fused, optionally compiled passes, pruned by
 the hard cut-offs to the leaf blocks of kernels that can reach a query; see the "Fast path" section).
+Inside :func:`straightforward_evaluation` the dense reference is evaluated the textbook way instead
+(``cdist`` and the quaternion dot for all queries at once, cut-offs, ``logsumexp``): the baseline the
+prediction benchmark measures its speed-up against, and an oracle for both paths.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 import os
 import shutil
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -61,6 +66,7 @@ __all__ = [
     "fused_function",
     "product_log_prob",
     "rotation_distance",
+    "straightforward_evaluation",
     "translation_distance",
 ]
 
@@ -367,6 +373,33 @@ def _augment_kernel(mu: Tensor, scale: Tensor) -> Tensor:
     """``scale · [−2 μ, |μ|², 1]``; ``scale`` broadcasts over ``mu``'s batch dims as ``(*B, 1, 1)``."""
     aug = torch.cat([-2.0 * mu, (mu * mu).sum(-1, keepdim=True), torch.ones_like(mu[..., :1])], -1)
     return aug * scale
+
+
+_STRAIGHTFORWARD = contextvars.ContextVar("pushtorch_straightforward_evaluation", default=False)
+
+
+@contextlib.contextmanager
+def straightforward_evaluation() -> Iterator[None]:
+    """Within this block, ``method="dense"`` log densities are evaluated the straightforward way.
+
+    Every query against every kernel in one block per density (no chunking, no expansion around the
+    kernel centre, no in-place passes): ``d_p`` from ``torch.cdist``, ``d_q`` from the quaternion dot
+    product, the cut-offs as masks, ``logsumexp`` over the kernels; a stacked density (e.g. the experts
+    of a product) is evaluated one element at a time on its own kernels, padding left out. The values
+    are those of the dense reference up to float rounding. This is the evaluation the prediction
+    benchmark's speed-up is measured against (``tools/bench_predict.py``) and an independent check of
+    the dense and fast paths; it is several times slower than the dense reference, so use it for
+    neither. Scoped to the current thread or task (a context variable), like ``torch.no_grad``.
+
+    Example:
+        >>> with straightforward_evaluation():
+        ...     prediction = predict(model, cloud, action, generator, method="dense")  # doctest: +SKIP
+    """
+    token = _STRAIGHTFORWARD.set(True)
+    try:
+        yield
+    finally:
+        _STRAIGHTFORWARD.reset(token)
 
 
 class PoseKDE:
@@ -803,6 +836,8 @@ class PoseKDE:
             if table is not None:
                 p, q, r = self._prepare_queries(pose, descriptors)
                 return self._fast_log_prob_descriptors(table, p, q, r)
+        if _STRAIGHTFORWARD.get():
+            return self._straightforward_log_prob(*self._prepare_queries(pose, descriptors))
         out = [
             _logsumexp_last(self._chunk_log_kernels(p, q, r, with_weights=True))
             for p, q, r in self._iter_chunks(pose, descriptors, chunk_size)
@@ -812,6 +847,39 @@ class PoseKDE:
             shape = torch.broadcast_shapes(p.shape[:-2], self.batch_shape) + (0,)
             return torch.empty(shape, dtype=self.dtype, device=self.device)
         return torch.cat(out, -1)
+
+    def _straightforward_log_prob(self, p: Tensor, q: Tensor, r: Tensor | None) -> Tensor:
+        """log_prob the textbook way (see :func:`straightforward_evaluation`): ``(*BB, M)``."""
+        batch = torch.broadcast_shapes(p.shape[:-2], self.batch_shape)
+        m, n = p.shape[-2], self.num_kernels
+        flat = batch.numel()
+        p = p.expand(*batch, m, 3).reshape(flat, m, 3)
+        q = q.expand(*batch, m, 4).reshape(flat, m, 4)
+        kernel_p = self._p.expand(*batch, n, 3).reshape(flat, n, 3)
+        kernel_q = self._q.expand(*batch, n, 4).reshape(flat, n, 4)
+        log_w = self._log_w.expand(*batch, n).reshape(flat, n)
+        beta = self._beta.expand(*batch, 3).reshape(flat, 3)
+        bw = self.bandwidth
+        delta_p, delta_q, delta_r = bw.delta
+        if r is not None:
+            inv_sqrt_sigma = torch.tensor(bw.sigma_r, dtype=torch.float64).rsqrt().to(self.device, self.dtype)
+            k = r.shape[-1]
+            r = (r * inv_sqrt_sigma).expand(*batch, m, k).reshape(flat, m, k)
+            kernel_r = (self._r * inv_sqrt_sigma).expand(*batch, n, k).reshape(flat, n, k)
+        out = []
+        for b in range(flat):
+            keep = log_w[b] > -math.inf  # padding kernels of a stacked density are not kernels
+            d_p = torch.cdist(p[b], kernel_p[b][keep]).square() * (beta[b, 0] / bw.sigma_p)
+            d_q = (1.0 - (q[b] @ kernel_q[b][keep].T).abs().clamp(max=1.0)) * (beta[b, 1] / bw.sigma_q)
+            inside = (d_p < delta_p) & (d_q < delta_q)
+            distance = d_p + d_q
+            if r is not None:
+                d_r = torch.cdist(r[b], kernel_r[b][keep]).square() * beta[b, 2]
+                inside &= d_r < delta_r
+                distance = distance + d_r
+            log_kernels = torch.where(inside, log_w[b][keep] - distance, -math.inf)
+            out.append(torch.logsumexp(log_kernels, -1))
+        return torch.stack(out).reshape(*batch, m) if out else p.new_empty(*batch, m)
 
     def _descriptor_table(self) -> tuple[Tensor, Tensor] | None:
         """Kernels as rows ``(8 + k, N)`` (p, q, log w relative to the largest, r) and that largest log w,

@@ -20,6 +20,7 @@ from pushtorch.kde import (
     descriptor_distance_unscaled,
     product_log_prob,
     rotation_distance,
+    straightforward_evaluation,
     translation_distance,
 )
 
@@ -240,6 +241,31 @@ def test_stack_pads_and_keeps_each_density():
     assert stacked.trial_rounds.tolist() == [[2, 0, 1], [0, 0, 1], [0, 0, 1]]
     with pytest.raises(InvalidParameterError):
         PoseKDE.stack([kdes[0], random_kde((), 4, g, torch.float64, descriptors=False)])
+
+
+@pytest.mark.parametrize("descriptors", [True, False])
+def test_straightforward_evaluation_is_the_dense_reference_written_plainly(descriptors):
+    """The benchmark's baseline evaluates the same density: a stacked, padded, widened one with query
+    batch dims that broadcast, against the pair-by-pair brute force."""
+    g = torch.Generator().manual_seed(16)
+    bw = KernelBandwidth(p_std=0.02, rot_std=0.4, r_std=(5.0, 2.0) if descriptors else None)
+    kdes = [random_kde((), n, g, torch.float64, descriptors, bw=bw).with_trial_rounds(TrialRounds(n % 2, 1, 0))
+            for n in (30, 11)]
+    stacked = PoseKDE.stack(kdes)  # the second element holds 19 padding kernels
+    pose, r = queries_near(kdes[0], 24, g)
+    queries = se3.Pose(pose.p.expand(3, 2, 24, 3), pose.q.expand(3, 2, 24, 4))
+    r = None if r is None else r.expand(3, 2, 24, 2)
+    with straightforward_evaluation():
+        got = stacked.log_prob(queries, r)
+        empty = stacked.log_prob(se3.Pose(pose.p[:0], pose.q[:0]), None if r is None else r[0, 0, :0])
+    expected = brute_force_log_prob(stacked, queries, r)
+    assert got.shape == (3, 2, 24) and empty.shape == (2, 0)
+    finite = torch.isfinite(expected)
+    assert finite[:, 0].float().mean() > 0.5  # not vacuous
+    assert torch.equal(finite, torch.isfinite(got))
+    torch.testing.assert_close(got[finite], expected[finite], rtol=1e-9, atol=1e-9)
+    # outside the block the dense reference is back, with the same values
+    torch.testing.assert_close(stacked.log_prob(queries, r), got, rtol=1e-9, atol=1e-9)
 
 
 def test_chunked_log_prob_equals_unchunked():
