@@ -15,19 +15,23 @@ by H_acc against pybullet run from that prediction's own robot start pose (as th
 fast path is compiled and warmed up on one extra condition first (compilation time reported apart), and
 the batched fast path (``predict_many(batch_size=…)``) is timed on all conditions at once.
 
-For scale, the line before the last times one annealing step evaluated the way the issue measured its
-34 s per prediction (eager ``cdist`` + ``exp``, every candidate against every motion kernel, nothing
-pruned or fused), which the dense reference's chunked matmul evaluation beats several times over.
+For scale, every ``--straightforward-every``-th condition is also predicted by the dense reference evaluated
+the straightforward way the issue sized its ~34 s baseline (``kde.straightforward_evaluation``: ``cdist``
+and the quaternion dot of every candidate against every kernel of each density, cut-offs, ``logsumexp``,
+at each of the 100 steps; nothing chunked, pruned or fused). It evaluates the same densities with the same
+annealing and seed as the dense reference, so their predictions agree up to float rounding (printed).
 
 The last line is exactly ``p50_s=<fast> ratio=<dense/fast> hacc_fast=<..> hacc_dense=<..>``: the median
-latency of one fast prediction from surface features, the ratio of the dense median to it, and the mean
-H_acc of each path.
+latency of one fast prediction from surface features, the ratio of the dense reference's median to it,
+and the mean H_acc of each path; the line before it gives the ratios to the straightforward evaluation.
 
-    .venv/bin/python tools/bench_predict.py [--conditions 160] [--threads 0] [--batch-size 32]
+    .venv/bin/python tools/bench_predict.py [--conditions 160] [--straightforward-every 10] [--threads 0]
 
-About 20 minutes with the default 160 conditions on 2 cores (the dense reference takes ~5.5 s each);
-single predictions' H_acc spreads ~0.1 from the annealing's randomness, so fewer conditions cannot
-tell the two paths' means apart. Set ``PUSHTORCH_COMPILE=0`` to measure the fast path uncompiled.
+20–35 minutes with the defaults on 2 cores (the dense reference takes 5.5–11.5 s per condition: latencies
+depend on the CPU, which is printed); single predictions' H_acc spreads ~0.1 from the annealing's
+randomness, so fewer conditions cannot tell the paths' means apart. Peak memory is read before the
+straightforward predictions (they hold whole query × kernel blocks, by design). Set ``PUSHTORCH_COMPILE=0``
+to measure the fast path uncompiled.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import platform
 import resource
 import statistics
 import time
@@ -45,7 +50,7 @@ import torch
 from pushtorch import metrics, se3
 from pushtorch.errors import RecordFormatError
 from pushtorch.features import compute_surface_features
-from pushtorch.kde import fast_path_compiled
+from pushtorch.kde import fast_path_compiled, straightforward_evaluation
 from pushtorch.models.library import PushModel, load_model, train_push_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
@@ -79,31 +84,22 @@ def paper_size_model(object_name: str, pushes: int, folder: Path) -> PushModel:
     return model
 
 
+def cpu_name() -> str:
+    """The CPU's model name (Linux), or what the platform module knows."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def hacc(obj, prediction, truth0: se3.Pose, action: torch.Tensor) -> float:
     """H_acc of a prediction against pybullet pushed from the prediction's own robot start pose."""
     outcome = simulate_pushes(obj, prediction.condition.robot_start, truth0, action, MASS, FRICTION)
     truth1 = se3.Pose(outcome.object_final.p[0].float(), outcome.object_final.q[0].float())
     return float(metrics.accuracy(prediction.final_pose, truth1, obj).hacc)
-
-
-def straightforward_step_seconds(n_candidates: int, n_kernels: int, p_std: float, rot_std: float) -> float:
-    """One annealing step evaluated the way the issue measured its 34 s (eager cdist + exp, nothing
-    pruned or fused): every candidate against every motion kernel, median of 3. For scale only; the dense
-    reference above is the comparison the ratio uses."""
-    g = torch.Generator().manual_seed(0)
-    x, mu = torch.randn(n_candidates, 3, generator=g), torch.randn(n_kernels, 3, generator=g)
-    q = torch.nn.functional.normalize(torch.randn(n_candidates, 4, generator=g), dim=-1)
-    mu_q = torch.nn.functional.normalize(torch.randn(n_kernels, 4, generator=g), dim=-1)
-    log_w = torch.randn(n_kernels, generator=g)
-    times = []
-    for _ in range(3):
-        started = time.perf_counter()
-        distance = torch.cdist(x, mu)
-        angle = 2 * torch.arccos((q @ mu_q.T).abs().clamp(max=1.0))
-        kernel = torch.exp(log_w - 0.5 * (distance / p_std) ** 2 - 0.5 * (angle / rot_std) ** 2)
-        kernel.sum(-1).log()
-        times.append(time.perf_counter() - started)
-    return statistics.median(times)
 
 
 def main() -> None:
@@ -112,6 +108,8 @@ def main() -> None:
     parser.add_argument("--pushes", type=int, default=500, help="training pushes per action (default 500)")
     parser.add_argument("--conditions", type=int, default=160,
                         help="test conditions (default 160: H_acc varies ~0.1 between single predictions)")
+    parser.add_argument("--straightforward-every", type=int, default=10,
+                        help="also time the straightforward evaluation on every k-th condition (default 10)")
     parser.add_argument("--batch-size", type=int, default=32,
                         help="conditions per batched fast call (default 32)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
@@ -129,7 +127,8 @@ def main() -> None:
           f"{len(model.motions[0].manipulator)} manipulator kernels per action; settings: "
           f"{s.query_kernels} query kernels, {s.anneal_candidates} candidates x {s.anneal_steps} steps, "
           f"{s.environment_contacts} environment contacts")
-    print(f"torch {torch.__version__} threads={torch.get_num_threads()} compiled={fast_path_compiled()} "
+    print(f"cpu {cpu_name()!r} ({os.cpu_count()} cores) torch {torch.__version__} threads={torch.get_num_threads()} "
+          f"compiled={fast_path_compiled()} "
           f"load_average={os.getloadavg()[0]:.2f}")
 
     g = torch.Generator().manual_seed(args.seed)
@@ -155,6 +154,7 @@ def main() -> None:
 
     seconds = {"dense": [], "fast": []}
     scores = {"dense": [], "fast": []}
+    dense_final = []
     for i, (truth0, features, action) in enumerate(conditions):
         line = [f"condition {i:2d} action {action.tolist()}"]
         for method in ("dense", "fast"):
@@ -163,6 +163,8 @@ def main() -> None:
             seconds[method].append(time.perf_counter() - started)
             scores[method].append(hacc(obj, prediction, truth0, action))
             line.append(f"{method} {seconds[method][-1]:.3f}s hacc {scores[method][-1]:.3f}")
+            if method == "dense":
+                dense_final.append(prediction.final_pose)
         print(" | ".join(line), flush=True)
 
     started = time.perf_counter()
@@ -182,13 +184,31 @@ def main() -> None:
           f"± {spread:.4f} (standard error; each path's own annealing noise dominates it)")
     print(f"fast batched ({args.batch_size} conditions per call): {batched_seconds:.3f} s per condition, "
           f"mean H_acc {statistics.fmean(batched_scores):.4f}")
-    n_kernels = s.environment_contacts * s.environment_kernels + s.manipulator_kernels
-    step = straightforward_step_seconds(s.anneal_candidates, n_kernels, s.motion_p_std, s.motion_rot_std)
-    print(f"for scale, one straightforward step (eager cdist + exp, {s.anneal_candidates} x {n_kernels}): "
-          f"{step:.3f} s, x {s.anneal_steps} steps = {step * s.anneal_steps:.1f} s per prediction, "
-          f"{step * s.anneal_steps / p50['fast']:.0f}x the fast median")
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kB on Linux
-    print(f"load_average={os.getloadavg()[0]:.2f} peak_rss={peak_mb:.0f} MB (whole run, both paths)")
+    print(f"load_average={os.getloadavg()[0]:.2f} peak_rss={peak_mb:.0f} MB (whole run so far: both paths)")
+
+    subset = range(0, len(conditions), max(1, args.straightforward_every))
+    plain_seconds, plain_scores, offsets_mm = [], [], []
+    for i in subset:
+        truth0, features, action = conditions[i]
+        started = time.perf_counter()
+        with straightforward_evaluation():
+            prediction = predict(model, features, action, torch.Generator().manual_seed(i), method="dense")
+        plain_seconds.append(time.perf_counter() - started)
+        plain_scores.append(hacc(obj, prediction, truth0, action))
+        offsets_mm.append(1000 * float((prediction.final_pose.p - dense_final[i].p).norm()))
+        print(f"condition {i:2d} straightforward dense {plain_seconds[-1]:.1f}s hacc {plain_scores[-1]:.3f} "
+              f"(dense {seconds['dense'][i]:.2f}s hacc {scores['dense'][i]:.3f}, "
+              f"final poses {offsets_mm[-1]:.2f} mm apart)", flush=True)
+    p50_plain = statistics.median(plain_seconds)
+    same = sum(offset < 1.0 for offset in offsets_mm)
+    print(f"straightforward dense (cdist + exp, every query against every kernel, {s.anneal_steps} steps) on "
+          f"{len(plain_seconds)} of the conditions: median {p50_plain:.2f} s, mean H_acc "
+          f"{statistics.fmean(plain_scores):.4f} (the dense reference on the same: "
+          f"{statistics.fmean(scores['dense'][i] for i in subset):.4f}; final poses within 1 mm on {same} of "
+          f"{len(offsets_mm)}, median {statistics.median(offsets_mm):.3f} mm apart)")
+    print(f"ratios: straightforward / fast {p50_plain / p50['fast']:.1f}, straightforward / dense "
+          f"{p50_plain / p50['dense']:.2f}")
     print(f"p50_s={p50['fast']:.4f} ratio={p50['dense'] / p50['fast']:.1f} "
           f"hacc_fast={mean['fast']:.4f} hacc_dense={mean['dense']:.4f}")
 
