@@ -32,7 +32,7 @@ kernel with matmuls) and ``method="fast"`` (exact distances in fused, optionally
 the hard cut-offs to the leaf blocks of kernels that can reach a query; see the "Fast path" section).
 Inside :func:`straightforward_evaluation` the dense reference is evaluated the textbook way instead
 (``cdist`` and the quaternion dot for all queries at once, cut-offs, ``logsumexp``): the baseline the
-prediction benchmark measures its speed-up against, and an oracle for both paths.
+prediction benchmark times for scale, and an oracle for both paths.
 """
 
 from __future__ import annotations
@@ -386,10 +386,11 @@ def straightforward_evaluation() -> Iterator[None]:
     kernel centre, no in-place passes): ``d_p`` from ``torch.cdist``, ``d_q`` from the quaternion dot
     product, the cut-offs as masks, ``logsumexp`` over the kernels; a stacked density (e.g. the experts
     of a product) is evaluated one element at a time on its own kernels, padding left out. The values
-    are those of the dense reference up to float rounding. This is the evaluation the prediction
-    benchmark's speed-up is measured against (``tools/bench_predict.py``) and an independent check of
-    the dense and fast paths; it is several times slower than the dense reference, so use it for
-    neither. Scoped to the current thread or task (a context variable), like ``torch.no_grad``.
+    are those of the dense reference up to float rounding. It is the baseline issue 6 sized (timed by
+    ``tools/bench_predict.py`` beside the dense reference) and an independent check of the dense and
+    fast paths. Memory is a whole ``(queries, kernels)`` block per density, not bounded by chunks, so
+    the library itself never evaluates this way. Scoped to the current thread or task (a context
+    variable), like ``torch.no_grad``.
 
     Example:
         >>> with straightforward_evaluation():
