@@ -25,7 +25,7 @@ The last line is exactly ``p50_s=<fast> ratio=<dense/fast> hacc_fast=<..> hacc_d
 latency of one fast prediction from surface features, the ratio of the dense reference's median to it,
 and the mean H_acc of each path; the line before it gives the ratios to the straightforward evaluation.
 
-    .venv/bin/python tools/bench_predict.py [--conditions 160] [--straightforward-every 10] [--threads 0]
+    .venv/bin/python tools/bench_predict.py [--conditions 160] [--straightforward-every 10] [--batch-size 32]
 
 20–35 minutes with the defaults on 2 cores (the dense reference takes 5.5–11.5 s per condition: latencies
 depend on the CPU, which is printed); single predictions' H_acc spreads ~0.1 from the annealing's
