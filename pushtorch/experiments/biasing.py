@@ -47,6 +47,7 @@ from pushtorch.experiments.common import (
     train_model,
     training_records,
 )
+from pushtorch.experiments.report import sample_entry
 from pushtorch.objects import load_object
 
 __all__ = ["prior_label", "run", "run_part"]
@@ -93,7 +94,10 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
 
     Returns:
         Four records (pushtorch and the three baselines) per object, model and condition; extras
-        ``{"training_scatter": {name: {training object: {prior label: [[dx, dy], ...]}}}}``.
+        ``{"training_scatter": {name: {training object: {prior label: [[dx, dy], ...]}}}}``, the action
+        index of each of those pushes (``training_actions``, same layout), the thrown pushes, and each
+        record's per-comparison H_acc for the figures' intervals (``hacc_samples``, see
+        :func:`pushtorch.experiments.report.sample_entry`).
     """
     part, objects, training_of, training, model_priors, conditions = _plan(cfg, part, model_cfg)
     name = part.get("name", "biasing")
@@ -105,13 +109,16 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     models = {(t, f, m): train_model(ctx, load_object(t), f, m)
               for t in sorted(needed) for f, m in model_priors}
     scatter: dict[str, dict[str, list]] = {}
+    scatter_actions: dict[str, dict[str, list]] = {}  # the figures draw one row of panels per action
     for t in sorted(needed):
         for f, m in model_priors:
             records = training_records(ctx, load_object(t), f, m, progress=False)  # cached by train_model
             motion = records.object_final.p[:, :2] - records.object_initial.p[:, :2]
             scatter.setdefault(t, {})[prior_label(bias, f, m)] = motion.tolist()
+            scatter_actions.setdefault(t, {})[prior_label(bias, f, m)] = records.action_index.tolist()
     records: list[dict] = []
     thrown: list[dict] = []
+    hacc_samples: list[dict] = []
     total = len(objects) * len(model_priors) * int(part["test_conditions"]) * int(ctx.actions.shape[0])
     bar = progress_bar(ctx, total, f"{name}: predictions")
     for obj in objects:
@@ -141,11 +148,13 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
                 for method, estimate in methods:
                     acc = compare(estimate, truth.take(c), obj)
                     records.append(summarise("prediction", obj.name, method, acc, model_name, condition))
+                    hacc_samples.append(sample_entry(records[-1], acc.hacc.reshape(-1, samples)))
             if examples:
                 label = entity_label(name, obj.name, model_name)
                 log_examples(ctx, label, obj, examples, predictions, truth.take(0))
     bar.close()
-    return records, {"training_scatter": {name: scatter}, "thrown": thrown}
+    return records, {"training_scatter": {name: scatter}, "training_actions": {name: scatter_actions},
+                     "thrown": thrown, "hacc_samples": hacc_samples}
 
 
 def run(cfg, out_dir: Path) -> dict:

@@ -38,6 +38,7 @@ from pushtorch.experiments.common import (
     summarise,
     train_model,
 )
+from pushtorch.experiments.report import sample_entry
 from pushtorch.objects import load_object
 
 __all__ = ["METHODS", "run", "run_part"]
@@ -88,6 +89,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     samples = int(part["truth_samples"])
     records: list[dict] = []
     thrown: list[dict] = []
+    hacc_samples: list[dict] = []  # per-comparison H_acc of each record, for the figures' intervals
     total = len(objects) * len(methods) * int(part["test_conditions"]) * int(ctx.actions.shape[0])
     bar = progress_bar(ctx, total, f"{name}: predictions")
     for obj_name in objects:
@@ -111,13 +113,14 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             rate = float((predictions.selected == congruent).double().mean())
             acc = compare(predictions.final, truth.take(0), obj)
             records.append(summarise("selection", obj_name, method, acc, selection_rate=rate))
+            hacc_samples.append(sample_entry(records[-1], acc.hacc.reshape(-1, samples)))
             thrown.append({"object": obj_name, "method": method, "model": None, "condition": None,
                            "thrown": int(broken.sum()), "pushes": broken.numel()})
             if examples:
                 label = entity_label(name, obj_name, method)
                 log_examples(ctx, label, obj, examples, predictions, truth.take(0))
     bar.close()
-    return records, {"thrown": thrown}
+    return records, {"thrown": thrown, "hacc_samples": hacc_samples}
 
 
 def run(cfg, out_dir: Path) -> dict:

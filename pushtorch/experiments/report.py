@@ -10,22 +10,43 @@ it gives them (its figures carry no values; its text gives the linear errors bel
 ``task, object, method, model, condition, n, hacc_mean, hacc_std, linear_cm, angular_deg`` (and
 ``selection_rate`` for the selection task), so ``pandas.DataFrame(json.load(f)["records"])`` is a tidy
 table. ``hacc_std`` is the population standard deviation over the group's ``n`` comparisons.
+
+``figure_data.npz`` keeps what the figures draw beyond the records (per-sample H_acc, training pushes), so
+``tools/redraw_figures.py <run dir>`` redraws a run's figures from its outputs alone. The figures' rules
+(one colour per method and per prior, intervals that cannot go below zero, when the axis is logarithmic,
+n on every figure) are in the figures section below.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import textwrap
+import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
+from statistics import NormalDist
 from typing import Any
 
+import numpy as np
+
 __all__ = [
+    "FIGURE_DATA",
+    "LOG_AXIS_RATIO",
+    "METHOD_COLOURS",
     "PAPER_LINEAR_CM",
     "PAPER_POSE_LINEAR_CM",
+    "PRIOR_COLOURS",
     "acceptance_checks",
+    "colour_of",
     "make_figures",
+    "mean_interval",
     "pool",
+    "read_figure_data",
+    "sample_entry",
+    "summary_interval",
+    "wants_log_axis",
+    "write_figure_data",
     "write_outputs",
     "write_report",
     "write_results",
@@ -39,7 +60,6 @@ PAPER_LINEAR_CM = {
 #: The paper's mean linear pose errors (cm) over the cube, cylinder and modified cube (§Pose Estimation).
 PAPER_POSE_LINEAR_CM = {"position_model": 1.41, "centroid": 7.06}
 
-_PRIOR_COLOURS = {"general": "#2ca02c", "low": "#1f77b4", "medium": "#ff7f0e", "high": "#d62728"}
 _METHOD_ORDER = ("pushtorch", "no_motion", "mean_motion", "nominal_physics")
 _SELECTION_ORDER = ("congruent", "incongruent", "adaptive")
 _POSE_ORDER = ("position_model", "centroid")
@@ -130,31 +150,407 @@ def write_results(out_dir: Path, experiment: str, config: Mapping[str, Any], wal
 
 
 # --- figures -------------------------------------------------------------------------------------------
+#
+# Every figure follows the same rules, so a reader can trust it at a glance: one colour per method and per
+# prior across all figures (METHOD_COLOURS, PRIOR_COLOURS), whiskers that are 95 % intervals of the mean and
+# cannot go below zero (mean_interval, summary_interval), a log axis only where the values span decades
+# (wants_log_axis), legends outside the data, and a caption line under each figure with n and how the
+# whiskers were computed.
+
+#: One colour per method, the same in every figure. Hues away from the priors' (tab10's purple, brown,
+#: pink and cyan, then shades of tab20b/c), so no colour means a method in one figure and a prior in another.
+METHOD_COLOURS: dict[str, str] = {
+    "pushtorch": "#9467bd",
+    "no_motion": "#8c564b",
+    "mean_motion": "#17becf",
+    "nominal_physics": "#e377c2",
+    "nearest_push": "#393b79",
+    "physics_from_cloud": "#9edae5",
+    "oracle_physics": "#7b4173",
+    "online": "#c49c94",
+    "general": "#bd9e39",
+    "congruent": "#5254a3",
+    "incongruent": "#e7ba52",
+    "adaptive": "#ce6dbd",
+    "position_model": "#6b6ecf",
+    "centroid": "#8c6d31",
+}
+#: One colour per training prior, the same in every figure. The paper's figures draw the general
+#: (unbiased) models in green; low, medium and high keep the colours of the committed paper training
+#: figures (docs/results/paper), which cannot be redrawn (their training pushes are not committed).
+PRIOR_COLOURS: dict[str, str] = {
+    "general": "#2ca02c",
+    "low": "#1f77b4",
+    "medium": "#ff7f0e",
+    "high": "#d62728",
+    "paper_default": "#7f7f7f",
+    "selection": "#bcbd22",
+}
+# Colours for names in neither map, one palette per kind, none in the maps above: an unknown method still
+# never takes a prior's colour (or a known method's).
+_SPARE_METHOD_COLOURS = ("#76b7b2", "#edc948", "#ff9da7", "#b07aa1", "#9c755f", "#843c39", "#de9ed6",
+                         "#cedb9c")
+_SPARE_PRIOR_COLOURS = ("#4e79a7", "#f28e2b", "#e15759", "#59a14f", "#aec7e8", "#ffbb78")
+
+#: A figure gets a log y axis when its positive values span more than this ratio (see wants_log_axis).
+LOG_AXIS_RATIO = 20.0
+#: Bootstrap resamples behind every interval drawn from per-sample values.
+BOOTSTRAP_RESAMPLES = 2000
+#: The run-directory file holding the per-sample values the figures draw (see write_figure_data).
+FIGURE_DATA = "figure_data.npz"
+
+_SAMPLE_KEYS = ("task", "object", "method", "model", "condition")
+_WHISKER_COLOUR = "#222222"
+_CAPTION_COLOUR = "#444444"
 
 
-def _bars(ax, groups: list[str], series: list[str], stats: dict[tuple[str, str], dict], colours=None) -> None:
-    """Grouped bars: x = groups, one bar per series, height H_acc mean, error bar its std."""
+def colour_of(name: str | None, kind: str = "method") -> str:
+    """The colour of a method (``kind="method"``) or of a training prior (``kind="prior"``).
+
+    A prior may be given as its results label (``"friction:low"`` is ``low``). A name in neither map gets
+    a colour from a spare palette of its kind, picked by the CRC-32 of the name: the same in every run and
+    on every machine (Python's own ``hash`` of a string changes between runs).
+
+    Raises:
+        ValueError: ``kind`` is neither ``"method"`` nor ``"prior"``.
+    """
+    if kind == "method":
+        table, spare, key = METHOD_COLOURS, _SPARE_METHOD_COLOURS, name or ""
+    elif kind == "prior":
+        table, spare, key = PRIOR_COLOURS, _SPARE_PRIOR_COLOURS, _prior_name(name or "")
+    else:
+        raise ValueError(f"colour kind must be 'method' or 'prior', not {kind!r}")
+    if key in table:
+        return table[key]
+    return spare[zlib.crc32(key.encode()) % len(spare)]
+
+
+def _cluster_sums(values: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Per-cluster sums and sizes: a flat sequence is one cluster per value, a sequence of sequences (or a
+    2-D array) one cluster per row; empty clusters are dropped."""
+    if isinstance(values, np.ndarray) and values.ndim == 2:
+        rows = values.astype(float)
+        return rows.sum(axis=1), np.full(rows.shape[0], float(rows.shape[1]))
+    items = list(values)
+    if all(np.ndim(v) == 0 for v in items):
+        flat = np.asarray(items, dtype=float).reshape(-1)
+        return flat, np.ones_like(flat)
+    rows = [np.asarray(v, dtype=float).reshape(-1) for v in items]
+    rows = [r for r in rows if r.size]
+    return np.array([r.sum() for r in rows]), np.array([float(r.size) for r in rows])
+
+
+def mean_interval(values: Any, confidence: float = 0.95, resamples: int = BOOTSTRAP_RESAMPLES,
+                  seed: int = 0) -> tuple[float, float, float]:
+    """The mean of ``values`` and a percentile-bootstrap confidence interval of it: ``(mean, low, high)``.
+
+    ``values`` is either flat (each value resampled on its own) or a sequence of clusters (rows), each
+    resampled whole: a prediction's comparisons with its ``truth_samples`` ground truths share the one
+    prediction, so they are not independent, and resampling them one by one would understate the
+    uncertainty. Every bootstrap mean is a mean of the data, so the interval lies within the data's range
+    (never below zero for non-negative errors); it is widened to contain the mean if it does not (possible
+    only for extremely skewed data). Seeded: the same values give the same interval. NaNs for no values.
+    """
+    sums, counts = _cluster_sums(values)
+    if counts.sum() == 0:
+        return math.nan, math.nan, math.nan
+    mean = float(sums.sum() / counts.sum())
+    rng = np.random.default_rng(seed)
+    boot = np.empty(resamples)
+    chunk = max(1, 2_000_000 // len(sums))  # bounded memory for the paper's 10,000-comparison groups
+    for start in range(0, resamples, chunk):
+        picks = rng.integers(0, len(sums), size=(min(chunk, resamples - start), len(sums)))
+        boot[start:start + len(picks)] = sums[picks].sum(axis=1) / counts[picks].sum(axis=1)
+    low, high = np.quantile(boot, [(1 - confidence) / 2, (1 + confidence) / 2])
+    return mean, min(float(low), mean), max(float(high), mean)
+
+
+def summary_interval(n: int, mean: float, std: float, confidence: float = 0.95) -> tuple[float, float, float]:
+    """A confidence interval of a non-negative mean from its summary alone: ``(mean, low, high)``.
+
+    For runs whose per-sample values were not saved (a results.json without figure_data.npz, such as the
+    committed paper runs). The normal approximation on the log scale (delta method):
+    ``mean · exp(±z · se / mean)`` with ``se = std / sqrt(n - 1)`` (``std`` is the population std). It
+    is positive, asymmetric like the errors' distribution, and agrees with ``mean ± z · se`` for large n.
+    It treats the n comparisons as independent, so it is narrower than the bootstrap over predictions.
+    A single value (n = 1, e.g. the centroid) or no spread gives the point itself.
+    """
+    if n <= 0 or not math.isfinite(mean):
+        return math.nan, math.nan, math.nan
+    if n == 1 or std <= 0 or mean <= 0:
+        return mean, mean, mean
+    z = NormalDist().inv_cdf((1 + confidence) / 2)
+    # se / mean is at most 1 for non-negative values (all of the sum in one of n values); the cap keeps
+    # summaries no non-negative sample could give (hand-made ones) from overflowing
+    spread = math.exp(z * min(std / math.sqrt(n - 1) / mean, 1.0))
+    return mean, mean / spread, mean * spread
+
+
+def wants_log_axis(values: Iterable[float], ratio: float = LOG_AXIS_RATIO) -> bool:
+    """Whether a figure's y axis should be logarithmic: its positive values span more than ``ratio``.
+
+    The rule, per figure (all panels of a figure share it): take every mean and every upper interval end
+    the figure draws; if the largest positive one is more than ``ratio`` (20) times the smallest, the
+    values span more than 1.3 decades and a linear axis would flatten the small means to nothing beside
+    the large ones (model selection: 0.06 against 180), so the axis is logarithmic and the marks are dots
+    (a bar on a log axis starts at an arbitrary floor, so its length means nothing). Otherwise the axis is
+    linear from zero and the marks are bars, whose lengths then compare as ratios. Lower interval ends do
+    not count: one near zero (few samples) is drawn as well on a linear axis as on a log one.
+    """
+    positive = [float(v) for v in values if math.isfinite(v) and v > 0]
+    return len(positive) >= 2 and max(positive) / min(positive) > ratio
+
+
+def sample_entry(record: Mapping[str, Any], hacc: Any) -> dict[str, Any]:
+    """One record's per-sample H_acc for the figures' intervals (an item of extras ``hacc_samples``).
+
+    Args:
+        record: the results record the samples belong to (its task, object, method, model, condition).
+        hacc: ``(predictions, truth samples)`` H_acc of each comparison (a tensor, array or nested list):
+            one row per prediction, so the bootstrap resamples whole predictions.
+    """
+    rows = hacc.tolist() if hasattr(hacc, "tolist") else [list(r) for r in hacc]
+    return {**{k: record.get(k) for k in _SAMPLE_KEYS}, "hacc": rows}
+
+
+def _record_key(record: Mapping[str, Any]) -> tuple:
+    return tuple(record.get(k) for k in _SAMPLE_KEYS)
+
+
+def _samples_by_record(records: Sequence[Mapping[str, Any]],
+                       extras: Mapping[str, Any]) -> dict[tuple, list]:
+    """Per-sample H_acc rows by record key, from what the run kept: extras ``hacc_samples`` (selection and
+    prediction), ``pose_hacc`` (the position model's runs) and any n = 1 record (its value is its sample).
+    A record whose samples do not number its n gets none (stale data): its figure falls back to the
+    summary interval rather than drawing an interval of other numbers."""
+    found: dict[tuple, list] = {}
+    for entry in extras.get("hacc_samples") or []:
+        found[_record_key(entry)] = [row if isinstance(row, list) else [row] for row in entry["hacc"]]
+    for obj, values in (extras.get("pose_hacc") or {}).items():
+        found[("pose", obj, "position_model", None, None)] = [[float(v)] for v in values]
+    by_record = {}
+    for r in records:
+        key = _record_key(r)
+        if key in found and sum(len(row) for row in found[key]) == r["n"]:
+            by_record[key] = found[key]
+        elif r["n"] == 1:
+            by_record[key] = [[r["hacc_mean"]]]
+    return by_record
+
+
+def _group_stat(records: Sequence[Mapping[str, Any]], samples: Mapping[tuple, list],
+                **keys: Any) -> dict[str, Any] | None:
+    """The mean H_acc of the records matching ``keys`` pooled, its 95 % interval and n (None: no data).
+
+    The interval is the bootstrap one when every pooled record's samples were kept, else the summary one;
+    ``"interval"`` says which."""
+    chosen = _select(records, **keys)
+    pooled = pool(chosen)
+    if pooled["n"] == 0:
+        return None
+    clusters = None  # how many whole predictions (or estimates) the bootstrap resampled
+    if pooled["n"] == 1:  # one value (the centroid's one estimate): no interval to draw or describe
+        mean = low = high = pooled["hacc_mean"]
+        kind = "single"
+    elif all(_record_key(r) in samples for r in chosen):
+        rows = [row for r in chosen for row in samples[_record_key(r)]]
+        mean, low, high = mean_interval(rows)
+        kind = "bootstrap"
+        clusters = len(rows)
+    else:
+        mean, low, high = summary_interval(pooled["n"], pooled["hacc_mean"], pooled["hacc_std"])
+        kind = "summary"
+    if not math.isfinite(mean):
+        return None
+    return {"n": pooled["n"], "mean": mean, "low": low, "high": high, "interval": kind, "clusters": clusters}
+
+
+def _stat_values(stats: Iterable[Mapping[str, Any] | None], lows: bool = True) -> list[float]:
+    """The values a figure draws: means and interval ends (``lows=False``: without the lower ends, which
+    wants_log_axis leaves out)."""
+    keys = ("mean", "low", "high") if lows else ("mean", "high")
+    return [st[k] for st in stats if st for k in keys]
+
+
+def _draw_marks(ax, groups: Sequence[str], series: Sequence[str], stats: Mapping[tuple[str, str], Any],
+                kind: str, log: bool) -> None:
+    """x = groups, one mark per series in its colour: a bar from zero with black whiskers on a linear axis,
+    a dot with whiskers in its colour on a log axis (see wants_log_axis)."""
     width = 0.8 / max(1, len(series))
-    for k, s in enumerate(series):
-        xs, heights, errors = [], [], []
-        for g, group in enumerate(groups):
-            st = stats.get((group, s))
-            if st is None or st["n"] == 0:
-                continue
-            xs.append(g - 0.4 + width * (k + 0.5))
-            heights.append(st["hacc_mean"])
-            errors.append(st["hacc_std"])
-        colour = (colours or {}).get(_prior_name(s)) if colours else None
-        ax.bar(xs, heights, width, yerr=errors, capsize=2, label=s, color=colour)
+    for k, name in enumerate(series):
+        marks = [(g - 0.4 + width * (k + 0.5), st) for g, group in enumerate(groups)
+                 if (st := stats.get((group, name))) is not None]
+        if not marks:
+            continue
+        xs = [x for x, _ in marks]
+        means = np.array([st["mean"] for _, st in marks])
+        whiskers = np.array([[st["mean"] - st["low"] for _, st in marks],
+                             [st["high"] - st["mean"] for _, st in marks]])
+        colour = colour_of(name, kind)
+        if log:
+            ax.errorbar(xs, means, yerr=whiskers, fmt="o", ms=6, color=colour, ecolor=colour, elinewidth=1.5,
+                        capsize=3, label=name)
+        else:
+            ax.bar(xs, means, width * 0.92, color=colour, label=name)
+            ax.errorbar(xs, means, yerr=whiskers, fmt="none", ecolor=_WHISKER_COLOUR, elinewidth=1, capsize=2)
     ax.set_xticks(range(len(groups)))
-    ax.set_xticklabels(groups, rotation=0, fontsize=8)
-    ax.set_ylabel("H_acc (mean ± std)")
-    ax.set_ylim(bottom=0)
+    ax.set_xticklabels(groups, fontsize=8)
+    ax.set_xlim(-0.5, len(groups) - 0.5)
+    ax.grid(axis="y", which="major", alpha=0.3)
+    ax.set_axisbelow(True)
+
+
+def _set_y_scale(ax, log: bool, values: Sequence[float]) -> None:
+    """Log: limits around the positive values (an interval end at zero runs to the floor); linear: from 0."""
+    import matplotlib.ticker as ticker
+
+    if not log:
+        ax.set_ylim(bottom=0)
+        return
+    positive = [v for v in values if math.isfinite(v) and v > 0]
+    ax.set_yscale("log")
+    if positive:
+        low, high = min(positive) / 1.6, max(positive) * 1.6
+        ax.set_ylim(low, high)
+        # ticks at 1, 2, 5 × 10^k over short spans (a lone 0.1 and 1 are hard to read between)
+        subs = (1.0, 2.0, 5.0) if math.log10(high / low) <= 2.5 else (1.0,)
+        ax.yaxis.set_major_locator(ticker.LogLocator(base=10, subs=subs))
+        ax.yaxis.set_minor_formatter(ticker.NullFormatter())
+    # plain numbers (0.1, 1, 10) rather than powers of ten: read at a glance
+    ax.yaxis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+
+
+def _caption(stats: Iterable[Mapping[str, Any] | None], unit: str, cluster: str, log: bool,
+             series_of: Mapping[int, str] | None = None) -> str:
+    """The line under a figure: n per bar (or dot) and how the whiskers were computed."""
+    stats = [st for st in stats if st]
+    mark = "dot" if log else "bar"
+    ns = sorted({st["n"] for st in stats})
+    if len(ns) == 1:
+        n_text = f"n = {ns[0]:,} {unit} per {mark}"
+        clusters = {st["clusters"] for st in stats}
+        if len(clusters) == 1 and None not in clusters and clusters != {ns[0]}:
+            # the bootstrap's unit: a few predictions behind many comparisons make a rough interval
+            n_text = f"n = {ns[0]:,} {unit} ({clusters.pop():,} {cluster}) per {mark}"
+    elif series_of:
+        n_text = f"n per {mark}: " + ", ".join(f"{name} {n:,}" for n, name in series_of.items())
+    else:
+        n_text = f"n = {ns[0]:,}–{ns[-1]:,} {unit} per {mark}"
+    kinds = {st["interval"] for st in stats} - {"single"}
+    bootstrap = f"95 % bootstrap CI of the mean ({BOOTSTRAP_RESAMPLES} resamples of whole {cluster})"
+    summary = ("95 % CI of the mean from n, mean and std (log-scale normal approximation treating the "
+               f"{unit} as independent: the run kept no per-sample values)")
+    if kinds == {"bootstrap"}:
+        whiskers = bootstrap
+    elif kinds == {"summary"}:
+        whiskers = summary
+    else:
+        whiskers = f"{bootstrap} where per-sample values were kept, else {summary}"
+    text = f"{n_text}. Whiskers: {whiskers}." if kinds else f"{n_text}."
+    if any(st["interval"] == "single" for st in stats):
+        text += " n = 1: a single value, no interval."
+    return text + " Each group's std is in report.md."
+
+
+def _n_by_series(series: Sequence[str], stats: Mapping[tuple[str, str], Any]) -> dict[int, str] | None:
+    """``{n: series}`` when each series has one n of its own (pose: position model 100, centroid 1)."""
+    by_series = {}
+    for name in series:
+        ns = {st["n"] for (_, s), st in stats.items() if s == name and st}
+        if len(ns) != 1:
+            return None
+        by_series[name] = ns.pop()
+    if len(set(by_series.values())) != len(by_series):
+        return None
+    return {n: name for name, n in by_series.items()}
+
+
+def _put_caption(fig, text: str, width_in: float) -> None:
+    fig.supxlabel("\n".join(textwrap.wrap(text, max(60, int(width_in * 15)))), fontsize=7,
+                  color=_CAPTION_COLOUR)
+
+
+def _legend(fig, axes, title: str | None = None) -> None:
+    """One legend for the figure, outside the axes on the right (constrained layout makes room for it)."""
+    handles, labels = {}, []
+    for ax in axes:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            if label not in handles:
+                handles[label] = handle
+                labels.append(label)
+    if labels:
+        fig.legend([handles[label] for label in labels], labels, loc="outside right upper", fontsize=8,
+                   title=title, title_fontsize=8, frameon=False)
+
+
+def _view(points: np.ndarray) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Square x and y limits around the central 99 % of ``points`` (N, 2), padded: a thrown push metres
+    away must not shrink the cluster of the others to a dot."""
+    low, high = np.quantile(points, [0.005, 0.995], axis=0)
+    centre = (low + high) / 2
+    half = max(float((high - low).max()) / 2 * 1.25, 0.002)  # at least ±2 mm: a perfectly tight cluster
+    return (centre[0] - half, centre[0] + half), (centre[1] - half, centre[1] + half)
+
+
+def _training_figure(plt, part_name: str, obj: str, by_prior: Mapping[str, Any],
+                     actions_by_prior: Mapping[str, Any]):
+    """Small multiples of the training pushes' final displacements: one row per action (a push direction
+    puts its pushes in a cluster of its own, centimetres across and decimetres from the others), one
+    column per prior, shared limits in a row. Each panel draws its prior over every prior's pushes of
+    that action in grey, so each distribution and where it overlaps the others both show."""
+    labels = [label for label, points in by_prior.items() if len(points)]
+    points = {label: np.asarray(by_prior[label], dtype=float).reshape(-1, 2) for label in labels}
+    actions = {}
+    for label in labels:
+        given = np.asarray(actions_by_prior.get(label, ()), dtype=int).reshape(-1)
+        # no (or mismatched) action indices, e.g. data saved before they were kept: one row for all
+        actions[label] = given if len(given) == len(points[label]) else np.zeros(len(points[label]), int)
+    action_ids = sorted({int(a) for label in labels for a in actions[label]})
+    rows, cols = len(action_ids), len(labels)
+    fig, axes = plt.subplots(rows, cols, figsize=(2.2 * cols + 0.4, 2.2 * rows + 1.0), squeeze=False,
+                             layout="constrained")
+    outside = 0
+    for row, action in enumerate(action_ids):
+        every = np.concatenate([points[label][actions[label] == action] for label in labels])
+        (x0, x1), (y0, y1) = _view(every)
+        for col, label in enumerate(labels):
+            ax = axes[row, col]
+            mine = points[label][actions[label] == action]
+            colour = colour_of(label, "prior")
+            ax.scatter(every[:, 0], every[:, 1], s=3, color="#cccccc", linewidths=0)
+            ax.scatter(mine[:, 0], mine[:, 1], s=5, color=colour, alpha=0.7, linewidths=0)
+            outside += int(((mine[:, 0] < x0) | (mine[:, 0] > x1) | (mine[:, 1] < y0) | (mine[:, 1] > y1)).sum())
+            ax.set_xlim(x0, x1)
+            ax.set_ylim(y0, y1)
+            ax.set_aspect("equal", adjustable="box")
+            ax.tick_params(labelsize=7)
+            ax.locator_params(nbins=4)
+            if row == 0:
+                ax.set_title(label, color=colour, fontsize=9, fontweight="bold")
+            if col == 0:
+                ax.set_ylabel(f"action {action}\nΔy (m)", fontsize=8)
+            else:
+                ax.tick_params(labelleft=False)
+            if row == rows - 1:
+                ax.set_xlabel("Δx (m)", fontsize=8)
+    fig.suptitle(f"{part_name}: {obj} training pushes, final position relative to the start", fontsize=10)
+    counts = sorted({len(points[label]) for label in labels})
+    per_prior = f"{counts[0]}" if len(counts) == 1 else f"{counts[0]}–{counts[-1]}"
+    text = (f"n = {per_prior} training pushes per prior, over {rows} action(s) (rows). Grey: every prior's "
+            "pushes of that action. Each row's limits hold the central 99 % of that action's pushes, padded")
+    text += f"; {outside} push(es) lie outside the view." if outside else "; none lies outside the view."
+    _put_caption(fig, text, 2.2 * cols + 0.4)
+    return fig
 
 
 def make_figures(out_dir: Path, records: Sequence[Mapping[str, Any]],
                  extras: Mapping[str, Any]) -> list[Path]:
-    """PNG figures in ``out_dir/figures`` (matplotlib, Agg); returns their paths."""
+    """PNG figures in ``out_dir/figures`` (matplotlib, Agg); returns their paths.
+
+    ``extras`` may hold per-sample values (``hacc_samples``, ``pose_hacc``) for bootstrap intervals, and
+    ``training_scatter`` (with ``training_actions``) for the training figures; without them the bar
+    figures draw summary intervals and no training figure is drawn.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -163,29 +559,42 @@ def make_figures(out_dir: Path, records: Sequence[Mapping[str, Any]],
     folder = Path(out_dir) / "figures"
     folder.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
+    samples = _samples_by_record(records, extras)
 
     def save(fig, name: str) -> None:
-        fig.tight_layout()
         path = folder / name
-        fig.savefig(path, dpi=110)
+        fig.savefig(path, dpi=110, bbox_inches="tight")
         plt.close(fig)
         paths.append(path)
 
-    for task, order, title, filename in (
-        ("selection", _SELECTION_ORDER, "Contact model selection", "model_selection.png"),
-        ("pose", _POSE_ORDER, "Pose estimation", "pose_estimation.png"),
+    def chart(groups, series, stats, kind: str, title: str, unit: str, cluster: str, name: str,
+              legend_title: str) -> None:
+        """One axes of grouped marks with its legend and caption."""
+        log = wants_log_axis(_stat_values(stats.values(), lows=False))
+        width = max(4.5, 1.3 * len(groups)) + (1.6 if len(series) > 1 else 0.0)  # + the legend's column
+        fig, ax = plt.subplots(figsize=(width, 3.6), layout="constrained")
+        _draw_marks(ax, groups, series, stats, kind, log)
+        _set_y_scale(ax, log, _stat_values(stats.values()))
+        ax.set_ylabel("H_acc, mean (95 % CI)" + (", log scale" if log else ""))
+        axes_width = width - (1.6 if len(series) > 1 else 0.0) - 0.8
+        ax.set_title("\n".join(textwrap.wrap(title, max(30, int(axes_width * 11)))), fontsize=10)
+        if len(series) > 1:
+            _legend(fig, [ax], legend_title)
+        _put_caption(fig, _caption(stats.values(), unit, cluster, log, _n_by_series(series, stats)), width)
+        save(fig, name)
+
+    for task, order, title, filename, unit, cluster in (
+        ("selection", _SELECTION_ORDER, "Contact model selection", "model_selection.png", "comparisons",
+         "predictions"),
+        ("pose", _POSE_ORDER, "Pose estimation", "pose_estimation.png", "estimates", "estimates"),
     ):
         part = _select(records, task=task)
         if not part:
             continue
         objects = _ordered(r["object"] for r in part)
         methods = _ordered((r["method"] for r in part), order)
-        stats = {(o, m): pool(_select(part, object=o, method=m)) for o in objects for m in methods}
-        fig, ax = plt.subplots(figsize=(5, 3.5))
-        _bars(ax, objects, methods, stats)
-        ax.set_title(title)
-        ax.legend(fontsize=8)
-        save(fig, filename)
+        stats = {(o, m): _group_stat(part, samples, object=o, method=m) for o in objects for m in methods}
+        chart(objects, methods, stats, "method", title, unit, cluster, filename, "method")
 
     prediction = _select(records, task="prediction")
     for bias in _ordered(_bias_of(r["model"]) for r in prediction):
@@ -193,54 +602,107 @@ def make_figures(out_dir: Path, records: Sequence[Mapping[str, Any]],
         objects = _ordered(r["object"] for r in part)
         models = _ordered(r["model"] for r in part)
         conditions = _ordered(r["condition"] for r in part)
+        panels = {obj: {(c, m): _group_stat(part, samples, object=obj, method="pushtorch", model=m, condition=c)
+                        for c in conditions for m in models} for obj in objects}
+        every = [st for stats in panels.values() for st in stats.values()]
+        log = wants_log_axis(_stat_values(every, lows=False))  # one rule for the whole figure: panels read alike
         cols = min(3, len(objects))
         rows = math.ceil(len(objects) / cols)
-        fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
-        for ax, obj in zip(axes.flat, objects, strict=False):
-            stats = {(c, m): pool(_select(part, object=obj, method="pushtorch", model=m, condition=c))
-                     for c in conditions for m in models}
-            _bars(ax, conditions, models, stats, _PRIOR_COLOURS)
+        width = 4.0 * cols + 1.6
+        fig, axes = plt.subplots(rows, cols, figsize=(width, 3.0 * rows + 0.8), squeeze=False,
+                                 layout="constrained")
+        for k, (ax, obj) in enumerate(zip(axes.flat, objects, strict=False)):
+            _draw_marks(ax, conditions, models, panels[obj], "prior", log)
+            _set_y_scale(ax, log, _stat_values(panels[obj].values()))
             ax.set_title(obj, fontsize=9)
+            if k % cols == 0:
+                ax.set_ylabel("H_acc, mean (95 % CI)" + (", log" if log else ""), fontsize=8)
+            if k >= len(objects) - cols:
+                ax.set_xlabel("test condition", fontsize=8)
         for ax in list(axes.flat)[len(objects):]:
             ax.axis("off")
-        axes.flat[0].legend(fontsize=7, title="model", title_fontsize=7)
-        fig.suptitle(f"{bias} biasing: H_acc per model (bars) and test condition (groups)", fontsize=10)
+        _legend(fig, list(axes.flat), "model (training prior)")
+        fig.suptitle(f"{bias} biasing: our predictor's H_acc per model (colours) and test condition "
+                     "(groups)", fontsize=10)
+        _put_caption(fig, _caption(every, "comparisons", "predictions", log), width)
         save(fig, f"{bias or 'prediction'}_biasing.png")
 
         methods = _ordered((r["method"] for r in part), _METHOD_ORDER)
-        stats = {(o, m): pool(_select(part, object=o, method=m)) for o in objects for m in methods}
-        fig, ax = plt.subplots(figsize=(max(5, 1.3 * len(objects)), 3.5))
-        _bars(ax, objects, methods, stats)
-        ax.set_yscale("symlog", linthresh=0.1)
-        ax.set_title(f"{bias} biasing: pushtorch and baselines (all models and conditions)")
-        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
-        save(fig, f"{bias or 'prediction'}_baselines.png")
+        stats = {(o, m): _group_stat(part, samples, object=o, method=m) for o in objects for m in methods}
+        chart(objects, methods, stats, "method",
+              f"{bias} biasing: pushtorch and baselines (pooled over models and conditions)", "comparisons",
+              "predictions", f"{bias or 'prediction'}_baselines.png", "method")
 
     matched = [r for r in prediction if r["method"] == "pushtorch" and r["model"] == r["condition"]]
     if matched:
         objects = _ordered(r["object"] for r in matched)
-        stats = {(o, "pushtorch"): pool(_select(matched, object=o)) for o in objects}
-        fig, ax = plt.subplots(figsize=(max(5, 1.1 * len(objects)), 3.5))
-        _bars(ax, objects, ["pushtorch"], stats)
-        ax.set_title("Per object: model prior = test condition")
-        save(fig, "objects.png")
+        stats = {(o, "pushtorch"): _group_stat(matched, samples, object=o) for o in objects}
+        chart(objects, ["pushtorch"], stats, "method", "pushtorch per object: model prior = test condition",
+              "comparisons", "predictions", "objects.png", "method")
 
+    actions = extras.get("training_actions") or {}
     for part_name, by_object in (extras.get("training_scatter") or {}).items():
         for obj, by_prior in by_object.items():
-            fig, ax = plt.subplots(figsize=(4.5, 4))
-            for label, points in by_prior.items():
-                if points:
-                    xs, ys = zip(*points, strict=True)
-                    colour = _PRIOR_COLOURS.get(_prior_name(label))
-                    ax.scatter(xs, ys, s=4, alpha=0.6, label=label, color=colour)
-            ax.scatter([0], [0], marker="+", color="k", s=60)
-            ax.set_xlabel("x (m)")
-            ax.set_ylabel("y (m)")
-            ax.set_aspect("equal", adjustable="datalim")
-            ax.set_title(f"{part_name}: {obj} training final positions", fontsize=9)
-            ax.legend(fontsize=7, markerscale=3)
+            if not any(len(points) for points in by_prior.values()):
+                continue
+            fig = _training_figure(plt, part_name, obj, by_prior, (actions.get(part_name) or {}).get(obj) or {})
             save(fig, f"training_{part_name}_{obj}.png")
     return paths
+
+
+def write_figure_data(out_dir: Path, extras: Mapping[str, Any]) -> Path | None:
+    """``figure_data.npz`` in the run directory: the per-sample values the figures draw, so
+    ``tools/redraw_figures.py`` can redraw them from the run's outputs alone.
+
+    Holds extras ``hacc_samples`` (as float32 arrays), ``pose_hacc``, ``training_scatter`` and
+    ``training_actions``, indexed by a JSON string under ``index``; :func:`read_figure_data` reads them
+    back as extras. Returns None (and writes nothing) when the extras hold none of them.
+    """
+    arrays: dict[str, np.ndarray] = {}
+
+    def put(values: Any, dtype) -> str:
+        key = f"a{len(arrays)}"
+        arrays[key] = np.asarray(values, dtype=dtype)
+        return key
+
+    index: dict[str, Any] = {"hacc_samples": [], "pose_hacc": {}, "training_scatter": {}, "training_actions": {}}
+    for entry in extras.get("hacc_samples") or []:
+        try:
+            key = put(entry["hacc"], np.float32)
+        except ValueError:  # ragged rows: not kept; the figure falls back to the summary interval
+            continue
+        index["hacc_samples"].append({**{k: entry.get(k) for k in _SAMPLE_KEYS}, "hacc": key})
+    for obj, values in (extras.get("pose_hacc") or {}).items():
+        index["pose_hacc"][obj] = put(values, np.float32)
+    for name, dtype in (("training_scatter", np.float32), ("training_actions", np.int32)):
+        for part_name, by_object in (extras.get(name) or {}).items():
+            for obj, by_prior in by_object.items():
+                index[name].setdefault(part_name, {})[obj] = {label: put(values, dtype)
+                                                              for label, values in by_prior.items()}
+    if not arrays:
+        return None
+    path = Path(out_dir) / FIGURE_DATA
+    np.savez_compressed(path, index=np.array(json.dumps(index)), **arrays)
+    return path
+
+
+def read_figure_data(path: Path) -> dict[str, Any]:
+    """The extras :func:`write_figure_data` saved (lists of floats and ints), ready for make_figures."""
+    with np.load(Path(path), allow_pickle=False) as data:
+        index = json.loads(str(data["index"]))
+
+        def get(key: str) -> list:
+            return data[key].tolist()
+
+        return {
+            "hacc_samples": [{**{k: e[k] for k in _SAMPLE_KEYS}, "hacc": get(e["hacc"])}
+                             for e in index.get("hacc_samples", [])],
+            "pose_hacc": {obj: get(key) for obj, key in index.get("pose_hacc", {}).items()},
+            **{name: {part: {obj: {label: get(key) for label, key in by_prior.items()}
+                             for obj, by_prior in by_object.items()}
+                      for part, by_object in index.get(name, {}).items()}
+               for name in ("training_scatter", "training_actions")},
+        }
 
 
 # --- report.md -----------------------------------------------------------------------------------------
@@ -377,7 +839,8 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
     scatter = extras.get("training_scatter") or {}
     if scatter:
         lines += ["## Training pushes (paper: the training-distribution figures)", "",
-                  "Final object positions relative to the start, one colour per training prior.", ""]
+                  "Final object positions relative to the start: one panel per training prior (columns, in "
+                  "the prior's colour, over every prior's pushes in grey) and push direction (rows).", ""]
         for part_name, by_object in scatter.items():
             for obj in by_object:
                 figure(f"training_{part_name}_{obj}.png", f"{part_name} {obj}")
@@ -391,6 +854,8 @@ def write_outputs(out_dir: Path, experiment: str, config: Mapping[str, Any], wal
     """results.json, figures, report.md; returns their paths and the acceptance checks."""
     results = write_results(out_dir, experiment, config, wall_s, records)
     figures = make_figures(out_dir, records, extras)
+    figure_data = write_figure_data(out_dir, extras)  # what tools/redraw_figures.py redraws them from
     checks = acceptance_checks(records)
     report = write_report(out_dir, experiment, wall_s, records, extras, figures, checks)
-    return {"results": results, "report": report, "figures": figures, "checks": checks}
+    return {"results": results, "report": report, "figures": figures, "figure_data": figure_data,
+            "checks": checks}
