@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 TORCH_SPEC ?= torch==2.13.0
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: demo test test-slow bench lint clean system-deps install
+.PHONY: demo test test-slow check-install bench lint clean system-deps install
 
 install: $(STAMP)
 
@@ -26,6 +26,11 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -n 2 -q
+
+# A normal (non-editable) install in a fresh environment, at the declared lower bounds, run from outside the
+# checkout: what CI runs after the tests (tools/check_install.sh).
+check-install: $(STAMP)
+	TORCH_SPEC="$(TORCH_SPEC)" PYTHON="$(PYTHON)" bash tools/check_install.sh
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -m slow -q

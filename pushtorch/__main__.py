@@ -15,7 +15,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from pushtorch.cli import run_stage
+from pushtorch.cli import CONFIG_PATH, run_stage
 from pushtorch.errors import PushtorchError
 
 log = logging.getLogger("pushtorch")
@@ -31,7 +31,7 @@ def _run_experiment(cfg: DictConfig, out_dir: Path) -> dict:
     return module.run(cfg, out_dir)
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")
 def _app(cfg: DictConfig) -> dict:
     return run_stage("pushtorch", cfg, _run_experiment)
 

@@ -25,7 +25,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from pushtorch.cli import run_stage
+from pushtorch.cli import CONFIG_PATH, run_stage
 from pushtorch.errors import InvalidParameterError
 
 __all__ = ["main", "predict_from_config"]
@@ -162,7 +162,7 @@ def _accuracy_dict(acc) -> dict[str, float]:
             "angular_deg": float(acc.angular_deg.mean())}
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="predict")
+@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="predict")
 def _app(cfg: DictConfig) -> dict[str, Any]:
     return run_stage("pushtorch.predict", cfg, predict_from_config)
 

@@ -25,7 +25,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from pushtorch.cli import run_stage
+from pushtorch.cli import CONFIG_PATH, run_stage
 from pushtorch.errors import InvalidParameterError
 
 __all__ = ["main", "simulate_from_config"]
@@ -124,7 +124,7 @@ def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Pat
     return result
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="simulate")
+@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="simulate")
 def _app(cfg: DictConfig) -> dict[str, Any]:
     return run_stage("pushtorch.simulate", cfg, simulate_from_config)
 

@@ -26,7 +26,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from pushtorch.cli import run_stage
+from pushtorch.cli import CONFIG_PATH, run_stage
 from pushtorch.errors import InvalidParameterError
 
 __all__ = ["main", "train_from_config"]
@@ -111,7 +111,7 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
     return summary
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="train")
 def _app(cfg: DictConfig) -> dict[str, Any]:
     return run_stage("pushtorch.train", cfg, train_from_config)
 

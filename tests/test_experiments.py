@@ -110,7 +110,7 @@ def test_object_override_and_sweep_compose():
     swept = _compose(["experiment=friction_biasing", "model.friction=low"], hydra_config=True)
     assert swept.model.friction == "low"
     subdir = OmegaConf.to_container(swept.hydra.sweep, resolve=False)["subdir"]
-    assert "experiment" in subdir
+    assert "pushtorch.job_dir" in subdir and "hydra.overrides.task" in subdir  # named by what it sweeps
     joblib = _compose(["experiment=quickstart", "hydra/launcher=joblib"], hydra_config=True).hydra.launcher
     assert "JoblibLauncher" in joblib._target_
 
@@ -190,7 +190,7 @@ def tiny_run(tmp_path_factory):
 def test_tiny_quickstart_writes_tidy_results(tiny_run):
     cfg, out, summary = tiny_run
     results = json.loads((out / "results.json").read_text())
-    assert set(results) == {"experiment", "config", "wall_s", "records"}
+    assert set(results) == {"experiment", "config", "overrides", "wall_s", "records"}
     assert results["experiment"] == "quickstart" and results["wall_s"] > 0
     assert results["config"]["experiment"]["parts"]["pose_estimation"]["runs"] == 2
     records = results["records"]

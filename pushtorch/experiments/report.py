@@ -6,7 +6,7 @@ figures, per model and test condition; per object: Fig. object_results, matched 
 training pushes: the training-distribution figures) and puts the paper's own numbers beside ours where
 it gives them (its figures carry no values; its text gives the linear errors below).
 
-``results.json`` is ``{"experiment", "config", "wall_s", "records"}``; one record per group with the keys
+``results.json`` is ``{"experiment", "config", "overrides", "wall_s", "records"}``; one record per group with the keys
 ``task, object, method, model, condition, n, hacc_mean, hacc_std, linear_cm, angular_deg`` (and
 ``selection_rate`` for the selection task), so ``pandas.DataFrame(json.load(f)["records"])`` is a tidy
 table. ``hacc_std`` is the population standard deviation over the group's ``n`` comparisons.
@@ -140,11 +140,15 @@ def acceptance_checks(records: Sequence[Mapping[str, Any]]) -> list[dict[str, An
 
 
 def write_results(out_dir: Path, experiment: str, config: Mapping[str, Any], wall_s: float,
-                  records: Sequence[Mapping[str, Any]]) -> Path:
-    """``results.json`` in the run directory (the layout in the module docstring)."""
+                  records: Sequence[Mapping[str, Any]], overrides: Sequence[str] = ()) -> Path:
+    """``results.json`` in the run directory (the layout in the module docstring).
+
+    ``overrides`` are the run's command-line overrides (Hydra's task overrides), so a sweep's jobs can be
+    told apart and tabulated by what was swept (``python -m pushtorch.collect``).
+    """
     path = Path(out_dir) / "results.json"
-    payload = {"experiment": experiment, "config": dict(config), "wall_s": float(wall_s),
-               "records": list(records)}
+    payload = {"experiment": experiment, "config": dict(config), "overrides": list(overrides),
+               "wall_s": float(wall_s), "records": list(records)}
     path.write_text(json.dumps(payload, indent=1, allow_nan=True))
     return path
 
@@ -850,9 +854,10 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
 
 
 def write_outputs(out_dir: Path, experiment: str, config: Mapping[str, Any], wall_s: float,
-                  records: Sequence[Mapping[str, Any]], extras: Mapping[str, Any]) -> dict[str, Any]:
+                  records: Sequence[Mapping[str, Any]], extras: Mapping[str, Any],
+                  overrides: Sequence[str] = ()) -> dict[str, Any]:
     """results.json, figures, report.md; returns their paths and the acceptance checks."""
-    results = write_results(out_dir, experiment, config, wall_s, records)
+    results = write_results(out_dir, experiment, config, wall_s, records, overrides)
     figures = make_figures(out_dir, records, extras)
     figure_data = write_figure_data(out_dir, extras)  # what tools/redraw_figures.py redraws them from
     checks = acceptance_checks(records)

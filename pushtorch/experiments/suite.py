@@ -14,6 +14,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from pushtorch.cli import current_overrides
 from pushtorch.errors import InvalidParameterError
 from pushtorch.experiments.common import context_from_config, plain
 
@@ -82,7 +83,7 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]]) -
     finally:
         ctx.recording.disconnect()  # completes the file (flush alone leaves it without its footer)
     wall = time.perf_counter() - start
-    outputs = write_outputs(out_dir, name, plain(cfg), wall, records, extras)
+    outputs = write_outputs(out_dir, name, plain(cfg), wall, records, extras, overrides=current_overrides())
     passed = sum(c["passed"] for c in outputs["checks"])
     return {
         "report": str(outputs["report"]),
