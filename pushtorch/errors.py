@@ -37,3 +37,19 @@ class RecordFormatError(PushtorchError, ValueError):
 
 class ModelError(PushtorchError, RuntimeError):
     """A model could not be built or applied (e.g. no kernel survives the cut-offs)."""
+
+
+class IncompleteRunError(RecordFormatError):
+    """A run's push records are unfinished: shards its manifest promises are missing (resume the run)."""
+
+
+class FolderInUseError(PushtorchError, RuntimeError):
+    """A shard folder is being written by another running process (it holds the folder's lock)."""
+
+
+class UnsafeNameError(InvalidParameterError):
+    """A name that becomes part of a file name could leave its folder or is not a plain file name."""
+
+
+class MissingDependencyError(PushtorchError, ImportError):
+    """A library pushtorch needs cannot be imported (e.g. a system library of open3d is missing)."""

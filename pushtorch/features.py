@@ -160,7 +160,9 @@ def radius_neighbourhoods(
         ``index (N, K)`` int64 (padding entries repeat the query point, so gathers stay valid) and
         ``mask (N, K)`` bool (true for real neighbours), both on ``points.device``.
     """
-    import open3d as o3d
+    from pushtorch.deps import import_open3d
+
+    o3d = import_open3d()
 
     data = o3d.core.Tensor(np.ascontiguousarray(points.detach().cpu().numpy().astype(np.float32)))
     nns = o3d.core.nns.NearestNeighborSearch(data)

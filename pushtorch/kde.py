@@ -1721,6 +1721,8 @@ class SharedKernelProduct:
         bandwidth: kernel bandwidth (no descriptors) shared by every expert.
         trial_rounds: ``(*B, 3)`` or ``(3,)``, the same for every expert of a problem.
         expert_log_weight, expert_mask: as :func:`product_log_prob`, shape ``(E,)`` or ``(E, *B)``.
+        validate_args: check the queries of every call as :class:`PoseKDE` does (finite, unit
+            quaternions, shapes); the annealing turns it off for its own normalised proposals.
 
     Raises:
         InvalidParameterError: misshaped tensors, descriptor dims in the bandwidth, or a counted expert
@@ -1735,9 +1737,11 @@ class SharedKernelProduct:
         trial_rounds: TrialRounds | Tensor | None = None,
         expert_log_weight: Tensor | None = None,
         expert_mask: Tensor | None = None,
+        validate_args: bool = True,
     ) -> None:
         if bandwidth.descriptor_dim:
             raise InvalidParameterError("a shared-kernel product is over SE(3) alone: no descriptor stds")
+        self.validate_args = validate_args
         batch = means.batch_shape[:-1]
         if log_weights.dim() < 2 or log_weights.shape[1:] != means.batch_shape:
             raise InvalidParameterError(
@@ -1773,7 +1777,12 @@ class SharedKernelProduct:
 
     def log_prob(self, pose: Pose) -> Tensor:
         """``Σ_e (log w^P_e + log P_e(pose))`` for poses ``(*B, M)`` → ``(*B, M)``; ``-inf`` where a counted
-        expert has no kernel within its cut-offs. The queries are not validated (annealing's own)."""
+        expert has no kernel within its cut-offs.
+
+        Raises:
+            InvalidPoseError: (``validate_args``) misshaped, non-finite or non-unit queries.
+        """
+        self._check_queries(pose)
         out = self._per_problem("shared_kernel_product", _shared_kernel_product, pose,
                                 self.table, self.weights, self.scale, self.offset, self.mask)
         return out.reshape(*self.batch_shape, pose.p.shape[-2])
@@ -1781,10 +1790,31 @@ class SharedKernelProduct:
     def mean_shift(self, pose: Pose) -> Pose:
         """One mean-shift step of every query towards a local mode of the product (see
         :meth:`PoseKDE.mean_shift`; the experts' weights w^P do not move a mode): poses ``(*B, M)``."""
+        self._check_queries(pose)
         out = self._per_problem("shared_kernel_shift", _shared_kernel_shift, pose,
                                 self.table, self.weights, self.scale, self.mask)
         out = out.transpose(1, 2).reshape(*self.batch_shape, pose.p.shape[-2], 7)
         return Pose(out[..., :3], out[..., 3:])
+
+    def _check_queries(self, pose: Pose) -> None:
+        """The checks :meth:`PoseKDE.log_prob` makes of its queries (when ``validate_args``)."""
+        if not self.validate_args:
+            return
+        p, q = pose
+        if p.dim() < 1 or p.shape[-1] != 3 or q.dim() < 1 or q.shape[-1] != 4:
+            raise InvalidPoseError(
+                f"query poses need p (..., M, 3) and q (..., M, 4); got {tuple(p.shape)} and {tuple(q.shape)}"
+            )
+        try:
+            torch.broadcast_shapes(p.shape[:-1], q.shape[:-1], (*self.batch_shape, 1))
+        except RuntimeError as exc:
+            raise InvalidPoseError(
+                f"query poses p {tuple(p.shape)}, q {tuple(q.shape)} do not fit the batch shape"
+                f" {tuple(self.batch_shape)} (queries are (*B, M))"
+            ) from exc
+        if not torch.isfinite(p).all():
+            raise InvalidPoseError("query positions hold NaN or infinite values")
+        check_unit_quaternion(q, name="query q")
 
     def _per_problem(self, name: str, fn: Callable, pose: Pose, *layout: Tensor) -> Tensor:
         """``fn`` (fused) over the queries ``(D, 7, M)`` and this product's per-problem ``layout`` tensors,

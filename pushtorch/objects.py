@@ -9,6 +9,13 @@ dimensions (D_S) and its visually identical orientations Q_gt, held here as a :c
 Frames: every mesh is in metres with its origin at its centre of mass; for the prisms the first
 dimension lies along the object's x axis (the push direction when the object sits at yaw 0), and the
 cylinders' and the hybrid's axes are the object's z axis (upright on the ground).
+
+User meshes are simulated as they are (:func:`load_mesh_file`): a closed convex mesh as itself, a closed
+concave one as the union of the convex parts of a V-HACD decomposition (pybullet's ``vhacd``: offline,
+deterministic, run once per mesh and cached in memory, and on disk when a ``cache_dir`` is named; otherwise
+its files live in a temporary folder removed at once). A mesh of several disjoint bodies is refused (one
+rigid body is pushed); an open mesh encloses no volume and is simulated as its convex hull. The mass
+distribution is always the mesh's own (uniform density).
 """
 
 from __future__ import annotations
@@ -97,12 +104,15 @@ class ObjectModel:
         symmetry: visually identical orientations (Q_gt).
         collision_parts: convex pieces whose union is the mesh, for the physics engine (which
             treats a dynamic mesh as its convex hull).
+        collision_source: how the parts were made: ``"convex hull"`` (a convex mesh, or an open one),
+            ``"primitives"`` (catalogue pieces) or ``"v-hacd"`` (a concave user mesh decomposed).
     """
 
     name: str
     mesh: trimesh.Trimesh
     symmetry: Symmetry
     collision_parts: list[trimesh.Trimesh] = field(default_factory=list)
+    collision_source: str = "convex hull"
 
     def __post_init__(self) -> None:
         if not self.collision_parts:
@@ -183,7 +193,9 @@ def detect_symmetry(mesh: trimesh.Trimesh, tolerance: float | None = None, sampl
     A rotation R is kept when every surface sample of R·mesh lies within ``tolerance`` (default 1 % of
     the largest extent) of the original surface. Continuous symmetries are not detected here.
     """
-    import open3d as o3d
+    from pushtorch.deps import import_open3d
+
+    o3d = import_open3d()
 
     tolerance = tolerance if tolerance is not None else 0.01 * float(max(mesh.extents))
     points, _ = trimesh.sample.sample_surface(mesh, samples, seed=0)
@@ -226,7 +238,7 @@ def _build(name: str) -> ObjectModel:
     if name == "modified_cube":
         mesh, parts = _modified_cube()
         mesh, parts = _centred(mesh, parts)
-        return ObjectModel(name, mesh, detect_symmetry(mesh), parts)
+        return ObjectModel(name, mesh, detect_symmetry(mesh), parts, "primitives")
     if name in ("cylinder", "cylinder_wide"):
         mesh, _ = _centred(_cylinder(0.1 if name == "cylinder" else 0.15, 0.2))
         return ObjectModel(name, mesh, _z_flip_symmetry())
@@ -258,55 +270,185 @@ def catalogue_names() -> list[str]:
     return list(CATALOGUE)
 
 
-def load_mesh_file(path: str | Path, scale: float = 1.0, name: str | None = None) -> ObjectModel:
+#: V-HACD settings (pybullet's defaults, stated so the cache key names them): voxels, concavity, vertices.
+VHACD_SETTINGS = {"resolution": 100000, "concavity": 0.0025, "maxNumVerticesPerCH": 64}
+#: A closed mesh whose volume is below this fraction of its convex hull's is concave (decomposed).
+CONVEX_VOLUME_FRACTION = 0.99
+
+_DECOMPOSITIONS: dict[str, list[trimesh.Trimesh]] = {}
+
+
+def convex_decomposition(mesh: trimesh.Trimesh, cache_dir: str | Path | None = None) -> list[trimesh.Trimesh]:
+    """Convex parts whose union approximates a closed concave ``mesh`` (V-HACD, pybullet's ``vhacd``).
+
+    Deterministic for a given mesh; computed once per mesh and process (memoised by the SHA-256 of its
+    vertices, faces and :data:`VHACD_SETTINGS`). With ``cache_dir`` the decomposition is also kept there as
+    ``vhacd-<digest>.obj`` and reused by later processes; without, its files go to a temporary folder that
+    is removed at once.
+
+    Raises:
+        InvalidMeshError: V-HACD produced no usable part.
+    """
+    import hashlib
+    import json
+    import tempfile
+
+    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    digest = hashlib.sha256(vertices.tobytes() + faces.tobytes()
+                            + json.dumps(VHACD_SETTINGS, sort_keys=True).encode()).hexdigest()[:32]
+    if digest in _DECOMPOSITIONS:
+        return [part.copy() for part in _DECOMPOSITIONS[digest]]
+    cached = Path(cache_dir) / f"vhacd-{digest}.obj" if cache_dir is not None else None
+    if cached is not None and cached.is_file():
+        parts = _obj_parts(cached)
+    else:
+        with tempfile.TemporaryDirectory(prefix="pushtorch-vhacd-") as folder:
+            source, result = Path(folder) / "mesh.obj", Path(folder) / "parts.obj"
+            source.write_text("".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in vertices)
+                              + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces))
+            _run_vhacd(source, result, Path(folder) / "vhacd.log")
+            parts = _obj_parts(result)
+            if cached is not None:
+                from pushtorch.sim.records import atomic_write_bytes
+
+                atomic_write_bytes(cached, result.read_bytes())
+    if not parts:
+        raise InvalidMeshError("the convex decomposition (V-HACD) of the mesh produced no part")
+    _DECOMPOSITIONS[digest] = parts
+    return [part.copy() for part in parts]
+
+
+def _run_vhacd(source: Path, result: Path, log_file: Path) -> None:
+    """pybullet's V-HACD with its console output silenced (it prints to the C stdout)."""
+    import os
+    import sys
+
+    import pybullet
+
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+            pybullet.vhacd(str(source), str(result), str(log_file), **VHACD_SETTINGS)
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+    if not result.is_file():
+        raise InvalidMeshError(f"the convex decomposition (V-HACD) wrote no result; see {log_file}")
+
+
+def _obj_parts(path: Path) -> list[trimesh.Trimesh]:
+    """The objects (``o`` groups) of a V-HACD result OBJ as convex meshes (vertex indices are global)."""
+    vertices: list[list[float]] = []
+    groups: list[list[list[int]]] = []
+    for line in path.read_text().splitlines():
+        head, _, rest = line.partition(" ")
+        if head == "o":
+            groups.append([])
+        elif head == "v":
+            vertices.append([float(v) for v in rest.split()[:3]])
+        elif head == "f":
+            if not groups:
+                groups.append([])
+            groups[-1].append([int(v.split("/")[0]) - 1 for v in rest.split()])
+    points = np.asarray(vertices, dtype=np.float64)
+    parts = []
+    for faces in groups:
+        used = np.unique(np.concatenate([np.asarray(f) for f in faces])) if faces else np.zeros(0, int)
+        if len(used) >= 4:
+            try:
+                parts.append(trimesh.convex.convex_hull(points[used]))
+            except Exception:  # a flat sliver (Qhull refuses it) holds no volume: leave it out
+                continue
+    return [part for part in parts if part.volume > 0]
+
+
+def load_mesh_file(path: str | Path, scale: float = 1.0, name: str | None = None,
+                   cache_dir: str | Path | None = None) -> ObjectModel:
     """Load any STL, OBJ or PLY mesh as an object, scaled by ``scale`` (file units × scale = metres).
 
     The mesh is re-centred at its centre of mass; its symmetries are detected among the 24 axis
-    permutations (see :func:`detect_symmetry`).
+    permutations (see :func:`detect_symmetry`). A closed concave mesh is simulated as its V-HACD convex
+    parts (:func:`convex_decomposition`, ``cache_dir`` keeps them), a closed convex one as itself, an open
+    one as its convex hull (module docstring); ``collision_source`` and ``len(collision_parts)`` say which.
+    The object's name is ``name`` or the file's stem with characters unfit for a file name replaced by ``_``.
 
     Raises:
-        InvalidMeshError: the file is missing, unreadable, or holds no triangles.
-        InvalidParameterError: ``scale`` is not a positive finite number.
+        InvalidMeshError: the file is missing or unreadable, holds no triangles, NaN/infinite vertices,
+            several disjoint bodies, or encloses no volume.
+        InvalidParameterError: ``scale`` is not a positive finite number; UnsafeNameError: a ``name``
+            unfit for a file name.
     """
+    from pushtorch.paths import safe_name, sanitised_name
+
     try:
         scale = float(scale)
     except (TypeError, ValueError) as exc:
         raise InvalidParameterError(f"mesh scale must be a positive finite number, got {scale!r}") from exc
     if not (np.isfinite(scale) and scale > 0):
         raise InvalidParameterError(f"mesh scale must be a positive finite number, got {scale!r}")
+    name = safe_name(name, "object name") if name is not None else sanitised_name(Path(path).stem)
     path = Path(path)
     if not path.is_file():
         raise InvalidMeshError(f"mesh file not found: {path}")
     try:
-        loaded = trimesh.load(path, force="mesh")
+        # unprocessed, so NaN vertices are seen here (processing silently drops them and their faces)
+        loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types on bad files
         raise InvalidMeshError(f"could not read a mesh from {path}: {exc}") from exc
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise InvalidMeshError(f"{path} holds no triangle mesh")
-    mesh = loaded.copy()
-    mesh.apply_scale(scale)
+    bad = ~np.isfinite(np.asarray(loaded.vertices)).all(-1)
+    if bad.any():
+        raise InvalidMeshError(
+            f"{path} has NaN or infinite coordinates in {int(bad.sum())} of {len(bad)} vertices"
+        )
+    mesh = trimesh.Trimesh(vertices=np.asarray(loaded.vertices) * scale, faces=loaded.faces)  # merged
+    if len(mesh.faces) == 0:
+        raise InvalidMeshError(f"{path} holds only degenerate triangles")
+    bodies = mesh.split(only_watertight=False)
+    if len(bodies) > 1:
+        raise InvalidMeshError(
+            f"{path} holds {len(bodies)} disjoint bodies; pushtorch pushes one rigid body: "
+            "keep one body per file (or join them into one)"
+        )
+    source = "convex hull"
     if not mesh.is_watertight:
         # The centre of mass of an open mesh is undefined; its convex hull is the best physical proxy.
         try:
             mesh = mesh.convex_hull
         except Exception as exc:  # scipy's QhullError on flat or degenerate meshes
             raise InvalidMeshError(f"{path} is open and flat: it encloses no volume") from exc
-    if mesh.volume <= 0:
+    if not mesh.volume > 0:
         raise InvalidMeshError(f"{path} encloses no volume after scaling by {scale}")
     mesh, _ = _centred(mesh)
-    return ObjectModel(name or path.stem, mesh, detect_symmetry(mesh))
+    parts: list[trimesh.Trimesh] = []
+    if mesh.volume < CONVEX_VOLUME_FRACTION * mesh.convex_hull.volume:
+        low, high = mesh.bounds
+        # V-HACD's voxelised hulls overhang the mesh by about a voxel; kept inside its bounding box, the
+        # object rests at its rest_height instead of on a millimetre of overhang
+        parts = [trimesh.convex.convex_hull(np.clip(part.vertices, low, high))
+                 for part in convex_decomposition(mesh, cache_dir)]
+        source = "v-hacd"
+    return ObjectModel(name, mesh, detect_symmetry(mesh), parts, source)
 
 
-def load_object(name: str, path: str | Path | None = None, scale: float = 1.0) -> ObjectModel:
-    """A catalogue object by name, or a user mesh when ``name == "mesh"`` (``path`` and ``scale``).
+def load_object(name: str, path: str | Path | None = None, scale: float = 1.0,
+                cache_dir: str | Path | None = None) -> ObjectModel:
+    """A catalogue object by name, or a user mesh when ``name == "mesh"`` (``path``, ``scale`` and the
+    folder ``cache_dir`` that keeps a concave mesh's decomposition, see :func:`load_mesh_file`).
 
     Raises:
-        InvalidParameterError: unknown catalogue name.
+        InvalidParameterError: unknown catalogue name, or object=mesh without a path.
     """
     if name == "mesh":
-        if path is None:
-            raise InvalidParameterError("object=mesh needs object.path pointing to an STL, OBJ or PLY file")
-        return load_mesh_file(path, scale)
+        if path is None or str(path) in ("", "???"):  # "???": Hydra's mandatory value, left unset
+            raise InvalidParameterError(
+                "object=mesh needs object.path=<an STL, OBJ or PLY file>; object.path is not set"
+            )
+        return load_mesh_file(path, scale, cache_dir=cache_dir)
     if name not in CATALOGUE:
         raise InvalidParameterError(f"unknown object {name!r}; the catalogue has {', '.join(CATALOGUE)}")
     if name not in _CACHE:

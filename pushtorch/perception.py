@@ -172,7 +172,9 @@ class DepthCamera:
         ``targets (V, 3)``; each direction has unit component along its optical axis, so the ray
         parameter of a hit is its depth. The image's up is world +z (world +x for a camera looking
         straight down or up)."""
-        import open3d as o3d
+        from pushtorch.deps import import_open3d
+
+        o3d = import_open3d()
 
         eyes_np = eyes.detach().cpu().double().numpy().reshape(-1, 3)
         targets_np = np.broadcast_to(targets.detach().cpu().double().numpy(), eyes_np.shape)
@@ -211,7 +213,9 @@ class ObjectScene:
     """
 
     def __init__(self, obj: ObjectModel, pose: se3.Pose | None = None) -> None:
-        import open3d as o3d
+        from pushtorch.deps import import_open3d
+
+        o3d = import_open3d()
 
         pose = obj.resting_pose() if pose is None else pose
         _check_single_pose(pose)
@@ -262,7 +266,9 @@ class ObjectScene:
         Raises:
             InvalidPointCloudError: no ray hit the object within range.
         """
-        import open3d as o3d
+        from pushtorch.deps import import_open3d
+
+        o3d = import_open3d()
 
         eyes = torch.as_tensor(eyes, dtype=torch.float32).reshape(-1, 3)
         if not torch.isfinite(eyes).all():
@@ -309,7 +315,9 @@ def voxel_down_sample(cloud: PointCloud, voxel_size: float = DEFAULT_VOXEL_SIZE)
     Raises:
         InvalidParameterError: ``voxel_size`` is not positive and finite.
     """
-    import open3d as o3d
+    from pushtorch.deps import import_open3d
+
+    o3d = import_open3d()
 
     if not (math.isfinite(voxel_size) and voxel_size > 0):
         raise InvalidParameterError(f"voxel_size must be positive and finite (m), got {voxel_size}")

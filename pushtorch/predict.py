@@ -36,7 +36,7 @@ from pushtorch.features import SurfaceFeatures, compute_surface_features
 from pushtorch.kde import KernelBandwidth
 from pushtorch.models.contact import place_environment_contacts
 from pushtorch.models.frames import ContactFrames
-from pushtorch.models.library import ModelLibrary, ModelSettings, PushModel
+from pushtorch.models.library import ModelLibrary, ModelSettings, PushModel, as_generator, check_action
 from pushtorch.models.motion import MotionDensity, MotionKernels, anneal_motion_densities
 from pushtorch.models.position import PositionModel, verify_pose_candidates
 from pushtorch.models.query import (
@@ -121,10 +121,55 @@ def _polish_steps(settings: ModelSettings, method: str) -> int:
     return settings.polish_steps if method == "fast" else 0
 
 
-def _as_features(cloud: PointCloud | SurfaceFeatures, settings: ModelSettings) -> SurfaceFeatures:
+def _as_features(cloud: PointCloud | SurfaceFeatures, settings: ModelSettings,
+                 dtype: torch.dtype = torch.float32) -> SurfaceFeatures:
+    """The cloud's surface features in the model's ``dtype`` (a float64 cloud is cast before its features
+    are computed, so it predicts exactly as the same cloud in float32)."""
     if isinstance(cloud, SurfaceFeatures):
-        return cloud
+        return cloud if cloud.p.dtype == dtype else cloud.to(dtype)
+    if isinstance(cloud, PointCloud):
+        if cloud.points.dtype != dtype:
+            origins = None if cloud.view_origins is None else cloud.view_origins.to(dtype)
+            cloud = PointCloud(cloud.points.to(dtype), origins)
+    else:
+        cloud = PointCloud(cloud)  # validates an array or tensor (shape, NaN, empty)
+        cloud = PointCloud(cloud.points.to(dtype))
     return compute_surface_features(cloud, radius=settings.feature_radius)
+
+
+def _dtype_of(model: PushModel | ModelLibrary | PositionModel) -> torch.dtype:
+    """The floating dtype a model's tensors are in (clouds are cast to it)."""
+    if isinstance(model, ModelLibrary):
+        model = model.models[0]
+    if isinstance(model, PushModel):
+        model = model.position
+    return model.frames.r.dtype
+
+
+def _check_actions(actions, count: int) -> torch.Tensor:
+    """``(count, 2)`` float64 actions from one ``(2,)`` (or ``(1, 2)``) action for every condition or
+    ``(count, 2)``.
+
+    Raises:
+        InvalidParameterError: not numeric, misshaped, NaN/infinite, or not one per condition.
+    """
+    if type(actions).__module__ == "numpy":
+        try:
+            actions = torch.as_tensor(actions)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise InvalidParameterError(f"actions must be numbers (ẋ m/s, θ̇ rad/s), got {actions!r}") from exc
+    if isinstance(actions, torch.Tensor) and actions.dim() == 2 and actions.shape[-1] == 2:
+        rows = actions
+    elif not isinstance(actions, torch.Tensor) and isinstance(actions, list | tuple) and actions \
+            and all(isinstance(a, list | tuple | torch.Tensor) for a in actions):
+        rows = torch.stack([check_action(a) for a in actions])
+    else:
+        return check_action(actions).expand(count, 2)
+    if len(rows) == 1:
+        return check_action(rows[0]).expand(count, 2)
+    if len(rows) != count:
+        raise InvalidParameterError(f"got {len(rows)} actions for {count} clouds")
+    return torch.stack([check_action(a) for a in rows]) if count else torch.zeros(0, 2, dtype=torch.float64)
 
 
 def estimate_pose(
@@ -145,7 +190,8 @@ def estimate_pose(
     """
     _check_method(method)
     settings = settings or ModelSettings()
-    features = _as_features(cloud, settings)
+    generator = as_generator(generator)
+    features = _as_features(cloud, settings, _dtype_of(position))
     density = _pose_density(position, features, settings, generator, method)
     result = optimise_query_density(
         density, settings.anneal_candidates, _schedule(settings, False, method), generator, record_history,
@@ -208,7 +254,12 @@ def generate_push_condition(
     one batch with pruned, fused densities; ``"dense"`` is the reference, one after the other.
     """
     _check_method(method)
-    features = _as_features(cloud, model.settings)
+    generator = as_generator(generator)
+    features = _as_features(cloud, model.settings, _dtype_of(model))
+    if not (isinstance(action_index, int) and 0 <= action_index < len(model.motions)):
+        raise InvalidParameterError(
+            f"action_index must be an int in [0, {len(model.motions)}) for model {model.name!r}, got {action_index!r}"
+        )
     if method == "fast":
         return _push_conditions_fast(model, [features], [action_index], generator, record_history)[0]
     settings = model.settings
@@ -273,7 +324,7 @@ def predict(
         model: a trained model, or a library to select from by ``H_r``.
         cloud: the object's single-shot cloud (or its surface features), world frame.
         action: ``(2,)`` (ẋ m/s, θ̇ rad/s), one of the model's actions.
-        generator: seeded generator: the same seed (and method) gives the same prediction.
+        generator: seeded generator (or an int seed): the same seed (and method) gives the same prediction.
         record_history: keep every annealing step (for Rerun).
         method: ``"fast"`` (default): densities evaluated only where the hard cut-offs let kernels
             reach, fused (compiled when a compiler is available, :func:`pushtorch.kde.fast_path_compiled`),
@@ -283,7 +334,9 @@ def predict(
             single predictions differ as two seeds do.
 
     Raises:
-        InvalidParameterError: an unknown method.
+        InvalidParameterError: an unknown method, or an action that is not finite, misshaped or unknown
+            to the model.
+        InvalidPointCloudError: an empty, misshaped or non-finite cloud (a float64 cloud is cast).
     """
     return predict_many(model, [cloud], action, generator=generator, record_history=record_history,
                         method=method)[0]
@@ -343,13 +396,16 @@ def predict_many(
         InvalidParameterError: an unknown method, a batch size < 1 or actions that do not match.
     """
     _check_method(method)
-    if isinstance(batch_size, bool) or int(batch_size) != batch_size or batch_size < 1:
+    if isinstance(batch_size, bool) or not isinstance(batch_size, int | float) or int(batch_size) != batch_size \
+            or batch_size < 1:
         raise InvalidParameterError(f"batch_size must be an integer >= 1, got {batch_size!r}")
-    actions = torch.as_tensor(actions).reshape(-1, 2)
-    if len(actions) == 1:
-        actions = actions.expand(len(clouds), 2)
-    if len(actions) != len(clouds):
-        raise InvalidParameterError(f"got {len(actions)} actions for {len(clouds)} clouds")
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise InvalidParameterError(f"seed must be an integer, got {seed!r}")
+    generator = as_generator(generator)
+    if isinstance(clouds, PointCloud | SurfaceFeatures | torch.Tensor):
+        raise InvalidParameterError("clouds must be a list of clouds (use predict for one cloud)")
+    clouds = list(clouds)
+    actions = _check_actions(actions, len(clouds))
     step = int(batch_size) if method == "fast" else 1
     out: list[Prediction] = []
     for start in range(0, len(clouds), step):
@@ -370,7 +426,7 @@ def _predict_batch(
     """One batch of :func:`predict_many`: a library selects per cloud, then each model's share runs
     together."""
     first = model.models[0] if isinstance(model, ModelLibrary) else model
-    features = [_as_features(c, first.settings) for c in clouds]
+    features = [_as_features(c, first.settings, _dtype_of(first)) for c in clouds]
     chosen = [model.select(f)[0] if isinstance(model, ModelLibrary) else model for f in features]
     out: list[Prediction | None] = [None] * len(clouds)
     distinct = [m for i, m in enumerate(chosen) if all(m is not c for c in chosen[:i])]  # first-use order

@@ -11,6 +11,11 @@ Conventions (the whole library):
       ``apply(compose(a, b), x) == apply(a, apply(b, x))``.
     * q and -q are the same rotation: every distance here is invariant to the sign.
     * pybullet and Rerun use x, y, z, w: convert only at those boundaries with :func:`wxyz_to_xyzw`.
+    * The group operations (:func:`compose`, :func:`apply`, ...) assume unit quaternions and do not check
+      them: they run inside every hot loop (a non-unit q scales, ``apply`` with |q| = 2 maps (1, 0, 0) to
+      (4, 0, 0)). Public entries that take poses from a caller validate them once with
+      :func:`check_pose` / :func:`check_unit_quaternion`, following ``torch.distributions``'
+      ``validate_args`` convention: checks on by default, turned off only for the annealing's own queries.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ __all__ = [
     "Pose",
     "angle_between",
     "apply",
+    "check_pose",
     "check_unit_quaternion",
     "compose",
     "from_matrix",
@@ -141,10 +147,25 @@ def check_unit_quaternion(q: Tensor, atol: float = 1e-3, name: str = "q") -> Ten
     return q
 
 
-def _check_pose(pose: Pose, name: str = "pose") -> None:
+def check_pose(pose: Pose, name: str = "pose", atol: float = 1e-3) -> Pose:
+    """Return ``pose`` if ``p (..., 3)`` is finite and ``q (..., 4)`` unit within ``atol``, else raise.
+
+    Raises:
+        InvalidPoseError: not a pair of floating tensors, wrong trailing sizes, NaN/inf, or a non-unit q.
+    """
+    if not (isinstance(pose, tuple) and len(pose) == 2 and all(isinstance(t, Tensor) for t in pose)):
+        raise InvalidPoseError(f"{name} must be a Pose of two tensors (p, q), got {type(pose).__name__}")
+    if not (pose.p.is_floating_point() and pose.q.is_floating_point()):
+        raise InvalidPoseError(f"{name} must hold floating-point tensors, got {pose.p.dtype} and {pose.q.dtype}")
     if pose.p.shape[-1:] != (3,):
         raise InvalidPoseError(f"{name}.p must have shape (..., 3), got {tuple(pose.p.shape)}")
-    check_unit_quaternion(pose.q, name=f"{name}.q")
+    if not torch.isfinite(pose.p).all():
+        raise InvalidPoseError(f"{name}.p has NaN or infinite entries")
+    check_unit_quaternion(pose.q, atol=atol, name=f"{name}.q")
+    return pose
+
+
+_check_pose = check_pose  # the former private name
 
 
 def compose(a: Pose, b: Pose) -> Pose:

@@ -39,7 +39,9 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
 
     Args:
         cfg: keys ``object`` (name, path, scale), ``model.settings`` (ModelSettings), ``data`` (one folder
-            or a list), optional ``name``, ``seed``, ``recording``.
+            or a list), optional ``name``, ``seed``, ``recording`` and ``allow_partial`` (train on the
+            finished part of an unfinished simulation run; the model file then records what was missing
+            in its ``partial_data`` header field).
         out_dir: the run directory (``model.npz``, ``summary.json``, ``recording.rrd``).
 
     Returns:
@@ -47,7 +49,8 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
 
     Raises:
         InvalidParameterError: no data, data of another object, or a bad setting.
-        RecordFormatError: unreadable push records.
+        IncompleteRunError: a data folder is an unfinished run (unless ``allow_partial``).
+        RecordFormatError: unreadable, duplicated or inconsistent push records.
         ModelError: no push record touches the object.
     """
     import torch
@@ -55,7 +58,7 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
     from pushtorch.experiments.common import as_names, plain
     from pushtorch.models.library import ModelSettings, train_push_model
     from pushtorch.objects import load_object
-    from pushtorch.sim.records import PushRecords, load_records
+    from pushtorch.sim.records import PushRecords, load_records, run_status
 
     c = plain(cfg)
     out_dir = Path(out_dir)
@@ -69,8 +72,24 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
         raise InvalidParameterError(f"train config is missing or mistypes a key: {exc}") from exc
     if not folders:
         raise InvalidParameterError("no training data: set data=<a pushtorch.simulate run directory>")
+    allow_partial = c.get("allow_partial", False)
+    if not isinstance(allow_partial, bool):
+        raise InvalidParameterError(f"allow_partial must be true or false, got {allow_partial!r}")
     start = time.perf_counter()
-    records = PushRecords.cat([load_records(folder) for folder in folders])
+    statuses = [run_status(folder) for folder in folders]
+    records = PushRecords.cat([load_records(folder, allow_partial=allow_partial) for folder in folders])
+    unfinished = [st for st in statuses if st is not None and not st.complete]
+    partial_data = None
+    if unfinished:  # only reachable with allow_partial
+        partial_data = {
+            "pushes": len(records),
+            "missing_pushes": sum(st.missing_pushes for st in unfinished),
+            "unfinished_runs": [str(st.folder) for st in unfinished],
+            "missing_by_action": {str(a): sum(st.missing_by_action.get(a, 0) for st in unfinished)
+                                  for a in sorted({a for st in unfinished for a in st.missing_by_action})},
+        }
+        for st in unfinished:
+            log.warning("training on part of a run (allow_partial): %s", st.describe())
     others = sorted(set(records.object_name) - {obj.name})
     if others:
         raise InvalidParameterError(
@@ -82,7 +101,7 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
              obj.name)
     model = train_push_model(
         obj, records, settings, name=name, generator=torch.Generator().manual_seed(int(c.get("seed", 0))),
-        meta={"data": [str(f) for f in folders], "pushes": len(records)},
+        meta={"data": [str(f) for f in folders], "pushes": len(records)}, partial_data=partial_data,
     )
     path = model.save(out_dir / "model.npz")
     seconds = time.perf_counter() - start
@@ -92,6 +111,7 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
         "object": obj.name,
         "pushes": len(records),
         "valid_pushes": int(records.valid.sum()),
+        "partial_data": partial_data,
         "actions": model.actions.tolist(),
         "contact_frames": len(model.contact.frames),
         "position_frames": len(model.position.frames),

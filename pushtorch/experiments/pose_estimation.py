@@ -41,6 +41,7 @@ from pushtorch.experiments.common import (
     summarise,
 )
 from pushtorch.metrics import accuracy
+from pushtorch.paths import contained_path
 
 __all__ = ["run", "run_part"]
 
@@ -71,7 +72,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     for obj in objects:
         truth = obj.resting_pose(0.0, 0.0, math.radians(float(part["yaw_deg"])))
         cloud, observed = observe(obj, truth, ctx.settings)
-        path = ctx.run_dir / "predictions" / f"{name}_{obj.name}.npz"
+        path = contained_path(ctx.run_dir, "predictions", f"{name}_{obj.name}.npz", what="experiment or object name")
         made_from = fingerprint(name=name, object=obj.name, seed=ctx.seed, runs=runs,
                                 yaw=float(part["yaw_deg"]), settings=asdict(ctx.settings))
         estimated = _cached_estimates(path, made_from)

@@ -45,7 +45,9 @@ def closest_points_on_mesh(mesh: trimesh.Trimesh, points: Tensor) -> tuple[Tenso
     open3d's ray-casting scene answers the query exactly (a BVH over the triangles), as the paper's
     "closest point of each triangular polygon in the mesh of the robot's manipulator".
     """
-    import open3d as o3d
+    from pushtorch.deps import import_open3d
+
+    o3d = import_open3d()
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(

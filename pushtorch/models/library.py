@@ -7,8 +7,12 @@ action from the push records (stage two), with the settings used at prediction t
 the one whose manipulator contact model has the lowest feature-distance heuristic ``H_r``.
 
 Model files are ``.npz`` archives read with ``allow_pickle=False``: tensors plus one JSON header
-(format name, version, settings, SHA-256 of every array). A file of another version, a corrupt file or
-one whose arrays were edited is refused with :class:`~pushtorch.errors.RecordFormatError`.
+(format name, version, settings, SHA-256 of every array), sealed by one SHA-256 over every byte of the
+archive before it, kept as the archive's 64-character zip comment. Any edited byte (an array, the header's
+action count or a setting, the zip structure) breaks the seal. A file of another version, a corrupt,
+edited or malformed file, or one whose settings construction would refuse is refused with
+:class:`~pushtorch.errors.RecordFormatError`. Saving is atomic; the temporaries a killed save leaves are
+removed by the next save to the same path.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import zipfile
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
@@ -33,11 +37,23 @@ from pushtorch.models.position import PositionModel, fit_position_model
 from pushtorch.objects import ObjectModel
 from pushtorch.perception import capture_full_cloud
 
-__all__ = ["FORMAT", "VERSION", "ModelLibrary", "ModelSettings", "PushModel", "load_model", "train_push_model"]
+__all__ = [
+    "FORMAT",
+    "VERSION",
+    "ModelLibrary",
+    "ModelSettings",
+    "PushModel",
+    "as_generator",
+    "check_action",
+    "load_model",
+    "train_push_model",
+]
 
 FORMAT = "pushtorch.push_model"
-# 2: motion kernels expressed in the robot's start frame (version 1: at the contact point)
-VERSION = 2
+# 3: the whole file sealed by one SHA-256 and a partial_data header field (2: only the arrays were
+# checksummed; motion kernels in the robot's start frame since 2, at the contact point in 1)
+VERSION = 3
+_SEAL_BYTES = 64  # hex SHA-256 of the archive before it, stored as the zip comment
 
 
 @dataclass(frozen=True)
@@ -93,8 +109,12 @@ class ModelSettings:
             if not (numeric and (value >= 0 if zero_ok else value > 0)):
                 kind = "a number >= 0" if zero_ok else "a positive number"
                 raise InvalidParameterError(f"model setting {f.name} must be {kind}, got {value!r}")
-        if int(self.polish_steps) != self.polish_steps:
-            raise InvalidParameterError(f"polish_steps must be an integer >= 0, got {self.polish_steps!r}")
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.type == "int":  # a count: 2.5 kernels would be silently floored
+                if int(value) != value:
+                    raise InvalidParameterError(f"model setting {f.name} must be an integer, got {value!r}")
+                object.__setattr__(self, f.name, int(value))  # 3000.0 from a config is the count 3000
         if self.fast_anneal_fraction > 1:
             raise InvalidParameterError(f"fast_anneal_fraction must be in (0, 1], got {self.fast_anneal_fraction}")
         if self.alpha_t <= 1:
@@ -109,6 +129,8 @@ class ModelSettings:
     def from_mapping(mapping) -> ModelSettings:
         """Settings from a dict / Hydra node; unknown keys are an error (a typo would be silent)."""
         known = {f.name for f in fields(ModelSettings)}
+        if not isinstance(mapping, Mapping):
+            raise InvalidParameterError(f"model settings must be a mapping of names to numbers, got {mapping!r}")
         extra = set(mapping) - known
         if extra:
             raise InvalidParameterError(f"unknown model settings: {sorted(extra)}; known: {sorted(known)}")
@@ -126,6 +148,8 @@ class PushModel:
     position: PositionModel
     motions: list[MotionModel]
     meta: dict = field(default_factory=dict)
+    #: None when trained on every push its runs promised; else what was missing (``train(allow_partial)``)
+    partial_data: dict | None = None
 
     @property
     def actions(self) -> torch.Tensor:
@@ -133,11 +157,15 @@ class PushModel:
         return torch.stack([m.action for m in self.motions])
 
     def action_index(self, action) -> int:
-        """Index of the model's action nearest ``action`` (raises if none is within 1e-6)."""
-        a = torch.as_tensor(action, dtype=self.actions.dtype).reshape(2)
+        """Index of the model's action equal to ``action`` within 1e-6.
+
+        Raises:
+            InvalidParameterError: not two finite numbers, or an action the model was not trained for.
+        """
+        a = check_action(action).to(self.actions.dtype)
         d = (self.actions - a).abs().amax(-1)
         i = int(d.argmin())
-        if d[i] > 1e-6:
+        if not d[i] <= 1e-6:
             raise InvalidParameterError(
                 f"model {self.name!r} was not trained for action {a.tolist()}; it knows {self.actions.tolist()}"
             )
@@ -158,8 +186,12 @@ class PushModel:
         return out
 
     def save(self, path: str | Path) -> Path:
-        """Write the model atomically to ``path`` (``.npz``, no pickle)."""
-        from pushtorch.sim.records import atomic_write_bytes
+        """Write the model atomically to ``path`` (sealed ``.npz``, no pickle).
+
+        Saves to one folder are serialised by a lock on the folder, under which the temporaries a
+        killed save to ``path`` left behind are removed.
+        """
+        from pushtorch.sim.records import atomic_write_bytes, folder_lock, temporary_files
 
         arrays = {k: v.detach().cpu().numpy() for k, v in self.arrays().items()}
         header = {
@@ -171,14 +203,77 @@ class PushModel:
             "contact": {"cutoff": self.contact.cutoff, "drop_off": self.contact.drop_off},
             "actions": len(self.motions),
             "meta": self.meta,
+            "partial_data": self.partial_data,
             "sha256": {k: _digest(v) for k, v in arrays.items()},
         }
-        buffer = io.BytesIO()
-        np.savez(buffer, __header__=np.frombuffer(json.dumps(header).encode(), dtype=np.uint8), **arrays)
+        data = _sealed_archive(header, arrays)
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(path, buffer.getvalue())
+        with folder_lock(path.parent):  # no other save to this folder is mid-write now
+            for orphan in temporary_files(path.parent, path.name):
+                orphan.unlink(missing_ok=True)
+            atomic_write_bytes(path, data)
         return path
+
+
+def check_action(action) -> torch.Tensor:
+    """``action`` as a float64 ``(2,)`` tensor (ẋ m/s, θ̇ rad/s), or a clear error.
+
+    Raises:
+        InvalidParameterError: not numeric, not exactly two numbers, or NaN/infinite.
+    """
+    try:
+        a = torch.as_tensor(action, dtype=torch.float64) if not isinstance(action, torch.Tensor) else action
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise InvalidParameterError(f"an action must be two numbers (ẋ m/s, θ̇ rad/s), got {action!r}") from exc
+    if a.is_complex() or a.dtype == torch.bool or a.numel() != 2:
+        raise InvalidParameterError(
+            f"an action must be two real numbers (ẋ m/s, θ̇ rad/s), got shape {tuple(a.shape)} of {a.dtype}"
+        )
+    a = a.detach().reshape(2).to(torch.float64)
+    if not torch.isfinite(a).all():
+        raise InvalidParameterError(f"an action must be finite, got {a.tolist()}")
+    return a
+
+
+def _sealed_archive(header: dict, arrays: dict[str, np.ndarray]) -> bytes:
+    """The ``.npz`` bytes of ``header`` and ``arrays``, sealed: the zip comment is the hex SHA-256 of
+    every byte before it (the comment length in the end record included)."""
+    buffer = io.BytesIO()
+    np.savez(buffer, __header__=np.frombuffer(json.dumps(header).encode(), dtype=np.uint8), **arrays)
+    data = buffer.getvalue()
+    # numpy writes no zip comment: the archive ends with the 22-byte end record, comment length 0
+    if data[-22:-18] != b"PK\x05\x06" or data[-2:] != b"\x00\x00":
+        raise RecordFormatError("numpy wrote an archive without the expected zip end record")
+    body = data[:-2] + _SEAL_BYTES.to_bytes(2, "little")
+    return body + hashlib.sha256(body).hexdigest().encode()
+
+
+def _unsealed(path: Path, data: bytes) -> None:
+    """Raise unless ``data`` ends with the seal of everything before it."""
+    body, seal = data[:-_SEAL_BYTES], data[-_SEAL_BYTES:]
+    if len(data) <= _SEAL_BYTES or hashlib.sha256(body).hexdigest().encode() != seal:
+        raise RecordFormatError(
+            f"{path} fails its checksum: the file was edited or is corrupt (its SHA-256 seal over the header"
+            " and every array does not match); retrain or restore the model"
+        )
+
+
+def as_generator(generator: torch.Generator | int | None) -> torch.Generator | None:
+    """A ``torch.Generator`` as given, a new one seeded with an int, or None (torch's global stream).
+
+    Raises:
+        InvalidParameterError: anything else (a float, a string, a negative or too large seed).
+    """
+    if generator is None or isinstance(generator, torch.Generator):
+        return generator
+    if isinstance(generator, int | np.integer) and not isinstance(generator, bool):
+        if not 0 <= int(generator) < 2**64:
+            raise InvalidParameterError(f"a seed must be an integer in [0, 2**64), got {generator}")
+        return torch.Generator().manual_seed(int(generator))
+    raise InvalidParameterError(
+        f"generator must be a torch.Generator or an integer seed, got {type(generator).__name__} {generator!r}"
+    )
 
 
 def _digest(array: np.ndarray) -> str:
@@ -192,31 +287,86 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> PushMode
     """Read a model file written by :meth:`PushModel.save` (no code runs on load).
 
     Raises:
-        RecordFormatError: missing, unreadable, of another format or version, or any array whose
-            checksum does not match the header (a corrupt or edited file).
+        RecordFormatError: missing, unreadable, of another format or version, a broken seal or array
+            checksum (a corrupt or edited file), a malformed header, or settings that
+            :class:`ModelSettings` refuses.
     """
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as archive:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise RecordFormatError(f"{path} is not a readable pushtorch model file: {exc.strerror or exc}") from exc
+    version = _format_version(data)
+    if version is not None and version != VERSION:  # before the seal: older versions have none
+        raise RecordFormatError(
+            f"{path} is model format version {version}, this pushtorch reads version {VERSION}: "
+            "retrain the model with this version (python -m pushtorch.train ...)"
+        )
+    _unsealed(path, data)
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as archive:
             arrays = {k: archive[k] for k in archive.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+    except Exception as exc:  # zipfile, numpy format and pickle refusals alike
         raise RecordFormatError(f"{path} is not a readable pushtorch model file: {exc}") from exc
     try:
         header = json.loads(arrays.pop("__header__").tobytes().decode())
     except (KeyError, ValueError, UnicodeDecodeError) as exc:
         raise RecordFormatError(f"{path} has no valid pushtorch model header") from exc
-    if header.get("format") != FORMAT:
-        raise RecordFormatError(f"{path} is not a {FORMAT} file (format {header.get('format')!r})")
+    if not isinstance(header, dict) or header.get("format") != FORMAT:
+        kind = header.get("format") if isinstance(header, dict) else type(header).__name__
+        raise RecordFormatError(f"{path} is not a {FORMAT} file (format {kind!r})")
     if header.get("version") != VERSION:
         raise RecordFormatError(
             f"{path} is model format version {header.get('version')}, this pushtorch reads version {VERSION}"
         )
-    expected = header.get("sha256", {})
-    if set(expected) != set(arrays):
+    expected = header.get("sha256")
+    if not isinstance(expected, dict) or set(expected) != set(arrays):
         raise RecordFormatError(f"{path}: the arrays in the file do not match its header (edited file?)")
     for name, array in arrays.items():
         if _digest(array) != expected[name]:
             raise RecordFormatError(f"{path}: array {name!r} fails its checksum (corrupt or edited file)")
+    try:
+        return _model_from(header, arrays, dtype)
+    except InvalidParameterError as exc:
+        raise RecordFormatError(f"{path} holds settings this pushtorch refuses: {exc}") from exc
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError) as exc:
+        raise RecordFormatError(f"{path} has a malformed header or arrays ({type(exc).__name__}: {exc})") from exc
+
+
+def _format_version(data: bytes) -> object:
+    """The version in the header of a model file of this format, or None (not one, or unreadable)."""
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as archive:
+            header = json.loads(archive["__header__"].tobytes().decode())
+        return header.get("version") if header.get("format") == FORMAT else None
+    except Exception:  # anything unreadable is reported after the seal check
+        return None
+
+
+def _model_from(header: dict, arrays: dict[str, np.ndarray], dtype: torch.dtype) -> PushModel:
+    """Build the model of a checked file; every header field is type-checked here, so a malformed one
+    raises a KeyError/TypeError/ValueError that :func:`load_model` reports as a RecordFormatError."""
+
+    def typed(key: str, kind: type | tuple[type, ...]):
+        value = header[key]
+        if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
+            raise TypeError(f"header field {key!r} must be {kind}, got {value!r}")
+        return value
+
+    n_actions = typed("actions", int)
+    motion_arrays = {k.split(".", 1)[0] for k in arrays if k.startswith("motion")}
+    if n_actions < 1 or motion_arrays != {f"motion{i}" for i in range(n_actions)}:
+        raise ValueError(f"the header's action count {n_actions} does not match the arrays' motion models"
+                         f" {sorted(motion_arrays)}")
+    contact = typed("contact", dict)
+    cutoff, drop_off = contact["cutoff"], contact["drop_off"]
+    for key, value in (("contact.cutoff", cutoff), ("contact.drop_off", drop_off)):
+        if not isinstance(value, int | float) or isinstance(value, bool) or not np.isfinite(value) or value <= 0:
+            raise ValueError(f"header field {key} must be a positive number, got {value!r}")
+    partial = header.get("partial_data")
+    if partial is not None and not isinstance(partial, dict):
+        raise TypeError(f"header field 'partial_data' must be null or an object, got {partial!r}")
+    settings = ModelSettings.from_mapping(typed("settings", dict))
     t = {k: torch.from_numpy(np.array(v)).to(dtype) for k, v in arrays.items()}
     motions = [
         MotionModel(
@@ -225,18 +375,19 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> PushMode
             MotionKernels.from_arrays(t, f"motion{i}.environment"),
             se3.Pose(t[f"motion{i}.mean_motion_p"], t[f"motion{i}.mean_motion_q"]),
         )
-        for i in range(int(header["actions"]))
+        for i in range(n_actions)
     ]
+    for m in motions:
+        check_action(m.action)
     return PushModel(
-        name=header["name"],
-        object_name=header["object_name"],
-        settings=ModelSettings(**header["settings"]),
-        contact=ManipulatorContactModel(
-            ContactFrames.from_arrays(t, "contact"), header["contact"]["cutoff"], header["contact"]["drop_off"]
-        ),
+        name=typed("name", str),
+        object_name=typed("object_name", str),
+        settings=settings,
+        contact=ManipulatorContactModel(ContactFrames.from_arrays(t, "contact"), cutoff, drop_off),
         position=PositionModel(ContactFrames.from_arrays(t, "position"), t["position.descriptor_std"]),
         motions=motions,
-        meta=header.get("meta", {}),
+        meta=typed("meta", dict),
+        partial_data=partial,
     )
 
 
@@ -263,8 +414,9 @@ def train_push_model(
     records,
     settings: ModelSettings | None = None,
     name: str | None = None,
-    generator: torch.Generator | None = None,
+    generator: torch.Generator | int | None = None,
     meta: dict | None = None,
+    partial_data: dict | None = None,
 ) -> PushModel:
     """Train a model from an object and its push records (paper, Fig. pipeline, both training stages).
 
@@ -276,6 +428,8 @@ def train_push_model(
         obj: the training object.
         records: :class:`pushtorch.sim.records.PushRecords` of this object (invalid pushes are skipped).
         settings: model settings (default: the paper's).
+        generator: a seeded ``torch.Generator`` or an int seed.
+        partial_data: set when the records are only part of their runs (kept in the model file).
     Raises:
         InvalidParameterError: no valid record.
     """
@@ -283,6 +437,7 @@ def train_push_model(
     from pushtorch.sim.push import place_robot_against
 
     settings = settings or ModelSettings()
+    generator = as_generator(generator)
     valid = records.take(records.valid)
     if len(valid) == 0:
         raise InvalidParameterError("no valid push record (every push tipped, lifted or missed the object)")
@@ -308,7 +463,7 @@ def train_push_model(
                 settings.contact_cutoff, settings.contact_drop_off, generator,
             )
         )
-    return PushModel(name or obj.name, obj.name, settings, contact, position, motions, meta or {})
+    return PushModel(name or obj.name, obj.name, settings, contact, position, motions, meta or {}, partial_data)
 
 
 class ModelLibrary:

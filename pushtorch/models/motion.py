@@ -328,7 +328,14 @@ class MotionDensity:
 
         ``method``: ``"dense"`` (reference) or ``"fast"`` (:meth:`shared_product`: each contact kind's
         kernels evaluated once for all of its experts, fused; same values up to float rounding).
+
+        Raises:
+            InvalidPoseError: (both methods alike) misshaped, non-finite or non-unit poses.
+            InvalidParameterError: an unknown method.
         """
+        if method not in ("dense", "fast"):
+            raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
+        se3.check_pose(final_pose, "final pose")
         if method == "fast":
             flat = se3.Pose(final_pose.p.reshape(-1, 3), final_pose.q.reshape(-1, 4))
             return self.shared_product().log_prob(flat).reshape(final_pose.p.shape[:-1])
@@ -452,7 +459,8 @@ def anneal_motion_densities(
         rounds[b] = density.shared_product().rounds
         log_wp[:e, b] = density.expert_log_weight.to(dtype)
         mask[:e, b] = True
-    product = SharedKernelProduct(se3.Pose(p, q), log_w, first.bandwidth, rounds, log_wp, mask)
+    # its only queries are the annealing's own (finite, normalised) candidates: no per-step checks
+    product = SharedKernelProduct(se3.Pose(p, q), log_w, first.bandwidth, rounds, log_wp, mask, validate_args=False)
     init = se3.Pose(torch.stack([s.p for s in starts]), torch.stack([s.q for s in starts]))  # (B, C)
     result = anneal(product.log_prob, init, schedule, generator, record_history=record_history, method="fast")
     result = polish_candidates(result, product.mean_shift, product.log_prob, polish_steps)

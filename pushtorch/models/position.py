@@ -111,7 +111,10 @@ def centroid_pose(points: Tensor) -> se3.Pose:
 def _nearest_model_search(model_points: Tensor):
     """An open3d nearest-neighbour index over the model points (object frame)."""
     import numpy as np
-    import open3d as o3d
+
+    from pushtorch.deps import import_open3d
+
+    o3d = import_open3d()
 
     if model_points.shape[0] == 0:
         raise InvalidPointCloudError("surface fit needs model points")
@@ -137,7 +140,10 @@ def _capped_distance_grid(model_points: Tensor, search, cap: float) -> tuple[Ten
 def _nearest_distances(search, points: Tensor) -> Tensor:
     """Distance of each of ``points (..., 3)`` to its nearest indexed point."""
     import numpy as np
-    import open3d as o3d
+
+    from pushtorch.deps import import_open3d
+
+    o3d = import_open3d()
 
     queries = o3d.core.Tensor(np.ascontiguousarray(points.reshape(-1, 3).detach().cpu().numpy(), dtype=np.float32))
     _, squared = search.knn_search(queries, 1)

@@ -17,17 +17,25 @@ Shard format (version 1), in a run's ``pushes/`` folder:
 Both files are written to a temporary name, flushed to disk and renamed into place (``os.replace``), the
 ``.json`` last: a shard exists exactly when its manifest does and the hash matches, so a run killed at any
 moment never leaves a half shard that a loader or a resumed run would take as finished.
+
+A run's shard folder also holds ``manifest.json`` (written by :mod:`pushtorch.sim.runner`): the plan's push
+count, shard size, seed and digests of its push indices and actions (:func:`plan_digests`). Loading a
+folder checks its records against it (:func:`run_status`, :func:`load_records`): exactly the shards and
+push indices it promises, each push's action, no duplicates, finite poses and unit quaternions. An
+unfinished run is refused with what is missing and how to resume it, unless ``allow_partial``.
 """
 
 from __future__ import annotations
 
+import glob
 import hashlib
 import io
 import json
 import os
 import re
 import uuid
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -35,18 +43,23 @@ import numpy as np
 import torch
 
 from pushtorch import se3
-from pushtorch.errors import RecordFormatError
+from pushtorch.errors import FolderInUseError, IncompleteRunError, RecordFormatError
 
 __all__ = [
     "ARRAYS",
     "FORMAT",
     "VERSION",
     "PushRecords",
+    "RUN_MANIFEST",
+    "RunStatus",
     "atomic_write_bytes",
     "complete_shards",
+    "folder_lock",
     "load_records",
+    "plan_digests",
     "read_shard",
     "records_from_arrays",
+    "run_status",
     "shard_stem",
     "write_shard",
 ]
@@ -83,6 +96,16 @@ ARRAYS: dict[str, tuple[str, tuple[str | int, ...]]] = {
 }
 
 _SHARD_RE = re.compile(r"^shard-(\d{6,})\.json$")
+
+#: The run manifest in a shard folder (see the module docstring).
+RUN_MANIFEST = "manifest.json"
+
+#: Largest distance of a stored quaternion's norm from 1 (they are normalised float64 when written).
+UNIT_QUATERNION_TOLERANCE = 1e-3
+
+#: Pose arrays of a shard that must be finite, as (position array, quaternion array) pairs.
+_POSES = [(f"{name}_p", f"{name}_q") for name in
+          ("object_initial", "object_final", "robot_start", "object_trajectory", "robot_trajectory")]
 
 
 @dataclass
@@ -225,6 +248,43 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
         pass
 
 
+def temporary_files(folder: str | Path, name: str) -> list[Path]:
+    """The temporaries :func:`atomic_write_bytes` leaves for ``folder/name`` when killed mid-write."""
+    return sorted(Path(folder).glob(f".{glob.escape(name)}.tmp-*"))
+
+
+@contextmanager
+def folder_lock(folder: str | Path, wait: bool = True, holder: str = "another process") -> Iterator[None]:
+    """Hold an exclusive ``fcntl.flock`` on ``folder`` itself (no lock file is left behind).
+
+    The lock belongs to this open descriptor: it is released when the block ends or the process dies
+    (a killed run never leaves a stale lock). Processes forked while it is held inherit the descriptor,
+    so take it after starting worker pools. Only processes that take the lock are excluded; local
+    filesystems honour it (NFS may not).
+
+    Args:
+        folder: an existing folder.
+        wait: block until the lock is free; False raises at once when another process holds it.
+        holder: who holds the lock, for the message.
+
+    Raises:
+        FolderInUseError: ``wait`` is False and the folder is locked.
+    """
+    import fcntl
+
+    fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+        except BlockingIOError as exc:
+            raise FolderInUseError(
+                f"{folder} is being written by {holder}; wait for it to finish or use another folder"
+            ) from exc
+        yield
+    finally:
+        os.close(fd)  # closing the descriptor releases the lock
+
+
 def _check_arrays(arrays: Mapping[str, np.ndarray], where: str) -> tuple[int, int]:
     """Validate names, dtypes and shapes against :data:`ARRAYS`; return (N, T)."""
     missing = sorted(set(ARRAYS) - set(arrays))
@@ -324,7 +384,24 @@ def read_shard(path: str | Path) -> dict[str, np.ndarray]:
     n, _ = _check_arrays(arrays, str(npz_path))
     if n != manifest.get("count"):
         raise RecordFormatError(f"{npz_path} holds {n} pushes, its manifest says {manifest.get('count')}")
+    _check_values(arrays, str(npz_path))
     return arrays
+
+
+def _check_values(arrays: Mapping[str, np.ndarray], where: str) -> None:
+    """Finite poses, unit quaternions, finite actions, masses and frictions (the shapes are checked)."""
+    for p_name, q_name in _POSES:
+        p, q = np.asarray(arrays[p_name], dtype=np.float64), np.asarray(arrays[q_name], dtype=np.float64)
+        if not (np.isfinite(p).all() and np.isfinite(q).all()):
+            raise RecordFormatError(f"{where}: {p_name[:-2]} poses hold NaN or infinite values")
+        off = np.abs(np.linalg.norm(q, axis=-1) - 1.0)
+        if off.size and off.max() > UNIT_QUATERNION_TOLERANCE:
+            raise RecordFormatError(
+                f"{where}: {q_name} holds quaternions that are not unit length (off by up to {off.max():.3g})"
+            )
+    for name in ("action", "mass", "ground_friction", "object_friction", "time"):
+        if not np.isfinite(np.asarray(arrays[name], dtype=np.float64)).all():
+            raise RecordFormatError(f"{where}: {name} holds NaN or infinite values")
 
 
 def complete_shards(folder: str | Path, verify: bool = True) -> dict[int, Path]:
@@ -390,6 +467,208 @@ def records_from_arrays(
     )
 
 
+def plan_digests(index: np.ndarray, action_index: np.ndarray, action: np.ndarray) -> dict:
+    """What a run manifest records of its plan's pushes, so a loader can check records against it.
+
+    Returns:
+        ``index_first``: the first push index if the indices run consecutively (else None: then only
+        the complete run is checked, by ``index_sha256``); ``index_sha256``, ``action_sha256``: SHA-256 of
+        the plan's int64 indices and float64 actions in plan order; ``action_runs``: the plan's action
+        indices run-length encoded, ``[[action_index, count], ...]``; ``actions``: action index → its
+        action where every push of it shares one (else None).
+    """
+    index = np.ascontiguousarray(index, dtype=np.int64).reshape(-1)
+    action_index = np.ascontiguousarray(action_index, dtype=np.int64).reshape(-1)
+    action = np.ascontiguousarray(action, dtype=np.float64).reshape(-1, 2)
+    consecutive = index.size == 0 or bool(np.array_equal(index, np.arange(index[0], index[0] + index.size)))
+    runs: list[list[int]] = []
+    for a in action_index.tolist():
+        if runs and runs[-1][0] == a:
+            runs[-1][1] += 1
+        else:
+            runs.append([a, 1])
+    actions: dict[str, list[float]] | None = {}
+    for a in np.unique(action_index).tolist():
+        values = np.unique(action[action_index == a], axis=0)
+        if len(values) != 1:
+            actions = None
+            break
+        actions[str(a)] = values[0].tolist()
+    return {
+        "index_first": int(index[0]) if consecutive and index.size else None,
+        "index_sha256": hashlib.sha256(index.tobytes()).hexdigest(),
+        "action_sha256": hashlib.sha256(action.tobytes()).hexdigest(),
+        "action_runs": runs,
+        "actions": actions,
+    }
+
+
+@dataclass
+class RunStatus:
+    """How much of a run its shard folder holds (:func:`run_status`).
+
+    Attributes:
+        folder: the shard folder; pushes: pushes the run's manifest promises; shard_size: pushes per shard.
+        finished: ids of the finished shards; missing: ids of the shards not finished yet.
+        missing_pushes: pushes in the missing shards; missing_by_action: action index → pushes missing.
+        actions_per_index: action index → pushes the plan has of it.
+        resume: how to resume the run (recorded by whoever started it), or None.
+    """
+
+    folder: Path
+    pushes: int
+    shard_size: int
+    finished: list[int]
+    missing: list[int]
+    missing_pushes: int
+    missing_by_action: dict[int, int]
+    actions_per_index: dict[int, int]
+    resume: str | None
+
+    @property
+    def complete(self) -> bool:
+        return not self.missing
+
+    def describe(self) -> str:
+        """One line: what is missing and how to resume."""
+        absent = [a for a, k in self.missing_by_action.items() if k == self.actions_per_index.get(a)]
+        short = {a: k for a, k in self.missing_by_action.items() if k and a not in absent}
+        parts = []
+        if absent:
+            parts.append(f"action{'s' if len(absent) > 1 else ''} {', '.join(map(str, absent))} ha"
+                         f"{'ve' if len(absent) > 1 else 's'} no push at all")
+        if short:
+            parts.append("; ".join(f"action {a} lacks {k} of {self.actions_per_index[a]}" for a, k in short.items()))
+        shards = _ranges(self.missing)
+        detail = f" ({'; '.join(parts)})" if parts else ""
+        resume = self.resume or "rerun the same simulation (same configuration and seed) into this folder"
+        return (
+            f"{self.folder} is an unfinished run: {self.missing_pushes} of the {self.pushes} pushes its manifest"
+            f" promises are missing (shard{'s' if len(self.missing) > 1 else ''} {shards} of"
+            f" {len(self.finished) + len(self.missing)}){detail}. Resume it: {resume}"
+        )
+
+
+def _ranges(ids: list[int]) -> str:
+    """``[0, 1, 2, 5]`` → ``"0-2, 5"``."""
+    out, start = [], None
+    for k, i in enumerate(ids):
+        if start is None:
+            start = i
+        if k + 1 == len(ids) or ids[k + 1] != i + 1:
+            out.append(str(start) if start == i else f"{start}-{i}")
+            start = None
+    return ", ".join(out)
+
+
+def _read_run_manifest(folder: Path) -> dict | None:
+    path = folder / RUN_MANIFEST
+    if not path.is_file():
+        return None
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise RecordFormatError(f"{path} is not a readable run manifest: {exc}") from exc
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        raise RecordFormatError(f"{path} is not a {FORMAT} run manifest")
+    if manifest.get("version") != VERSION:
+        raise RecordFormatError(f"{path} has format version {manifest.get('version')}, this reader knows {VERSION}")
+    for key in ("pushes", "shard_size"):
+        value = manifest.get(key)
+        if not isinstance(value, int) or isinstance(value, bool) or value < (1 if key == "shard_size" else 0):
+            raise RecordFormatError(f"{path}: {key} must be a non-negative integer, got {value!r}")
+    return manifest
+
+
+def _expected_action_index(manifest: dict) -> np.ndarray | None:
+    runs = manifest.get("action_runs")
+    if not isinstance(runs, list):
+        return None
+    try:
+        expected = np.concatenate([np.full(int(n), int(a), dtype=np.int64) for a, n in runs]) if runs else \
+            np.zeros(0, dtype=np.int64)
+    except (TypeError, ValueError) as exc:
+        raise RecordFormatError(f"the run manifest's action_runs are malformed: {exc}") from exc
+    if len(expected) != manifest["pushes"]:
+        raise RecordFormatError("the run manifest's action_runs do not cover its pushes")
+    return expected
+
+
+def run_status(path: str | Path) -> RunStatus | None:
+    """How much of its run a shard folder (or a run folder with ``pushes/``) holds; None without a run
+    manifest (a folder of loose shards).
+
+    Raises:
+        RecordFormatError: an unreadable run manifest, or a finished shard the run does not promise.
+    """
+    folder = _shard_folder(Path(path))
+    manifest = _read_run_manifest(folder)
+    if manifest is None:
+        return None
+    n, size = manifest["pushes"], manifest["shard_size"]
+    n_shards = (n + size - 1) // size
+    finished = sorted(complete_shards(folder, verify=False))
+    extra = [k for k in finished if k >= n_shards]
+    if extra:
+        raise RecordFormatError(
+            f"{folder} holds shard {extra[0]}, beyond the {n_shards} shards its run promises (a shard of another run?)"
+        )
+    missing = [k for k in range(n_shards) if k not in set(finished)]
+    expected = _expected_action_index(manifest)
+    by_action: dict[int, int] = {}
+    per_index: dict[int, int] = {}
+    if expected is not None:
+        per_index = {int(a): int(c) for a, c in zip(*np.unique(expected, return_counts=True), strict=True)}
+        for k in missing:
+            for a, c in zip(*np.unique(expected[k * size:(k + 1) * size], return_counts=True), strict=True):
+                by_action[int(a)] = by_action.get(int(a), 0) + int(c)
+    missing_pushes = sum(min(size, n - k * size) for k in missing)
+    resume = manifest.get("resume") if isinstance(manifest.get("resume"), str) else None
+    return RunStatus(folder, n, size, finished, missing, missing_pushes, by_action, per_index, resume)
+
+
+def _check_against_manifest(shards: dict[int, dict[str, np.ndarray]], manifest: dict, folder: Path,
+                            complete: bool) -> None:
+    """Every loaded shard holds exactly the pushes the run manifest promises at its place."""
+    n, size = manifest["pushes"], manifest["shard_size"]
+    expected_actions = _expected_action_index(manifest)
+    first = manifest.get("index_first")
+    actions = manifest.get("actions")
+    for k, arrays in shards.items():
+        where = f"{folder / shard_stem(k)}.npz"
+        count = min(size, n - k * size)
+        if len(arrays["index"]) != count:
+            raise RecordFormatError(f"{where} holds {len(arrays['index'])} pushes, the run promises {count} there")
+        if isinstance(first, int) and not np.array_equal(
+            arrays["index"], np.arange(first + k * size, first + k * size + count)
+        ):
+            raise RecordFormatError(
+                f"{where} holds push indices {int(arrays['index'].min())}-{int(arrays['index'].max())}, the run"
+                f" promises {first + k * size}-{first + k * size + count - 1} there (a duplicated or moved shard?)"
+            )
+        if expected_actions is not None and not np.array_equal(
+            arrays["action_index"], expected_actions[k * size:k * size + count]
+        ):
+            raise RecordFormatError(f"{where} holds other actions than the run promises there")
+        if isinstance(actions, dict):
+            for a in np.unique(arrays["action_index"]).tolist():
+                promised = actions.get(str(a))
+                rows = np.asarray(arrays["action"])[arrays["action_index"] == a]
+                if promised is None or not np.array_equal(rows, np.broadcast_to(promised, rows.shape)):
+                    raise RecordFormatError(f"{where} holds pushes of action {a} other than the run's {promised}")
+        if "seed" in manifest and not (np.asarray(arrays["seed"]) == manifest["seed"]).all():
+            raise RecordFormatError(f"{where} holds pushes of another seed than the run's {manifest['seed']}")
+        if "object" in manifest and not (np.asarray(arrays["object_name"]) == manifest["object"]).all():
+            raise RecordFormatError(f"{where} holds pushes of another object than the run's {manifest['object']!r}")
+    if complete and shards:
+        ordered = [shards[k] for k in sorted(shards)]
+        for key, name, dtype in (("index_sha256", "index", np.int64), ("action_sha256", "action", np.float64)):
+            if key in manifest:
+                data = np.concatenate([np.ascontiguousarray(a[name], dtype=dtype) for a in ordered])
+                if hashlib.sha256(data.tobytes()).hexdigest() != manifest[key]:
+                    raise RecordFormatError(f"{folder}: the records' push {name}s differ from the run's plan")
+
+
 def _shard_folder(path: Path) -> Path:
     if (path / "pushes").is_dir():
         return path / "pushes"
@@ -397,28 +676,51 @@ def _shard_folder(path: Path) -> Path:
 
 
 def load_records(
-    path: str | Path, dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu"
+    path: str | Path,
+    dtype: torch.dtype = torch.float32,
+    device: str | torch.device = "cpu",
+    allow_partial: bool = False,
 ) -> PushRecords:
     """Load push records: one shard (``.json``/``.npz``), a shard folder, or a run folder (its ``pushes/``).
 
-    Shards are read in push-index order, verified against their manifests and never unpickled.
+    Shards are read in push-index order, verified against their manifests and never unpickled. A folder
+    with a run manifest is checked against it: every promised shard finished, each holding exactly the
+    push indices and actions the run promises there, no push twice, finite poses, unit quaternions.
+
+    Args:
+        allow_partial: load the finished shards of an unfinished run instead of refusing it (check with
+            :func:`run_status` what is missing).
 
     Returns:
         :class:`PushRecords` with every push of every finished shard.
 
     Raises:
-        RecordFormatError: nothing to load, or a corrupt, tampered or foreign shard.
+        IncompleteRunError: an unfinished run (what is missing and how to resume it), unless ``allow_partial``.
+        RecordFormatError: nothing to load, or a corrupt, tampered, duplicated or foreign shard.
     """
     path = Path(path)
     if path.is_file():
         return records_from_arrays(read_shard(path), dtype, device)
     folder = _shard_folder(path)
+    status = run_status(folder)
+    if status is not None and not status.complete and not allow_partial:
+        raise IncompleteRunError(status.describe() + "; or train on what is there with allow_partial=true")
     shards = complete_shards(folder, verify=False)
     if not shards:
         raise RecordFormatError(f"no finished push-record shard in {path}")
-    batches = [records_from_arrays(read_shard(p), dtype, device) for _, p in sorted(shards.items())]
-    records = PushRecords.cat(batches)
+    arrays = {k: read_shard(p) for k, p in sorted(shards.items())}
+    if status is not None:
+        _check_against_manifest(arrays, _read_run_manifest(folder), folder, status.complete)
+    records = PushRecords.cat([records_from_arrays(a, dtype, device) for a in arrays.values()])
     order = torch.argsort(records.index, stable=True)
+    repeated = records.index[order][1:] == records.index[order][:-1]
+    if repeated.any():
+        twice = int(records.index[order][1:][repeated][0])
+        holders = [k for k, a in arrays.items() if twice in a["index"]]
+        raise RecordFormatError(
+            f"{folder}: push {twice} appears more than once (in shards {', '.join(map(str, holders))}): a duplicated"
+            " shard; remove the copy"
+        )
     if not torch.equal(order, torch.arange(len(records))):
         records = records.take(order)
     return records

@@ -7,6 +7,12 @@ and written by the worker itself (atomically, see :mod:`pushtorch.sim.records`).
 inputs are fixed by the plan and a world keeps no state from one push to the next, the shards do not
 depend on the number of workers or on their order, and a run that was killed resumes by simulating only
 the shards that have no finished manifest.
+
+A run claims its shard folder for as long as it runs: it holds an exclusive ``flock`` on the folder
+(:func:`pushtorch.sim.records.folder_lock`) while it checks or writes ``manifest.json`` and simulates, so a
+second run into the same folder is refused at once (:class:`~pushtorch.errors.FolderInUseError`) and two
+runs with different plans can never both pass the manifest check. The lock dies with its process: a
+killed run leaves none behind.
 """
 
 from __future__ import annotations
@@ -28,14 +34,17 @@ from pushtorch.sim.plan import PushPlan
 from pushtorch.sim.push import execute_push
 from pushtorch.sim.records import (
     FORMAT,
+    RUN_MANIFEST,
     VERSION,
     PushRecords,
     atomic_write_bytes,
     complete_shards,
+    folder_lock,
+    plan_digests,
     records_from_arrays,
     write_shard,
 )
-from pushtorch.sim.world import ObjectSpec, PushWorld, SimSettings, object_spec
+from pushtorch.sim.world import ObjectSpec, PushWorld, SimSettings, check_inside_world, object_spec
 
 __all__ = [
     "PushPool",
@@ -47,7 +56,10 @@ __all__ = [
     "simulate_pushes",
 ]
 
-MANIFEST = "manifest.json"
+MANIFEST = RUN_MANIFEST
+#: Run-manifest keys derived from the plan (``plan_sha256`` already covers them): a folder written before
+#: they existed resumes and gains them; "resume" only says how to resume and is never compared.
+_DERIVED_KEYS = ("index_first", "index_sha256", "action_sha256", "action_runs", "actions")
 
 
 def default_workers() -> int:
@@ -113,6 +125,11 @@ def simulate_arrays(world: PushWorld, plan_arrays: dict[str, np.ndarray], object
     }
 
 
+def _check_plan_inside_world(spec: ObjectSpec, settings: SimSettings, plan: PushPlan) -> None:
+    check_inside_world(spec, settings, plan.object_initial.p.numpy(), plan.object_initial.q.numpy(),
+                       plan.robot_start.p.numpy(), plan.action[:, 0].numpy(), plan.duration)
+
+
 def simulate_plan(spec: ObjectSpec, plan: PushPlan, settings: SimSettings | None = None) -> PushRecords:
     """Simulate a (small) plan in this process and return its records as float64 tensors, no files.
 
@@ -121,6 +138,7 @@ def simulate_plan(spec: ObjectSpec, plan: PushPlan, settings: SimSettings | None
     """
     if plan.object_name != spec.name:
         raise InvalidParameterError(f"the plan pushes {plan.object_name!r} but the spec is {spec.name!r}")
+    _check_plan_inside_world(spec, settings or SimSettings(), plan)
     with PushWorld(spec, settings) as world:
         arrays = simulate_arrays(world, plan.arrays(), spec.name, plan.seed, plan.duration)
     return records_from_arrays(arrays, dtype=torch.float64)
@@ -256,10 +274,11 @@ class PushPool:
         )
 
     def run(
-        self, plan: PushPlan, folder: str | Path, shard_size: int = 100, progress: bool = True
+        self, plan: PushPlan, folder: str | Path, shard_size: int = 100, progress: bool = True,
+        resume: str | None = None,
     ) -> RunSummary:
         """Simulate ``plan`` into shards in ``folder`` (see :func:`run_plan`)."""
-        return _run(plan, Path(folder), self.spec, self.settings, shard_size, progress, self._pool)
+        return _run(plan, Path(folder), self.spec, self.settings, shard_size, progress, self._pool, resume)
 
     def close(self) -> None:
         self._pool.close()
@@ -279,8 +298,9 @@ class PushPool:
             self.terminate()
 
 
-def _manifest(plan: PushPlan, spec: ObjectSpec, settings: SimSettings, shard_size: int) -> dict:
-    return {
+def _manifest(plan: PushPlan, spec: ObjectSpec, settings: SimSettings, shard_size: int,
+              resume: str | None = None) -> dict:
+    manifest = {
         "format": FORMAT,
         "version": VERSION,
         "object": spec.name,
@@ -291,11 +311,17 @@ def _manifest(plan: PushPlan, spec: ObjectSpec, settings: SimSettings, shard_siz
         "plan_sha256": plan.fingerprint(),
         "settings": asdict(settings),
     }
+    manifest.update(plan_digests(plan.index.numpy(), plan.action_index.numpy(), plan.action.numpy()))
+    manifest["resume"] = resume
+    return manifest
 
 
 def _prepare_folder(folder: Path, manifest: dict) -> None:
-    folder.mkdir(parents=True, exist_ok=True)
+    """Check ``folder``'s run manifest against ``manifest`` (or write it) and drop killed writers'
+    temporaries; the caller holds the folder's lock, so no other writer is between check and write."""
     for stale in folder.glob(".shard-*.tmp-*"):  # left by a killed writer; never a finished shard
+        stale.unlink(missing_ok=True)
+    for stale in folder.glob(f".{MANIFEST}.tmp-*"):
         stale.unlink(missing_ok=True)
     path = folder / MANIFEST
     if path.exists():
@@ -303,28 +329,43 @@ def _prepare_folder(folder: Path, manifest: dict) -> None:
             existing = json.loads(path.read_text())
         except ValueError as exc:
             raise RecordFormatError(f"{path} is not a readable run manifest: {exc}") from exc
-        changed = [k for k in manifest if existing.get(k) != manifest.get(k)]
+        if not isinstance(existing, dict):
+            raise RecordFormatError(f"{path} is not a run manifest")
+        changed = [k for k in manifest if k != "resume" and (k not in _DERIVED_KEYS or k in existing)
+                   and existing.get(k) != manifest.get(k)]
         if changed:
             raise RecordFormatError(
                 f"{folder} holds shards of a different run (differs in {', '.join(changed)}); "
                 "use a fresh folder or the same configuration to resume"
             )
+        if any(k not in existing for k in _DERIVED_KEYS) or (existing.get("resume") is None and manifest["resume"]):
+            upgraded = {**existing, **{k: manifest[k] for k in _DERIVED_KEYS}}
+            upgraded["resume"] = existing.get("resume") or manifest["resume"]
+            atomic_write_bytes(path, json.dumps(upgraded, indent=1).encode())
     else:
         atomic_write_bytes(path, json.dumps(manifest, indent=1).encode())
 
 
 def _run(plan: PushPlan, folder: Path, spec: ObjectSpec, settings: SimSettings, shard_size: int,
-         progress: bool, pool) -> RunSummary:
-    from tqdm import tqdm
-
+         progress: bool, pool, resume: str | None = None) -> RunSummary:
     if plan.object_name != spec.name:
         raise InvalidParameterError(
             f"the plan pushes {plan.object_name!r} but the workers hold {spec.name!r}"
         )
-    if int(shard_size) != shard_size or shard_size < 1:
+    if isinstance(shard_size, bool) or int(shard_size) != shard_size or shard_size < 1:
         raise InvalidParameterError(f"shard_size must be a positive integer, got {shard_size!r}")
-    shard_size = int(shard_size)
-    _prepare_folder(folder, _manifest(plan, spec, settings, shard_size))
+    _check_plan_inside_world(spec, settings, plan)  # before any folder is made
+    folder.mkdir(parents=True, exist_ok=True)
+    # claimed for the whole run: the manifest check and write, and every shard written under it
+    with folder_lock(folder, wait=False, holder="another simulation run (it holds the folder's lock)"):
+        return _run_claimed(plan, folder, spec, settings, int(shard_size), progress, pool, resume)
+
+
+def _run_claimed(plan: PushPlan, folder: Path, spec: ObjectSpec, settings: SimSettings, shard_size: int,
+                 progress: bool, pool, resume: str | None) -> RunSummary:
+    from tqdm import tqdm
+
+    _prepare_folder(folder, _manifest(plan, spec, settings, shard_size, resume))
     n = len(plan)
     n_shards = (n + shard_size - 1) // shard_size
     done = {k for k in complete_shards(folder) if k < n_shards}
@@ -368,6 +409,7 @@ def run_plan(
     shard_size: int = 100,
     progress: bool = True,
     start_method: str | None = None,
+    resume: str | None = None,
 ) -> RunSummary:
     """Simulate every push of ``plan`` into shards in ``folder``, in parallel, resuming a killed run.
 
@@ -383,6 +425,8 @@ def run_plan(
         shard_size: pushes per shard (and per task).
         progress: show a tqdm progress bar.
         start_method: see :class:`PushPool`.
+        resume: how a user resumes this run if it is killed (e.g. the command line), kept in the run
+            manifest for the message of :func:`pushtorch.sim.records.load_records`.
 
     Returns:
         A :class:`RunSummary`.
@@ -390,11 +434,12 @@ def run_plan(
     Raises:
         InvalidParameterError: bad sizes, or a plan for another object.
         RecordFormatError: ``folder`` holds shards of a different run.
+        FolderInUseError: another run is writing into ``folder`` now.
     """
     settings = settings or SimSettings()
     folder = Path(folder)
     workers = int(workers) if workers else default_workers()
     if workers == 1:
-        return _run(plan, folder, spec, settings, shard_size, progress, None)
+        return _run(plan, folder, spec, settings, shard_size, progress, None, resume)
     with PushPool(spec, settings, workers, start_method) as pool:
-        return pool.run(plan, folder, shard_size, progress)
+        return pool.run(plan, folder, shard_size, progress, resume)

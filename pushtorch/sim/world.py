@@ -18,6 +18,10 @@ Design (decisions the paper leaves open, see docs/method.md):
       coefficient is fixed to ``object_friction`` (1.0 by default); the ground gets
       ``ground_friction / object_friction`` and the bumper ``bumper_friction / object_friction``, so the
       effective object-ground and object-bumper coefficients are exactly the sampled / configured ones.
+    * The world ends at the ground's edge (``ground_half_extent``, 50 m): an object beyond it would fall
+      for ever. :func:`check_inside_world` refuses push inputs whose object or robot could leave the ground
+      during the push (start position plus the distance the push can travel), or whose object starts
+      below the ground; an object that still ends below the ground box is an error, never a record.
     * The robot is the package's URDF with a fixed world link placed at the push's start pose; its planar
       joints (x, y, yaw) start at 0, so joint x points along the start heading (see pushtorch.robot). Their
       velocity motors track the commanded body twist; each planar axis is bounded by ``max_force`` and yaw
@@ -43,6 +47,7 @@ __all__ = [
     "ObjectSpec",
     "PushWorld",
     "SimSettings",
+    "check_inside_world",
     "object_spec",
     "quat_conjugate",
     "quat_multiply",
@@ -163,6 +168,71 @@ def object_spec(model) -> ObjectSpec:
     parts = tuple(np.array(p.vertices, dtype=np.float64) for p in model.collision_parts)
     faces = tuple(np.array(p.faces, dtype=np.int64) for p in model.collision_parts)
     return ObjectSpec(model.name, parts, faces, float(model.rest_height), moments, rotation)
+
+
+#: Thickness of the ground box (m); its top face is z = 0.
+GROUND_THICKNESS = 0.1
+#: How far an object may start below the ground plane (m): resting poses sit exactly on it.
+GROUND_PENETRATION_TOLERANCE = 0.005
+#: How far the robot reaches from its base origin (m): the bumper plate's corners (see the URDF).
+ROBOT_REACH = 0.5
+
+
+def check_inside_world(
+    spec: ObjectSpec,
+    settings: SimSettings,
+    object_p: np.ndarray,
+    object_q: np.ndarray,
+    robot_p: np.ndarray,
+    speed: np.ndarray | float,
+    duration: float,
+) -> None:
+    """Refuse pushes that could leave the simulated world (before any is simulated).
+
+    The ground is the square ``|x|, |y| <= ground_half_extent``; a push moves at most ``|speed| * duration``
+    m. Every object start (its centre plus its farthest point) and every robot start (plus
+    :data:`ROBOT_REACH`) must lie that far inside the edge, and no object may start below the ground
+    plane (beyond :data:`GROUND_PENETRATION_TOLERANCE`) or higher than the ground is wide.
+
+    Args:
+        object_p, object_q: ``(N, 3)``, ``(N, 4)`` object start poses (wxyz); robot_p: ``(N, 3)``;
+        speed: ``(N,)`` or a scalar, m/s; duration: s per push.
+
+    Raises:
+        InvalidParameterError: a start outside the world, naming the first push and the limit.
+    """
+    object_p = np.asarray(object_p, dtype=np.float64).reshape(-1, 3)
+    object_q = np.asarray(object_q, dtype=np.float64).reshape(-1, 4)
+    robot_p = np.asarray(robot_p, dtype=np.float64).reshape(-1, 3)
+    travel = np.abs(np.broadcast_to(np.asarray(speed, dtype=np.float64), (len(object_p),))) * float(duration)
+    half = settings.ground_half_extent
+    vertices = np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1, 3) for v in spec.parts])
+    radius = float(np.linalg.norm(vertices, axis=-1).max())
+    for what, p, margin in (("object", object_p, radius + travel), ("robot", robot_p, ROBOT_REACH + travel)):
+        outside = np.abs(p[:, :2]).max(-1) + margin > half
+        if outside.any():
+            i = int(np.argmax(outside))
+            raise InvalidParameterError(
+                f"push {i} starts the {what} at ({p[i, 0]:.3g}, {p[i, 1]:.3g}) m, which with its reach and the"
+                f" push's travel ({margin[i]:.3g} m) leaves the simulated ground |x|, |y| <= {half:g} m"
+                " (sim.ground_half_extent): place it nearer the origin"
+            )
+    # lowest point of each distinct start pose (training plans repeat one pose thousands of times)
+    poses, inverse = np.unique(np.concatenate([object_p, object_q], -1), axis=0, return_inverse=True)
+    lowest = np.array([p[2] + quat_rotate(np.broadcast_to(q, (len(vertices), 4)), vertices)[:, 2].min()
+                       for p, q in zip(poses[:, :3], poses[:, 3:], strict=True)])[inverse.reshape(-1)]
+    sunk = lowest < -GROUND_PENETRATION_TOLERANCE
+    if sunk.any():
+        i = int(np.argmax(sunk))
+        raise InvalidParameterError(
+            f"push {i} starts the object {-lowest[i]:.3g} m below the ground (z = {object_p[i, 2]:.3g} m); "
+            "place it on or above the ground (its resting pose has z = its rest height)"
+        )
+    high = object_p[:, 2] > half
+    if high.any():
+        i = int(np.argmax(high))
+        raise InvalidParameterError(f"push {i} starts the object at z = {object_p[i, 2]:.3g} m, above the"
+                                    f" simulated world (at most {half:g} m)")
 
 
 # --- small quaternion helpers (numpy, wxyz) -------------------------------------------------------
@@ -291,10 +361,10 @@ class PushWorld:
         )
         half = s.ground_half_extent
         ground_shape = pb.createCollisionShape(
-            pb.GEOM_BOX, halfExtents=[half, half, 0.05], physicsClientId=cid
+            pb.GEOM_BOX, halfExtents=[half, half, GROUND_THICKNESS / 2], physicsClientId=cid
         )
         self.ground = pb.createMultiBody(
-            0.0, ground_shape, basePosition=[0.0, 0.0, -0.05], physicsClientId=cid
+            0.0, ground_shape, basePosition=[0.0, 0.0, -GROUND_THICKNESS / 2], physicsClientId=cid
         )
         self.robot = pb.loadURDF(str(urdf_path or URDF_PATH), useFixedBase=True, physicsClientId=cid)
         if self.robot < 0:
