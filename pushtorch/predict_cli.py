@@ -10,7 +10,10 @@ friction drawn from the chosen priors, and measure H_acc. Usage::
     python -m pushtorch.predict 'models=[cube.npz,cylinder.npz]' object=mesh object.path=part.stl
 
 (``python -m pushtorch.predict_cli`` is the same app.) Output in the run directory: ``predictions.json``,
-``resolved_config.yaml`` and ``recording.rrd`` (every prediction: :func:`pushtorch.viz.model.log_prediction`).
+``resolved_config.yaml`` and ``recording.rrd``: every prediction (:func:`pushtorch.viz.model.log_prediction`,
+at ``world/model/prediction/action_<j>``) with its first ground-truth push playing on ``sim_time``, a
+markdown summary at ``metrics/summary``, and a blueprint with a tab per action
+(:func:`pushtorch.viz.blueprint.predict_blueprint`).
 """
 
 from __future__ import annotations
@@ -104,6 +107,7 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
 
         rec = open_recording(out_dir / "recording.rrd", "pushtorch_predict")
     results = []
+    logged: list[str] = []
     generator = torch.Generator().manual_seed(stable_seed(seed, "truth"))
     try:
         for i in indices:
@@ -118,7 +122,7 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
                 "initial_estimate_accuracy": _accuracy_dict(accuracy(prediction.condition.object_pose,
                                                                      truth_initial, obj)),
             }
-            truth_final = None
+            truth_final = records = None
             if samples:
                 records = simulate_pushes(
                     obj, prediction.condition.robot_start, truth_initial.expand(samples), action,
@@ -129,16 +133,23 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
                 acc = accuracy(prediction.final_pose.expand(samples), finals, obj)
                 entry["truth_final"] = [_pose_dict(finals.take(k)) for k in range(samples)]
                 entry["touched"] = records.touched.tolist()
+                # a ground truth that tipped or left the ground is no fair score for a planar prediction
+                entry["tipped_or_left_ground"] = (records.tipped | records.left_ground).tolist()
                 entry["accuracy"] = _accuracy_dict(acc)
                 truth_final = finals.take(0)
             results.append(entry)
             if rec is not None:
                 from pushtorch.viz.model import log_prediction
 
-                log_prediction(rec, prediction, truth_initial, truth_final, obj, label=f"action_{i}",
-                               cloud=features)
+                logged.append(log_prediction(rec, prediction, truth_initial, truth_final, obj,
+                                             label=f"action_{i}", cloud=features, truth_push=records))
     finally:
         if rec is not None:
+            from pushtorch.viz.blueprint import predict_blueprint
+            from pushtorch.viz.metrics import SUMMARY, log_markdown
+
+            log_markdown(rec, SUMMARY, _summary_markdown(obj.name, chosen.name, paths, distances, results))
+            rec.send_blueprint(predict_blueprint(logged, summary=SUMMARY))
             rec.disconnect()  # completes the file
     payload = {
         "object": obj.name, "truth_initial": _pose_dict(truth_initial), "models": paths,
@@ -155,6 +166,24 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
     if rec is not None:
         summary["recording"] = str(out_dir / "recording.rrd")
     return summary
+
+
+def _summary_markdown(object_name: str, model: str, paths: list[str], distances, results: list[dict]) -> str:
+    """The recording's summary: what was predicted with which model, and each action's accuracy."""
+    lines = [f"# Predicted pushes of {object_name}", "", f"Model: `{model}` (of {len(paths)} given)."]
+    if distances is not None:
+        lines.append("Feature distances H_r: " + ", ".join(f"{d:.4f}" for d in distances.tolist()) + ".")
+    lines += ["", "| action | (ẋ m/s, θ̇ rad/s) | H_acc | linear cm | angular deg | touched |",
+              "|---:|---|---:|---:|---:|---|"]
+    for entry in results:
+        acc = entry.get("accuracy")
+        numbers = (f"{acc['hacc_mean']:.3f} | {acc['linear_cm']:.2f} | {acc['angular_deg']:.1f}" if acc
+                   else "– | – | –")
+        action = ", ".join(f"{v:.3f}" for v in entry["action"])
+        lines.append(f"| {entry['action_index']} | ({action}) | {numbers} | {entry.get('touched', '–')} |")
+    lines += ["", "Ground truth: the first sample of each action plays on `sim_time` at "
+              "`world/model/prediction/action_<j>/truth_push`."]
+    return "\n".join(lines) + "\n"
 
 
 def _accuracy_dict(acc) -> dict[str, float]:

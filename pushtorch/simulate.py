@@ -9,7 +9,8 @@ robot against the object, draw the physical parameters from the prior, push, rec
         mass=general,low,medium,high
 
 Output in the run directory: ``pushes/`` (shards + ``manifest.json``, see :mod:`pushtorch.sim.records`),
-``summary.json``, ``resolved_config.yaml`` and ``pushes.rrd`` (a few pushes for Rerun). A killed run resumes
+``summary.json``, ``resolved_config.yaml`` and ``pushes.rrd`` (a few pushes for Rerun, with a blueprint that
+plays them on ``sim_time``). A killed run resumes
 when the same command is repeated with ``hydra.run.dir=<its directory>``. Configuration reaches the library
 as plain arguments through :func:`simulate_from_config`.
 """
@@ -23,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from pushtorch.cli import CONFIG_PATH, run_stage
 from pushtorch.errors import InvalidParameterError
@@ -34,9 +35,9 @@ log = logging.getLogger("pushtorch.simulate")
 
 
 def _plain(cfg: Any) -> Any:
-    if isinstance(cfg, DictConfig):
-        return OmegaConf.to_container(cfg, resolve=True)
-    return cfg
+    from pushtorch.experiments.common import plain
+
+    return plain(cfg)  # names a mandatory key left unset (``???``)
 
 
 def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) -> dict[str, Any]:
@@ -94,6 +95,7 @@ def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Pat
         shard_size=int(c.get("shard_size", 100)),
         progress=bool(c.get("progress", True)),
         start_method=c.get("start_method"),
+        resume=_resume_command(out_dir),
     )
     result: dict[str, Any] = {
         "object": model.name,
@@ -108,6 +110,7 @@ def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Pat
     }
     n_rerun = int(c.get("rerun_pushes", 0))
     if n_rerun > 0:
+        from pushtorch.viz.blueprint import pushes_blueprint
         from pushtorch.viz.core import open_recording
         from pushtorch.viz.sim import log_pushes
 
@@ -118,10 +121,21 @@ def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Pat
         order = [a * per_action + k for k in range(per_action) for a in range(count)][:n_rerun]
         rec = open_recording(out_dir / "pushes.rrd", "pushtorch_simulate")
         log_pushes(rec, records, order, model.mesh)
+        rec.send_blueprint(pushes_blueprint())  # opens on one 3D view, playing on sim_time
         rec.disconnect()  # completes the file (flush alone leaves it without its footer)
         result["rerun"] = str(out_dir / "pushes.rrd")
     (out_dir / "summary.json").write_text(json.dumps(result, indent=1))
     return result
+
+
+def _resume_command(out_dir: Path) -> str:
+    """The command that resumes this run if it is killed: the same overrides, the same run folder."""
+    import shlex
+
+    from pushtorch.cli import current_overrides
+
+    kept = [o for o in current_overrides() if not o.lstrip("+~").startswith("hydra.run.dir=")]
+    return shlex.join(["python", "-m", "pushtorch.simulate", *kept, f"hydra.run.dir={out_dir}"])
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="simulate")

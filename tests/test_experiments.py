@@ -243,8 +243,33 @@ def test_tiny_quickstart_writes_report_figures_and_recording(tiny_run):
     assert any(p.startswith("/world/model/training/cube_selection_selection") for p in paths)
     predictions = {p for p in paths if p.startswith("/world/model/prediction/")}
     assert any(p.endswith("/final_true") for p in predictions)
-    assert any("model_selection.cylinder.adaptive.c0a1" in p for p in predictions)
+    assert "/world/model/prediction/model_selection/cylinder/adaptive/c0a1/final_true" in predictions
     assert summary["recording"] == str(out / "recording.rrd")
+
+
+def test_tiny_quickstart_recording_opens_ready_to_review(tiny_run):
+    """Issue 22's acceptance: the quickstart's recording holds a blueprint, ground-truth pushes on
+    sim_time and scalar series (read back with Rerun's own reader)."""
+    from rerun.chunk import RrdReader
+
+    from pushtorch.viz.blueprint import read_blueprint
+
+    _, out, _ = tiny_run
+    blueprint = read_blueprint(out / "recording.rrd")
+    assert blueprint["timeline"] == "sim_time"
+    kinds = {view["class"] for view in blueprint["views"]}
+    assert {"3D", "TextDocument", "TimeSeries"} <= kinds
+    on_sim_time, series = set(), set()
+    for chunk in RrdReader(str(out / "recording.rrd")).store().stream().to_chunks():
+        names = chunk.to_record_batch().schema.names
+        if "sim_time" in names:
+            on_sim_time.add(str(chunk.entity_path))
+        if "Scalars:scalars" in names:
+            series.add(str(chunk.entity_path))
+    assert any(p.endswith("/truth_push/object") for p in on_sim_time)
+    assert any(p.endswith("/truth_push/robot") for p in on_sim_time)
+    assert any(p.startswith("/metrics/") and "/hacc/" in p for p in series)
+    assert any(p.endswith("/motion/best_log_prob") for p in series)
 
 
 def test_rerun_in_the_same_directory_reuses_models_and_predictions(tiny_run):

@@ -26,12 +26,14 @@ from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_
 from pushtorch.sim.runner import simulate_pushes
 from pushtorch.viz import open_recording, read_entity_paths
 from pushtorch.viz.model import (
+    ANNEAL_SERIES,
     ANNEAL_TIMELINE,
     PREDICTION,
     TRAINING,
     _range_colors,
     _subsample,
     log_anneal_history,
+    log_anneal_series,
     log_contact_model,
     log_prediction,
 )
@@ -53,7 +55,7 @@ PREDICTION_ENTITIES = (
     "motion/experts", "motion/final_candidates",
     "final_predicted", "final_predicted/mesh", "final_predicted/axes",
     "initial_true", "initial_true/mesh", "final_true", "final_true/mesh", "initial_error", "final_error",
-) + tuple(
+) + tuple(ANNEAL_SERIES) + tuple(
     f"{query}/{part}" for query in ("robot_query", "pose_query")
     for part in ("features", "kernels", "candidates", "final_candidates")
 )
@@ -75,7 +77,7 @@ def case(tmp_path_factory):
     outcome = simulate_pushes(cube, prediction.condition.robot_start, truth_initial, actions[0], 0.5, 0.3)
     truth_final = se3.Pose(outcome.object_final.p[0].float(), outcome.object_final.q[0].float())
     return dict(cube=cube, records=records, model=model, cloud=cloud, prediction=prediction,
-                truth_initial=truth_initial, truth_final=truth_final)
+                truth_initial=truth_initial, truth_final=truth_final, outcome=outcome)
 
 
 def _rows(path, entity: str, component: str) -> list[tuple[int | None, list]]:
@@ -227,6 +229,8 @@ def test_bad_arguments_raise(tmp_path, case):
         log_prediction(rec, case["prediction"], max_points=0)
     with pytest.raises(InvalidParameterError):
         log_prediction(rec, case["prediction"], label="///")
+    with pytest.raises(InvalidParameterError):  # every level needs a letter or digit
+        log_prediction(rec, case["prediction"], label="part/../c0a1")
     with pytest.raises(InvalidParameterError):
         log_prediction(rec, case["prediction"], object_mesh="cube")
     with pytest.raises(InvalidParameterError):
@@ -273,3 +277,64 @@ def _logged(path, prediction, label: str) -> set[str]:
     log_prediction(rec, prediction, label=label)
     rec.disconnect()
     return read_entity_paths(path)
+
+
+def test_hierarchical_labels_nest_the_prediction(tmp_path, case):
+    """``/`` in a label makes levels; each level is cleaned on its own; empty levels vanish."""
+    path = tmp_path / "nested.rrd"
+    rec = open_recording(path, "pushtorch_test")
+    root = log_prediction(rec, case["prediction"], label="/friction_biasing/cube/friction:low//c0a1/")
+    rec.disconnect()
+    assert root == f"{PREDICTION}/friction_biasing/cube/friction_low/c0a1"
+    assert f"/{root}/final_predicted" in read_entity_paths(path)
+
+
+def test_annealing_series_are_the_best_log_likelihood_per_step(tmp_path, case):
+    """``best_log_prob``: per step, the best of the chains' current log-likelihoods, and its running max."""
+    prediction = case["prediction"]
+    path = tmp_path / "series.rrd"
+    rec = open_recording(path, "pushtorch_test")
+    root = log_prediction(rec, prediction, label="series")
+    bare = dataclasses.replace(prediction.anneal, history_log_prob=None)
+    assert log_anneal_series(rec, "world/none", bare) is False
+    rec.disconnect()
+    for series, anneal in (("robot_query/best_log_prob", prediction.condition.robot_query.anneal),
+                           ("pose_query/best_log_prob", prediction.condition.pose_query.anneal),
+                           ("motion/best_log_prob", prediction.anneal)):
+        rows = _rows(path, f"{root}/{series}", "Scalars:scalars")
+        assert [step for step, _ in rows] == list(range(RECORDED_STEPS)), series
+        logged = np.asarray([value for _, value in rows], dtype=np.float64)  # (steps, 2)
+        history = anneal.history_log_prob.double().reshape(RECORDED_STEPS, -1)
+        expected = history.max(dim=1).values
+        expected = torch.where(torch.isfinite(expected), expected, torch.full_like(expected, float("nan")))
+        np.testing.assert_allclose(logged[:, 0], expected.numpy(), rtol=1e-12, err_msg=series)
+        so_far = np.fmax.accumulate(np.nan_to_num(logged[:, 0], nan=-np.inf))
+        np.testing.assert_allclose(logged[:, 1], np.where(np.isfinite(so_far), so_far, np.nan), err_msg=series)
+    assert f"/{PREDICTION}/none" not in read_entity_paths(path)
+
+
+def test_prediction_plays_its_ground_truth_push(tmp_path, case):
+    """With ``truth_push``, the push's object and robot move on ``sim_time`` under the prediction's root."""
+    from pushtorch.viz.sim import SIM_TIMELINE
+
+    outcome = case["outcome"]
+    path = tmp_path / "truth_push.rrd"
+    rec = open_recording(path, "pushtorch_test")
+    root = log_prediction(rec, case["prediction"], case["truth_initial"], case["truth_final"], case["cube"],
+                          label="pushed", truth_push=outcome)
+    rec.disconnect()
+    paths = read_entity_paths(path)
+    for child in ("truth_push/object", "truth_push/object/mesh", "truth_push/robot", "truth_push/robot/chassis",
+                  "truth_push/robot/bumper/mesh", "truth_push/object_path", "truth_push/robot_path"):
+        assert f"/{root}/{child}" in paths, child
+    assert f"/{root}/truth_push/object_final" not in paths  # final_true shows it already
+    from rerun.chunk import RrdReader
+
+    for entity, trajectory in (("object", outcome.object_trajectory), ("robot", outcome.robot_trajectory)):
+        rows = []
+        for chunk in RrdReader(str(path)).store().stream().to_chunks():
+            if str(chunk.entity_path) == f"/{root}/truth_push/{entity}":
+                batch = chunk.to_record_batch()
+                if SIM_TIMELINE in batch.schema.names:
+                    rows += batch.column("Transform3D:translation").to_pylist()
+        np.testing.assert_allclose(np.asarray(rows).reshape(-1, 3), trajectory.p[0].numpy(), atol=1e-6)

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
+from pushtorch import se3
 from pushtorch.errors import InvalidParameterError
 from pushtorch.objects import load_object
 from pushtorch.sim import Normal, make_actions, object_spec, plan_training_pushes, simulate_plan
@@ -46,3 +48,29 @@ def test_out_of_range_push_raises(tmp_path, records):
     rec = open_recording(tmp_path / "x.rrd")
     with pytest.raises(InvalidParameterError):
         log_push(rec, records, 3, load_object("cube").mesh)
+
+
+def test_a_push_under_a_given_root_replays_its_poses(tmp_path, records):
+    """Under ``root``: translations and (x, y, z, w) quaternions per recorded time, no final pose if asked."""
+    from rerun.chunk import RrdReader
+
+    path = tmp_path / "rooted.rrd"
+    rec = open_recording(path, "pushtorch_test")
+    root = log_push(rec, records, 1, None, root="world/model/prediction/p/truth_push", with_final_pose=False)
+    rec.disconnect()
+    assert root == "world/model/prediction/p/truth_push"
+    paths = read_entity_paths(path)
+    assert f"/{root}/object" in paths and f"/{root}/robot/bumper/mesh" in paths
+    assert f"/{root}/object_final" not in paths and f"/{root}/object/mesh" not in paths
+    for entity, trajectory in (("object", records.object_trajectory), ("robot", records.robot_trajectory)):
+        columns = {}
+        for chunk in RrdReader(str(path)).store().stream().to_chunks():
+            if str(chunk.entity_path) == f"/{root}/{entity}":
+                batch = chunk.to_record_batch()
+                if SIM_TIMELINE in batch.schema.names:
+                    columns = {n: batch.column(n).to_pylist() for n in batch.schema.names if ":" in n}
+        poses = trajectory.take(1)
+        np.testing.assert_allclose(np.asarray(columns["Transform3D:translation"]).reshape(-1, 3),
+                                   poses.p.numpy(), atol=1e-6)
+        np.testing.assert_allclose(np.asarray(columns["Transform3D:quaternion"]).reshape(-1, 4),
+                                   se3.wxyz_to_xyzw(poses.q).numpy(), atol=1e-6)

@@ -35,6 +35,7 @@ from pushtorch.features import SurfaceFeatures, compute_surface_features
 from pushtorch.metrics import Accuracy, accuracy
 from pushtorch.models.library import ModelLibrary, ModelSettings, PushModel, load_model, train_push_model
 from pushtorch.objects import ObjectModel, load_object
+from pushtorch.paths import contained_path
 from pushtorch.perception import PointCloud
 from pushtorch.sim.plan import Placement
 from pushtorch.sim.priors import Prior, prior_from_config
@@ -70,9 +71,20 @@ log = logging.getLogger("pushtorch.experiments")
 
 
 def plain(cfg: Any) -> Any:
-    """A Hydra/OmegaConf node as plain Python containers (resolved); anything else unchanged."""
+    """A Hydra/OmegaConf node as plain Python containers (resolved); anything else unchanged.
+
+    Raises:
+        InvalidParameterError: a mandatory value (``???`` in the config) was not given; the message names
+            the key (otherwise the string ``???`` would travel on and be reported as a file name).
+    """
     if isinstance(cfg, DictConfig) or OmegaConf.is_config(cfg):
-        return OmegaConf.to_container(cfg, resolve=True)
+        from omegaconf.errors import MissingMandatoryValue
+
+        try:
+            return OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+        except MissingMandatoryValue as exc:
+            key = getattr(exc, "full_key", None) or "a mandatory value"
+            raise InvalidParameterError(f"{key} is not set (it is mandatory): give it, e.g. {key}=<value>") from exc
     return cfg
 
 
@@ -112,6 +124,8 @@ class ExperimentContext:
         progress: show tqdm progress bars.
         recording: an open Rerun recording, or None.
         log_examples: test conditions per part and object whose predictions (every action) are logged.
+        logged_predictions: ``(root entity path, summary)`` of every prediction :func:`log_examples` logged
+            (for the recording's blueprint and part summaries; shared by :meth:`with_model` contexts).
         placement: how training places the robot (``model.placement``; default the paper's single
             placement, see docs/method.md "Training placement").
     """
@@ -130,8 +144,12 @@ class ExperimentContext:
     recording: Any = None
     log_examples: int = 1
     placement: Placement = Placement()
+    logged_predictions: list[tuple[str, str]] = field(default_factory=list, repr=False)
     _models: dict[str, PushModel] = field(default_factory=dict, repr=False)
     _slots: list[int] = field(default_factory=lambda: [0], repr=False)
+    # the last ground-truth plan and its (C, N, A, S) shape, keyed by the predictions' fingerprint:
+    # log_examples re-simulates its examples' pushes from it (set only while recording)
+    _truth_plan: tuple[str, Any, tuple[int, ...]] | None = field(default=None, repr=False)
 
     def prior(self, kind: str, name: str) -> Prior:
         """The prior ``priors.<kind>.<name>`` (kind: ``friction`` or ``mass``).
@@ -250,7 +268,8 @@ def _placement_tag(placement: Placement) -> str:
 
 
 def _training_folder(ctx: ExperimentContext, obj_name: str, friction: str, mass: str) -> Path:
-    return ctx.run_dir / "data" / (_model_key(obj_name, friction, mass) + _placement_tag(ctx.placement))
+    return contained_path(ctx.run_dir, "data", _model_key(obj_name, friction, mass) + _placement_tag(ctx.placement),
+                          what="object or prior name")
 
 
 def training_records(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str,
@@ -291,7 +310,8 @@ def train_model(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: s
                  f"|{_placement_tag(ctx.placement)}")
     if cache_key in ctx._models:
         return ctx._models[cache_key]
-    path = ctx.run_dir / "models" / f"{key}{_placement_tag(ctx.placement)}.npz"
+    path = contained_path(ctx.run_dir, "models", f"{key}{_placement_tag(ctx.placement)}.npz",
+                          what="object or prior name")
     model = None
     if path.is_file():
         try:
@@ -502,7 +522,7 @@ def predict_set(
         poses=poses.p.tolist() + poses.q.tolist(), actions=ctx.actions.tolist(),
         nominal=nominal, samples_per_action=ctx.samples_per_action,
     )
-    path = ctx.run_dir / "predictions" / f"{key}.npz"
+    path = contained_path(ctx.run_dir, "predictions", f"{key}.npz", what="experiment, object or prior name")
     cached = None
     if path.is_file():
         try:
@@ -637,7 +657,9 @@ def simulate_truth(
         seed=stable_seed(ctx.seed, "truth", key),
         duration=ctx.duration,
     )
-    folder = ctx.run_dir / "truth" / key
+    if ctx.recording is not None:
+        ctx._truth_plan = (predictions.fingerprint, plan, shape)
+    folder = contained_path(ctx.run_dir, "truth", key, what="experiment, object or prior name")
     # small plans run in this process: a worker pool costs more than it saves
     workers = 1 if len(plan) < 4 * ctx.shard_size else ctx.workers
     run_plan(object_spec(obj), plan, folder, ctx.sim, workers=workers, shard_size=ctx.shard_size,
@@ -690,10 +712,41 @@ def summarise(
 
 
 def entity_label(*parts: str) -> str:
-    """One Rerun entity-path part from words: anything outside ``[A-Za-z0-9_.-]`` becomes ``-``."""
-    import re
+    """A prediction's entity path below ``world/model/prediction`` from words, one level each:
+    ``entity_label("model_selection", "cube", "adaptive")`` is ``model_selection/cube/adaptive``. Within a
+    level, anything outside ``[A-Za-z0-9_.-]`` (a ``/`` too) becomes ``_``
+    (:func:`pushtorch.viz.core.entity_name`)."""
+    from pushtorch.viz.core import entity_name
 
-    return ".".join(re.sub(r"[^A-Za-z0-9_\-]", "-", str(p)) for p in parts)
+    return "/".join(entity_name(str(p).replace("/", "_")) for p in parts)
+
+
+def _one_push(plan, k: int):
+    """Push ``k`` of a :class:`~pushtorch.sim.plan.PushPlan` as a plan of its own (same index and seed)."""
+    from pushtorch.sim.plan import PushPlan
+
+    one = slice(k, k + 1)
+    return PushPlan(
+        object_name=plan.object_name,
+        robot_start=se3.Pose(plan.robot_start.p[one], plan.robot_start.q[one]),
+        object_initial=se3.Pose(plan.object_initial.p[one], plan.object_initial.q[one]),
+        action=plan.action[one], mass=plan.mass[one], ground_friction=plan.ground_friction[one],
+        action_index=plan.action_index[one], index=plan.index[one], seed=plan.seed, duration=plan.duration,
+    )
+
+
+def _truth_push(ctx: ExperimentContext, obj: ObjectModel, predictions: PredictionSet, i: int, j: int):
+    """The ground-truth push shown with example ``(i, j)``: test condition 0, sample 0, re-simulated here
+    with its trajectory (pybullet is deterministic: the final pose is the recorded one); None if
+    :func:`simulate_truth` did not run for these predictions while recording."""
+    from pushtorch.sim.runner import simulate_plan
+    from pushtorch.sim.world import object_spec
+
+    if ctx._truth_plan is None or ctx._truth_plan[0] != predictions.fingerprint:
+        log.warning("no ground-truth plan for %s: its pushes are not animated", predictions.fingerprint[:8])
+        return None
+    _, plan, (_, n, a_count, samples) = ctx._truth_plan
+    return simulate_plan(object_spec(obj), _one_push(plan, (i * a_count + j) * samples), ctx.sim)
 
 
 def log_examples(
@@ -704,14 +757,18 @@ def log_examples(
     predictions: PredictionSet,
     truth_final: se3.Pose,
 ) -> None:
-    """Log example predictions with their true initial and final poses, each in its own grid cell.
+    """Log example predictions with their true initial and final poses and ground-truth push.
 
-    Every example goes under ``world/model/prediction/<label>.c<i>a<j>`` (``label`` from
-    :func:`entity_label`; entities as in :mod:`pushtorch.viz.model`), whose transform shifts it to a free
-    cell of the recording's grid; ``<root>/summary`` holds its accuracy as text.
+    Every example goes under ``world/model/prediction/<label>/c<i>a<j>`` (``label`` from
+    :func:`entity_label`: ``<part>/<object>/<model or method>``; entities as in :mod:`pushtorch.viz.model`),
+    whose transform shifts it to a free cell of the recording's grid. Its ground-truth push (test
+    condition 0, sample 0: the pose ``truth_final`` holds) is re-simulated in this process with its
+    trajectory and played on ``sim_time`` at ``<root>/truth_push``; a re-simulated final pose that differs
+    from the recorded one is reported in the log and the summary. ``<root>/summary`` holds the example's
+    accuracy as text, also kept in ``ctx.logged_predictions``.
 
     Args:
-        truth_final: ground-truth final poses ``(N, A, S)`` of one test condition (sample 0 is shown).
+        truth_final: ground-truth final poses ``(N, A, S)`` of test condition 0 (sample 0 is shown).
     """
     import rerun as rr
 
@@ -721,14 +778,26 @@ def log_examples(
         return
     for example in examples:
         i, j = example.condition, example.action
-        name = f"{label}.c{i}a{j}"
+        root = f"{PREDICTION}/{label}/c{i}a{j}"
         x, y = ctx.next_slot()
-        ctx.recording.log(f"{PREDICTION}/{name}", rr.Transform3D(translation=[x, y, 0.0]), static=True)
+        ctx.recording.log(root, rr.Transform3D(translation=[x, y, 0.0]), static=True)
         truth = truth_final.take((i, j, 0))
+        push = _truth_push(ctx, obj, predictions, i, j)
+        replay = "ground-truth push not re-simulated"
+        if push is not None:
+            gap = float((push.object_final.p[0].to(truth.p) - truth.p.reshape(3)).abs().max())
+            same = torch.equal(push.object_final.p[0].to(truth.p), truth.p.reshape(3)) and torch.equal(
+                push.object_final.q[0].to(truth.q), truth.q.reshape(4))
+            replay = ("re-simulated ground-truth push ends at the recorded final pose" if same else
+                      f"re-simulated ground-truth push ends {gap:.2e} m from the recorded final pose")
+            if not same:
+                log.warning("%s/c%da%d: %s", label, i, j, replay)
         log_prediction(ctx.recording, example.prediction, predictions.truth_initial.take(i), truth, obj,
-                       label=name, cloud=example.features)
+                       label=f"{label}/c{i}a{j}", cloud=example.features, truth_push=push)
         acc = accuracy(predictions.final.take((i, j)), truth, obj)
-        ctx.recording.log(f"{PREDICTION}/{name}/summary", rr.TextDocument(
-            f"{label}, condition {i}, action {ctx.actions[j].tolist()}: H_acc {float(acc.hacc):.3f}, "
-            f"linear {float(acc.linear_cm):.2f} cm, angular {float(acc.angular_deg):.1f} deg"
-        ), static=True)
+        summary = (f"`{label}/c{i}a{j}`: condition {i}, action {ctx.actions[j].tolist()}: "
+                   f"H_acc {float(acc.hacc):.3f}, linear {float(acc.linear_cm):.2f} cm, "
+                   f"angular {float(acc.angular_deg):.1f} deg; {replay}")
+        ctx.recording.log(f"{root}/summary", rr.TextDocument(summary, media_type=rr.MediaType.MARKDOWN),
+                          static=True)
+        ctx.logged_predictions.append((root, summary))

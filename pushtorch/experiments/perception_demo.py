@@ -2,7 +2,8 @@
 
 Paper, Experimental Setup (full multi-view cloud for training, single shot for prediction) and
 Surface Features. Objects stand in a row along x; each gets its mesh, both clouds coloured by the
-curvature r1, and its surface-feature frames (a subsample, so the viewer stays responsive).
+curvature r1, and its surface-feature frames (a subsample, so the viewer stays responsive). The recording's
+blueprint (:func:`pushtorch.viz.blueprint.perception_blueprint`) shows all objects, then a tab per object.
 """
 
 from __future__ import annotations
@@ -58,12 +59,18 @@ def run(cfg, out_dir: Path) -> dict:
     exp = cfg.experiment
     generator = torch.Generator().manual_seed(int(cfg.seed))
     recording = out_dir / "recording.rrd"
+    from pushtorch.viz.blueprint import perception_blueprint
+
     rec = viz.open_recording(recording, "pushtorch-perception")
+    names = [str(name) for name in exp.objects]
     counts = {}
-    for i, name in enumerate(tqdm(list(exp.objects), desc="objects", unit="obj")):
-        counts[name] = log_object_perception(
-            rec, name, i * float(exp.spacing), float(exp.voxel_size), float(exp.feature_radius),
-            float(exp.depth_noise), generator,
-        )
-    rec.flush()
+    try:
+        for i, name in enumerate(tqdm(names, desc="objects", unit="obj")):
+            counts[name] = log_object_perception(
+                rec, name, i * float(exp.spacing), float(exp.voxel_size), float(exp.feature_radius),
+                float(exp.depth_noise), generator,
+            )
+    finally:
+        rec.send_blueprint(perception_blueprint(names))
+        rec.disconnect()  # completes the file (flush alone leaves it without its footer)
     return {"recording": str(recording), "points": counts}

@@ -3,6 +3,10 @@
 Each paper experiment (``model_selection``, ``pose_estimation``, ``friction_biasing``, ``mass_biasing``) is
 one *part*; ``quickstart`` runs all four at small sizes. A part is ``(kind, its experiment config, its
 model config)``: ``kind`` picks the module (``model_selection``, ``pose_estimation`` or ``biasing``).
+
+The recording (``recording.rrd``) gets, per part, each group's H_acc as a series and a markdown summary
+(:mod:`pushtorch.viz.metrics`), and at the end the blueprint that lays it out for review
+(:func:`pushtorch.viz.blueprint.experiment_blueprint`): a tab per part.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ from typing import Any
 
 from pushtorch.cli import current_overrides
 from pushtorch.errors import InvalidParameterError
-from pushtorch.experiments.common import context_from_config, plain
+from pushtorch.experiments.common import ExperimentContext, context_from_config, entity_label, plain
 
 __all__ = ["KINDS", "run_suite"]
 
@@ -41,6 +45,30 @@ def _merge_extras(into: dict[str, Any], extras: Mapping[str, Any]) -> None:
             into[key] = value
 
 
+def _part_origin(kind: str, name: str) -> str:
+    """Root entity of what a part logs: its predictions, or pose estimation's own subtree."""
+    from pushtorch.viz.core import WORLD
+    from pushtorch.viz.model import PREDICTION
+
+    if kind == "pose_estimation":
+        return f"{WORLD}/experiments/pose_estimation"  # where pose_estimation._log_pose_example logs
+    return f"{PREDICTION}/{entity_label(name)}"
+
+
+def _log_part(ctx: ExperimentContext, kind: str, name: str, records: list[dict], first_group: int):
+    """A finished part's H_acc series and summary in the recording; returns the part's blueprint tab."""
+    from pushtorch.viz.blueprint import ReviewTab
+    from pushtorch.viz.metrics import hacc_root, log_group_hacc, log_markdown, part_summary, part_summary_path
+
+    origin = _part_origin(kind, name)
+    logged = [(root, text) for root, text in ctx.logged_predictions if root.startswith(f"{origin}/")]
+    log_group_hacc(ctx.recording, name, records, first_group)
+    log_markdown(ctx.recording, part_summary_path(name),
+                 part_summary(name, records, first_group, [text for _, text in logged]))
+    return ReviewTab(name=name, origin=origin, prediction_roots=[root for root, _ in logged],
+                     summary=part_summary_path(name), hacc=hacc_root(name))
+
+
 def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]]) -> dict[str, Any]:
     """Run ``parts`` in order and write the run's outputs.
 
@@ -57,6 +85,7 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]]) -
         InvalidParameterError: an unknown part kind; PushtorchError from any step.
     """
     from pushtorch.experiments.report import write_outputs
+    from pushtorch.viz.blueprint import experiment_blueprint
     from pushtorch.viz.core import open_recording
 
     start = time.perf_counter()
@@ -68,6 +97,7 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]]) -
     ctx.recording = open_recording(recording_path, f"pushtorch_{name}")
     records: list[dict] = []
     extras: dict[str, Any] = {}
+    tabs = []
     try:
         for kind, part, model_cfg in parts:
             if kind not in KINDS:
@@ -75,12 +105,15 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]]) -
             module = importlib.import_module(KINDS[kind])
             part_start = time.perf_counter()
             model_cfg = plain(model_cfg)
+            part_name = str(plain(part).get("name", kind))
             part_records, part_extras = module.run_part(cfg, part, ctx.with_model(model_cfg), model_cfg)
-            log.info("%s: %d records in %.0f s", plain(part).get("name", kind), len(part_records),
-                     time.perf_counter() - part_start)
+            log.info("%s: %d records in %.0f s", part_name, len(part_records), time.perf_counter() - part_start)
+            tabs.append(_log_part(ctx, kind, part_name, part_records, first_group=len(records)))
             records.extend(part_records)
             _merge_extras(extras, part_extras)
     finally:
+        # the layout of whatever was logged, even if a part failed: saved in the file with the data
+        ctx.recording.send_blueprint(experiment_blueprint(tabs))
         ctx.recording.disconnect()  # completes the file (flush alone leaves it without its footer)
     wall = time.perf_counter() - start
     outputs = write_outputs(out_dir, name, plain(cfg), wall, records, extras, overrides=current_overrides())

@@ -7,6 +7,7 @@ Rerun's x,y,z,w order here and nowhere else.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -15,10 +16,12 @@ import torch
 import trimesh
 
 from pushtorch import se3
+from pushtorch.errors import InvalidParameterError
 
 __all__ = [
     "WORLD",
     "curvature_colors",
+    "entity_name",
     "log_arrows",
     "log_frames",
     "log_line_strip",
@@ -27,10 +30,26 @@ __all__ = [
     "log_pose",
     "open_recording",
     "read_entity_paths",
+    "transform_columns",
 ]
 
 #: Root of every entity; world frame, z up, metres.
 WORLD = "world"
+
+
+def entity_name(label: str) -> str:
+    """An entity path below a root, from a label: ``/`` separates its levels; within a level, characters
+    Rerun would need escaped become ``_``. Empty levels (``a//b``, a leading or trailing ``/``) are dropped.
+
+    Raises:
+        InvalidParameterError: no level, or a level without a letter or digit.
+    """
+    levels = [re.sub(r"[^A-Za-z0-9_.\-]", "_", level) for level in str(label).split("/") if level]
+    if not levels or not all(re.search(r"[A-Za-z0-9]", level) for level in levels):
+        raise InvalidParameterError(
+            f"an entity label needs at least one letter or digit in each level, got {label!r}"
+        )
+    return "/".join(levels)
 
 
 def _np(x) -> np.ndarray:
@@ -81,6 +100,14 @@ def log_pose(rec: rr.RecordingStream, entity_path: str, pose: se3.Pose, static: 
             quaternion=rr.Quaternion(xyzw=_np(se3.wxyz_to_xyzw(pose.q)).reshape(4).astype(np.float32)),
         ),
         static=static,
+    )
+
+
+def transform_columns(poses: se3.Pose):
+    """Poses ``(T,)`` as ``Transform3D`` columns for ``send_columns`` (one transform per row), wxyz → xyzw."""
+    return rr.Transform3D.columns(
+        translation=_np(poses.p).reshape(-1, 3).astype(np.float32),
+        quaternion=_np(se3.wxyz_to_xyzw(poses.q)).reshape(-1, 4).astype(np.float32),
     )
 
 

@@ -7,7 +7,8 @@ subsampled to ``max_points`` (``max_frames`` for axis triads) with a fixed seed,
 and two runs log the same points. Colours: viridis, bright = high weight / log-likelihood.
 
 Entity paths. Training (:func:`log_contact_model`), root ``world/model/training/<name>``
-(``<name>`` defaults to the model's name; characters outside ``[A-Za-z0-9_.-]`` become ``_``):
+(``<name>`` defaults to the model's name; ``/`` separates levels of the hierarchy, and within a level
+characters outside ``[A-Za-z0-9_.-]`` become ``_``):
 
 =================================  ==============================================================
 ``<root>/object``                  training pose ``B^O`` of the object (transform, static)
@@ -23,8 +24,10 @@ Entity paths. Training (:func:`log_contact_model`), root ``world/model/training/
 ``<root>/position/frames``         position frames as axis triads
 =================================  ==============================================================
 
-Prediction (:func:`log_prediction`), root ``world/model/prediction/<label>``. Entities marked *(t)* are
-on the ``anneal_step`` sequence timeline (step 0 = initial candidates); everything else is static.
+Prediction (:func:`log_prediction`), root ``world/model/prediction/<label>`` (the experiments' labels
+are ``<part>/<object>/<model>/c<i>a<j>``, the predict app's ``action_<j>``). Entities marked *(t)* are on
+the ``anneal_step`` sequence timeline (step 0 = initial candidates), *(s)* on ``sim_time`` (seconds since
+the push started); everything else is static.
 
 ========================================  ==========================================================
 ``<root>/cloud``                          the partial cloud, if given
@@ -32,7 +35,9 @@ on the ``anneal_step`` sequence timeline (step 0 = initial candidates); everythi
 ``<root>/robot_query/kernels``            their means ``v ∘ u`` (robot base positions, on the ground)
 ``<root>/robot_query/candidates``         *(t)* annealing candidates per step, coloured by log-likelihood
 ``<root>/robot_query/final_candidates``   the annealed candidates, coloured by log-likelihood
-``<root>/pose_query/...``                 the same four for the position model's query density (object poses)
+``<root>/robot_query/best_log_prob``      *(t)* scalar series: the best log-likelihood of the step's
+                                          candidates ("step best") and the best so far ("best so far")
+``<root>/pose_query/...``                 the same five for the position model's query density (object poses)
 ``<root>/robot``                          chosen robot start pose (transform); ``/chassis``, ``/axes``
 ``<root>/bumper``                         the bumper at the chosen start pose (world-frame mesh)
 ``<root>/manipulator_contact/frame``      the manipulator contact frame ``c^m`` (axis triad)
@@ -45,12 +50,17 @@ on the ``anneal_step`` sequence timeline (step 0 = initial candidates); everythi
                                           expert (expert 0 = manipulator)
 ``<root>/motion/candidates``              *(t)* motion annealing per step — only if the prediction carries
                                           its annealing record as ``prediction.anneal`` (see below)
+``<root>/motion/best_log_prob``           *(t)* the motion annealing's series, as ``robot_query/best_log_prob``
 ``<root>/motion/final_candidates``        the annealed final-pose candidates, coloured by log-likelihood
 ``<root>/final_predicted``                predicted final pose (transform); ``/mesh``, ``/axes``
 ``<root>/initial_true``                   true initial pose, if given; ``/mesh``, ``/axes``
 ``<root>/final_true``                     true final pose, if given; ``/mesh``, ``/axes``
 ``<root>/initial_error``                  line from the estimated to the true initial centre, if given
 ``<root>/final_error``                    line from the predicted to the true final centre, if given
+``<root>/truth_push/object``              *(s)* the ground-truth push, if given: the object's transform per
+                                          recorded time; its mesh at ``/mesh``
+``<root>/truth_push/robot``               *(s)* the robot base's transform; ``/chassis``, ``/bumper``, ``/bumper/mesh``
+``<root>/truth_push/object_path``         the object centre's path during the push (``/robot_path``: the robot's)
 ========================================  ==========================================================
 
 The query kernels need :attr:`pushtorch.models.query.QueryResult.density`; a result without it logs
@@ -60,8 +70,6 @@ not its per-step history; if it gains an ``anneal`` attribute (an
 """
 
 from __future__ import annotations
-
-import re
 
 import numpy as np
 import rerun as rr
@@ -76,6 +84,7 @@ from pushtorch.models.query import QueryResult, planar
 from pushtorch.viz.core import (
     WORLD,
     curvature_colors,
+    entity_name,
     log_arrows,
     log_frames,
     log_line_strip,
@@ -85,11 +94,13 @@ from pushtorch.viz.core import (
 )
 
 __all__ = [
+    "ANNEAL_SERIES",
     "ANNEAL_TIMELINE",
     "MODEL",
     "PREDICTION",
     "TRAINING",
     "log_anneal_history",
+    "log_anneal_series",
     "log_contact_model",
     "log_prediction",
     "log_query",
@@ -103,6 +114,12 @@ TRAINING = f"{MODEL}/training"
 PREDICTION = f"{MODEL}/prediction"
 #: The sequence timeline of simulated annealing: step 0 holds the initial candidates.
 ANNEAL_TIMELINE = "anneal_step"
+#: Where a prediction's annealing series are, relative to its root, and what each annealing optimises.
+ANNEAL_SERIES = {
+    "robot_query/best_log_prob": "robot start pose (robot query)",
+    "pose_query/best_log_prob": "initial object pose (pose query)",
+    "motion/best_log_prob": "final object pose (motion)",
+}
 
 _OBJECT_COLOUR = (70, 130, 220, 255)
 _ESTIMATE_COLOUR = (90, 170, 255, 110)
@@ -116,14 +133,6 @@ _CLOUD_COLOUR = (150, 150, 150, 255)
 _MANIPULATOR_COLOUR = (240, 60, 160, 255)
 _ENVIRONMENT_COLOUR = (40, 200, 200, 255)
 _SUBSAMPLE_SEED = 0
-
-
-def _entity_name(label: str) -> str:
-    """One entity-path part: characters Rerun would need escaped become ``_``."""
-    name = re.sub(r"[^A-Za-z0-9_.\-]", "_", str(label))
-    if not name.strip("_"):
-        raise InvalidParameterError(f"an entity label needs at least one letter or digit, got {label!r}")
-    return name
 
 
 def _check_limits(max_points: int, max_frames: int) -> None:
@@ -267,13 +276,42 @@ def log_anneal_history(
     return True
 
 
+def log_anneal_series(rec: rr.RecordingStream, entity_path: str, result: AnnealResult) -> bool:
+    """The annealing's best log-likelihood per step as a scalar series on ``anneal_step``, in one send.
+
+    Two series on ``entity_path``: "step best", the highest log-likelihood among the chains' current
+    positions at each step (``history_log_prob``; step 0: the initial candidates), and "best so far",
+    its running maximum. Batch dims of the problem are pooled with the candidates. A step with no
+    candidate in the density's support (``-inf``) is a gap (NaN) in the plot.
+
+    Returns:
+        False (and nothing logged) if ``result`` has no per-step log-likelihoods (annealing ran without
+        ``record_history=True``), else True.
+    """
+    if result.history_log_prob is None:
+        return False
+    steps = result.history_log_prob.shape[0]
+    step_best = result.history_log_prob.detach().double().cpu().reshape(steps, -1).max(dim=1).values
+    best_so_far = torch.cummax(step_best, dim=0).values
+    series = torch.stack([step_best, best_so_far], dim=1)  # (steps, 2)
+    series = torch.where(torch.isfinite(series), series, torch.full_like(series, float("nan")))
+    rec.log(entity_path, rr.SeriesLines(names=["step best", "best so far"]), static=True)
+    rec.send_columns(
+        entity_path,
+        indexes=[rr.TimeColumn(ANNEAL_TIMELINE, sequence=np.arange(steps))],
+        columns=rr.Scalars.columns(scalars=series.numpy().reshape(-1)).partition([2] * steps),
+    )
+    return True
+
+
 def log_query(rec: rr.RecordingStream, root: str, query: QueryResult, max_points: int = 3000) -> None:
     """A query density and its optimisation under ``root`` (paper, Query Density).
 
     Logs ``root/features`` (the kernels' cloud features ``v``) and ``root/kernels`` (their means
     ``v ∘ u``, planar-projected for the robot), both coloured by kernel weight, if ``query.density`` is
-    set; ``root/candidates`` per annealing step if the history was recorded; and
-    ``root/final_candidates`` coloured by log-likelihood.
+    set; ``root/candidates`` per annealing step and the series ``root/best_log_prob``
+    (:func:`log_anneal_series`) if the history was recorded; and ``root/final_candidates`` coloured by
+    log-likelihood.
 
     Raises:
         InvalidParameterError: ``max_points`` < 1.
@@ -289,6 +327,7 @@ def log_query(rec: rr.RecordingStream, root: str, query: QueryResult, max_points
                    radii=0.002, static=True)
         log_points(rec, f"{root}/kernels", means[shown], colors=colors, radii=0.003, static=True)
     log_anneal_history(rec, f"{root}/candidates", query.anneal, max_points)
+    log_anneal_series(rec, f"{root}/best_log_prob", query.anneal)
     candidates = query.anneal.candidates.p.reshape(-1, 3)
     shown = _subsample(candidates.shape[0], max_points, candidates.device)
     log_points(rec, f"{root}/final_candidates", candidates[shown],
@@ -336,7 +375,7 @@ def log_contact_model(
         # ObjectModel.resting_pose's definition, which a bare mesh lacks
         object_pose = se3.from_xy_yaw(0.0, 0.0, 0.0, z=float(-mesh.bounds[0, 2]))
     object_pose = se3.Pose(object_pose.p.reshape(3).float(), object_pose.q.reshape(4).float())
-    root = f"{TRAINING}/{_entity_name(label if label is not None else model.name)}"
+    root = f"{TRAINING}/{entity_name(label if label is not None else model.name)}"
     _log_posed_mesh(rec, f"{root}/object", object_pose, mesh, _OBJECT_COLOUR, axis_length=0.1)
 
     contact = model.contact.frames.to(torch.float32).transformed(object_pose)
@@ -365,11 +404,13 @@ def log_prediction(
     cloud=None,
     max_points: int = 3000,
     max_frames: int = 300,
+    truth_push=None,
 ) -> str:
     """Log a prediction: query kernels, robot start, contact frames, initial pose, annealing, final pose.
 
-    Entity paths: see the module docstring. The per-step annealing candidates need the prediction to
-    have been made with ``record_history=True``; the query kernels need ``QueryResult.density``.
+    Entity paths: see the module docstring. The per-step annealing candidates and series need the
+    prediction to have been made with ``record_history=True``; the query kernels need
+    ``QueryResult.density``.
 
     Args:
         rec: an open recording (:func:`pushtorch.viz.open_recording`).
@@ -377,18 +418,22 @@ def log_prediction(
         truth_initial, truth_final: the true object poses before and after the push, Pose ``()``, if known.
         object_mesh: the object's mesh (object frame) or its ObjectModel, drawn at every object pose;
             without it, the poses are drawn as axis triads only.
-        label: entity name under ``world/model/prediction``.
+        label: entity path under ``world/model/prediction``; ``/`` nests it (``part/object/model/c0a1``).
         cloud: the partial cloud the prediction was made from (a PointCloud, SurfaceFeatures or
             ``(N, 3)`` tensor), logged as ``<root>/cloud`` if given.
         max_points: points shown per point set; max_frames: axis triads shown per frame set.
+        truth_push: the ground-truth push as :class:`~pushtorch.sim.records.PushRecords`; its first push
+            is played on ``sim_time`` at ``<root>/truth_push`` (:func:`pushtorch.viz.sim.log_push`).
     Returns:
         The prediction's root entity path.
     Raises:
         InvalidParameterError: a limit below 1, an empty label, or a mesh of the wrong type.
     """
+    from pushtorch.viz.sim import log_push
+
     _check_limits(max_points, max_frames)
     mesh = _mesh_of(object_mesh)
-    root = f"{PREDICTION}/{_entity_name(label)}"
+    root = f"{PREDICTION}/{entity_name(label)}"
     condition = prediction.condition
 
     if cloud is not None:
@@ -432,6 +477,7 @@ def log_prediction(
     motion_anneal = getattr(prediction, "anneal", None)
     if isinstance(motion_anneal, AnnealResult):
         log_anneal_history(rec, f"{root}/motion/candidates", motion_anneal, max_points)
+        log_anneal_series(rec, f"{root}/motion/best_log_prob", motion_anneal)
     candidates = prediction.candidates.p.reshape(-1, 3)
     shown = _subsample(candidates.shape[0], max_points, candidates.device)
     log_points(rec, f"{root}/motion/final_candidates", candidates[shown],
@@ -451,4 +497,6 @@ def log_prediction(
         truth = truth_final.p.reshape(3).to(predicted)
         log_line_strip(rec, f"{root}/final_error", torch.stack([predicted, truth]), color=_ERROR_COLOUR,
                        static=True)
+    if truth_push is not None:
+        log_push(rec, truth_push, 0, mesh, root=f"{root}/truth_push", with_final_pose=False)
     return root
