@@ -118,8 +118,13 @@ def _claimed(out_dir: Path) -> Iterator[None]:
 
 def run_stage(name: str, cfg: DictConfig, run: Callable[[DictConfig, Path], dict[str, Any]]) -> dict[str, Any]:
     """Run ``run(cfg, out_dir)`` in the Hydra run directory and print its summary, one ``key: value`` a line."""
-    out_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
+    from pushtorch.config_check import APPS, check_config
+
+    hydra_cfg = hydra.core.hydra_config.HydraConfig.get()
+    out_dir = Path(hydra_cfg.runtime.output_dir)
     try:
+        if hydra_cfg.job.config_name in APPS:  # again here: a launcher or callback list of the user's own
+            check_config(cfg, hydra_cfg.job.config_name)
         with _claimed(out_dir):
             OmegaConf.save(cfg, out_dir / "resolved_config.yaml", resolve=True)
             summary = run(cfg, out_dir)

@@ -29,6 +29,7 @@ import hydra
 from omegaconf import DictConfig
 
 from pushtorch.cli import CONFIG_PATH, run_stage
+from pushtorch.config_check import check_config
 from pushtorch.errors import InvalidParameterError
 
 __all__ = ["main", "predict_from_config"]
@@ -69,6 +70,7 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
     from pushtorch.sim.runner import simulate_pushes
     from pushtorch.sim.world import SimSettings
 
+    check_config(cfg, "predict")  # types and bounds first, as the command line does
     c = plain(cfg)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -27,6 +27,7 @@ import hydra
 from omegaconf import DictConfig
 
 from pushtorch.cli import CONFIG_PATH, run_stage
+from pushtorch.config_check import check_config
 from pushtorch.errors import InvalidParameterError
 
 __all__ = ["main", "simulate_from_config"]
@@ -63,6 +64,7 @@ def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Pat
     from pushtorch.sim.runner import run_plan
     from pushtorch.sim.world import SimSettings, object_spec
 
+    check_config(cfg, "simulate")  # types and bounds first, as the command line does
     c = _plain(cfg)
     out_dir = Path(out_dir)
     try:

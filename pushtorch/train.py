@@ -27,6 +27,7 @@ import hydra
 from omegaconf import DictConfig
 
 from pushtorch.cli import CONFIG_PATH, run_stage
+from pushtorch.config_check import check_config
 from pushtorch.errors import InvalidParameterError
 
 __all__ = ["main", "train_from_config"]
@@ -60,6 +61,7 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
     from pushtorch.objects import load_object
     from pushtorch.sim.records import PushRecords, load_records, run_status
 
+    check_config(cfg, "train")  # types and bounds first, as the command line does
     c = plain(cfg)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -26,6 +26,7 @@ from omegaconf import OmegaConf
 
 import pushtorch.cli  # noqa: F401  (registers the pushtorch.job_dir resolver the output config uses)
 from pushtorch import collect
+from pushtorch.config_check import ConfigError, check_config
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Module run with ``python -m`` → the config its Hydra app composes.
@@ -125,3 +126,8 @@ def test_documented_command_runs_as_written(where, module, argv):
         with initialize_config_module(config_module="pushtorch.conf", version_base="1.3"):
             cfg = compose(HYDRA_APPS[module], overrides=overrides, return_hydra_config=True)
         assert OmegaConf.select(cfg, "hydra.job.name").startswith("pushtorch"), where
+        try:  # types, bounds and names as the app's callback checks them
+            check_config(cfg, HYDRA_APPS[module])
+        except ConfigError as exc:
+            # a bare mention of an app (`python -m pushtorch.train`) leaves its mandatory keys to the reader
+            assert not argv and "is not set" in str(exc), f"{where}: {exc}"

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from pushtorch.cli import current_overrides
+from pushtorch.config_check import check_config
 from pushtorch.errors import InvalidParameterError
 from pushtorch.experiments.common import ExperimentContext, context_from_config, entity_label, plain
 
@@ -91,6 +92,7 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]]) -
     start = time.perf_counter()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    check_config(cfg, "config")  # types and bounds first, as the command line does
     name = str(plain(cfg)["experiment"].get("name", "experiment"))
     ctx = context_from_config(cfg, out_dir)
     recording_path = out_dir / "recording.rrd"
