@@ -15,7 +15,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from pushtorch.cli import CONFIG_PATH, run_stage
+from pushtorch.cli import CONFIG_PATH, compose_or_exit, run_stage
 from pushtorch.errors import PushtorchError
 
 log = logging.getLogger("pushtorch")
@@ -38,6 +38,7 @@ def _app(cfg: DictConfig) -> dict:
 
 def main() -> None:
     """Console-script entry point (``pushtorch ...``); a user error exits with status 2 and one line."""
+    compose_or_exit("pushtorch", "config")
     _app()
 
 

@@ -24,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pushtorch.errors import PushtorchError
 
-__all__ = ["CONFIG_PATH", "RUN_ONLY_KEYS", "current_overrides", "job_dir_name", "run_stage"]
+__all__ = ["CONFIG_PATH", "RUN_ONLY_KEYS", "compose_or_exit", "current_overrides", "job_dir_name", "run_stage"]
 
 #: Where every app finds its configs: the installed package ``pushtorch.conf`` (the repository's conf/).
 CONFIG_PATH = "pkg://pushtorch.conf"
@@ -116,6 +116,27 @@ def _claimed(out_dir: Path) -> Iterator[None]:
         yield
 
 
+#: What a run folder holds before its stage has written anything of its own.
+_BOOKKEEPING = frozenset({".hydra", ".pushtorch.lock", "resolved_config.yaml"})
+
+
+def _discard_if_empty(out_dir: Path) -> None:
+    """Remove a run folder that a refused run leaves with nothing but Hydra's and our bookkeeping (and its
+    date folder under ``runs/`` if that is left empty); a folder holding any result or data is kept."""
+    import shutil
+
+    try:
+        entries = list(out_dir.iterdir())
+        if any(e.name not in _BOOKKEEPING and e.suffix != ".log" for e in entries):
+            return
+        shutil.rmtree(out_dir)
+        parent = out_dir.parent
+        if parent.resolve().parent == Path("runs").resolve() and not any(parent.iterdir()):
+            parent.rmdir()
+    except OSError:  # nothing to tidy, or not ours to remove: the error message matters more
+        pass
+
+
 def run_stage(name: str, cfg: DictConfig, run: Callable[[DictConfig, Path], dict[str, Any]]) -> dict[str, Any]:
     """Run ``run(cfg, out_dir)`` in the Hydra run directory and print its summary, one ``key: value`` a line."""
     from pushtorch.config_check import APPS, check_config
@@ -129,12 +150,70 @@ def run_stage(name: str, cfg: DictConfig, run: Callable[[DictConfig, Path], dict
             OmegaConf.save(cfg, out_dir / "resolved_config.yaml", resolve=True)
             summary = run(cfg, out_dir)
     except PushtorchError as exc:
+        _discard_if_empty(out_dir)
         print(f"{name}: {exc}", file=sys.stderr)
         sys.exit(2)
     except OSError as exc:  # a read-only or full disk, a path under a file: name the path and the cause
+        _discard_if_empty(out_dir)
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"{name}: {where}{exc.strerror or exc}", file=sys.stderr)
         sys.exit(2)
     for key, value in summary.items():
         print(f"{key}: {value}")
     return summary
+
+
+def _one_line(message: str) -> str:
+    """Hydra's multi-line composition error as one line: its sentences, then the options it lists."""
+    lines, options, listing = [], [], False
+    for raw in message.splitlines():
+        line = raw.strip()
+        if line.startswith("Config search path") or line.startswith("Set the environment variable"):
+            break
+        if line.startswith("Available options in"):
+            listing = True
+            continue
+        if line:
+            (options if listing else lines).append(line)
+    text = " ".join(lines)
+    return f"{text} (available: {', '.join(options)})" if options else text
+
+
+def compose_or_exit(app: str, config_name: str, argv: Sequence[str] | None = None) -> None:
+    """Compose the config the command line asks for (every job of a sweep, up to 256) before Hydra does,
+    so an unknown option of a config group or a key that does not exist is one line and exit 2 (Hydra
+    itself prints several lines and exits 1). ``--help``, ``--cfg`` and the like are left to Hydra.
+    """
+    from hydra import compose, initialize_config_module
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra._internal.utils import get_args_parser
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        args = get_args_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
+    except SystemExit:
+        return  # Hydra's own parser reports it
+    if args.help or args.hydra_help or args.cfg or args.info or args.shell_completion or args.resolve:
+        return
+    try:
+        if args.multirun:
+            parsed = OverridesParser.create().parse_overrides(list(args.overrides))
+            jobs = [list(job) for batch in BasicSweeper.split_arguments(parsed, None) for job in batch][:256]
+        else:
+            jobs = [list(args.overrides)]
+    except Exception as exc:  # an override Hydra cannot parse
+        print(f"{app}: {_one_line(str(exc))}", file=sys.stderr)
+        sys.exit(2)
+    if GlobalHydra.instance().is_initialized():
+        return  # called inside another Hydra app (a test): leave it to that app
+    try:
+        with initialize_config_module(config_module=CONFIG_PATH.removeprefix("pkg://"), version_base="1.3"):
+            for job in jobs:
+                compose(config_name, overrides=job, return_hydra_config=True)
+    except Exception as exc:
+        where = f" (sweep job {' '.join(job)})" if args.multirun else ""
+        print(f"{app}: {_one_line(str(exc))}{where}", file=sys.stderr)
+        sys.exit(2)
+    finally:
+        GlobalHydra.instance().clear()

@@ -218,9 +218,16 @@ def _figures(columns: Sequence[str], rows: Sequence[Mapping[str, Any]], out_dir:
     return paths
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """argparse, but a usage error is one line (as every pushtorch app's errors are) and exit 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"pushtorch.collect: {message} (usage: {self.format_usage().strip().removeprefix('usage: ')})\n")
+
+
 def parser() -> argparse.ArgumentParser:
     """The command line of ``python -m pushtorch.collect``."""
-    parser = argparse.ArgumentParser(prog="python -m pushtorch.collect", description=__doc__.split("\n\n")[0])
+    parser = _OneLineParser(prog="python -m pushtorch.collect", description=__doc__.split("\n\n")[0])
     parser.add_argument("folders", nargs="+", help="run or sweep folders (searched for results.json)")
     parser.add_argument("--out", default=None,
                         help="where to write the table and figures (default: the folder given, or . for several)")

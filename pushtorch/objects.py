@@ -391,13 +391,18 @@ def load_mesh_file(path: str | Path, scale: float = 1.0, name: str | None = None
         raise InvalidParameterError(f"mesh scale must be a positive finite number, got {scale!r}")
     name = safe_name(name, "object name") if name is not None else sanitised_name(Path(path).stem)
     path = Path(path)
+    if path.is_dir():
+        raise InvalidMeshError(f"{path} is a folder, not a mesh file (STL, OBJ or PLY)")
     if not path.is_file():
         raise InvalidMeshError(f"mesh file not found: {path}")
     try:
         # unprocessed, so NaN vertices are seen here (processing silently drops them and their faces)
         loaded = trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many types on bad files
-        raise InvalidMeshError(f"could not read a mesh from {path}: {exc}") from exc
+    except Exception as exc:  # trimesh raises many types on bad files: the cause is the file, not the reader
+        raise InvalidMeshError(
+            f"could not read a mesh from {path}: the file is malformed or not a {path.suffix or 'mesh'} file "
+            f"({type(exc).__name__})"
+        ) from exc
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise InvalidMeshError(f"{path} holds no triangle mesh")
     bad = ~np.isfinite(np.asarray(loaded.vertices)).all(-1)

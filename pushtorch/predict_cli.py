@@ -28,7 +28,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from pushtorch.cli import CONFIG_PATH, run_stage
+from pushtorch.cli import CONFIG_PATH, compose_or_exit, run_stage
 from pushtorch.config_check import check_config
 from pushtorch.errors import InvalidParameterError
 
@@ -200,6 +200,7 @@ def _app(cfg: DictConfig) -> dict[str, Any]:
 
 def main() -> None:
     """Entry point of ``python -m pushtorch.predict`` (a user error exits with status 2 and one line)."""
+    compose_or_exit("pushtorch.predict", "predict")
     _app()
 
 

@@ -213,7 +213,7 @@ def test_open_mesh_is_replaced_by_its_convex_hull(tmp_path):
 def test_missing_mesh_file_raises(tmp_path):
     with pytest.raises(InvalidMeshError, match="not found"):
         load_mesh_file(tmp_path / "nothing_here.stl")
-    with pytest.raises(InvalidMeshError, match="not found"):
+    with pytest.raises(InvalidMeshError, match="is a folder"):
         load_mesh_file(tmp_path)  # a directory is not a mesh file
 
 

@@ -118,6 +118,9 @@ def test_tampered_truncated_or_foreign_shards_are_refused(tmp_path, arrays):
     (tmp_path / "shard-000000.json").write_text(json.dumps(manifest))
     with pytest.raises(RecordFormatError, match="version"):
         read_shard(npz)
+    with pytest.raises(RecordFormatError, match="does not exist"):
+        load_records(tmp_path / "empty")
+    (tmp_path / "empty").mkdir()
     with pytest.raises(RecordFormatError, match="no finished"):
         load_records(tmp_path / "empty")
 

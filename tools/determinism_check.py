@@ -49,8 +49,8 @@ def _simulate_and_train(folder: Path, workers: int, per_action: int) -> tuple[Pa
     from pushtorch.models.library import ModelSettings, train_push_model
     from pushtorch.objects import load_object
     from pushtorch.sim.plan import plan_training_pushes
-    from pushtorch.sim.push import make_actions
     from pushtorch.sim.priors import Uniform
+    from pushtorch.sim.push import make_actions
     from pushtorch.sim.records import load_records
     from pushtorch.sim.runner import run_plan
     from pushtorch.sim.world import object_spec
@@ -68,10 +68,9 @@ def _simulate_and_train(folder: Path, workers: int, per_action: int) -> tuple[Pa
 
 def _shards_identical(a: Path, b: Path) -> bool:
     import numpy as np
+    import torch
 
     from pushtorch.sim.records import load_records
-
-    import torch
 
     ra, rb = load_records(a, dtype=torch.float64), load_records(b, dtype=torch.float64)
     return all(np.array_equal(x.numpy(), y.numpy()) for x, y in

@@ -296,6 +296,7 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> PushMode
         data = path.read_bytes()
     except OSError as exc:
         raise RecordFormatError(f"{path} is not a readable pushtorch model file: {exc.strerror or exc}") from exc
+    _refuse_other_files(path, data)
     version = _format_version(data)
     if version is not None and version != VERSION:  # before the seal: older versions have none
         raise RecordFormatError(
@@ -331,6 +332,22 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> PushMode
         raise RecordFormatError(f"{path} holds settings this pushtorch refuses: {exc}") from exc
     except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError) as exc:
         raise RecordFormatError(f"{path} has a malformed header or arrays ({type(exc).__name__}: {exc})") from exc
+
+
+def _refuse_other_files(path: Path, data: bytes) -> None:
+    """A clear error for a file that was never a model (before the seal check would call it edited)."""
+    import zipfile
+
+    if not data.startswith(b"PK\x03\x04"):
+        raise RecordFormatError(f"{path} is not a pushtorch model file (not an .npz archive)")
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
+            names = set(archive.namelist())
+    except zipfile.BadZipFile:
+        return  # a damaged model: the seal check names it
+    if "__header__.npy" not in names:
+        raise RecordFormatError(f"{path} is not a pushtorch model file (an .npz without a model header: a push-record"
+                                " shard or another archive?)")
 
 
 def _format_version(data: bytes) -> object:

@@ -33,6 +33,7 @@ import io
 import json
 import os
 import re
+import shlex
 import uuid
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
@@ -366,6 +367,11 @@ def read_shard(path: str | Path) -> dict[str, np.ndarray]:
     """
     path = Path(path)
     manifest_path = path.with_suffix(".json")
+    if not _SHARD_RE.match(manifest_path.name):
+        raise RecordFormatError(
+            f"{path} is not a push-record shard (shard-<number>.json/.npz): give a pushtorch.simulate run folder,"
+            " its pushes/ folder or one of its shards"
+        )
     manifest = _read_manifest(manifest_path)
     npz_path = manifest_path.with_name(str(manifest.get("npz", "")))
     try:
@@ -542,6 +548,9 @@ class RunStatus:
         shards = _ranges(self.missing)
         detail = f" ({'; '.join(parts)})" if parts else ""
         resume = self.resume or "rerun the same simulation (same configuration and seed) into this folder"
+        # a run copied or moved since it started resumes where it is now
+        run_folder = self.folder.parent if self.folder.name == "pushes" else self.folder
+        resume = re.sub(r"hydra\.run\.dir=\S+", lambda _: shlex.quote(f"hydra.run.dir={run_folder}"), resume)
         return (
             f"{self.folder} is an unfinished run: {self.missing_pushes} of the {self.pushes} pushes its manifest"
             f" promises are missing (shard{'s' if len(self.missing) > 1 else ''} {shards} of"
@@ -701,6 +710,8 @@ def load_records(
     path = Path(path)
     if path.is_file():
         return records_from_arrays(read_shard(path), dtype, device)
+    if not path.exists():
+        raise RecordFormatError(f"{path} does not exist: give a pushtorch.simulate run folder (or its pushes/)")
     folder = _shard_folder(path)
     status = run_status(folder)
     if status is not None and not status.complete and not allow_partial:
