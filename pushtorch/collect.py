@@ -166,8 +166,8 @@ def write_tables(columns: Sequence[str], rows: Sequence[Mapping[str, Any]], out_
 
 
 def _figures(columns: Sequence[str], rows: Sequence[Mapping[str, Any]], out_dir: Path) -> list[Path]:
-    """Per experiment: mean H_acc of pushtorch's predictions (or of every method's, if pushtorch made none) by
-    object, one bar per job, log axis when the values span more than a decade."""
+    """Per experiment: mean displacement H_acc of pushtorch's predictions (or of every method's, if pushtorch
+    made none) by object, one bar per job, log axis when the values span more than a decade."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -176,7 +176,8 @@ def _figures(columns: Sequence[str], rows: Sequence[Mapping[str, Any]], out_dir:
     paths = []
     for experiment in dict.fromkeys(r["experiment"] for r in rows):
         chosen = [r for r in rows if r["experiment"] == experiment and r.get("task") in ("prediction", "selection")
-                  and isinstance(r.get("hacc_mean"), (int, float))]
+                  and isinstance(r.get("hacc_mean"), (int, float))
+                  and r.get("metric") in (None, "", "displacement")]  # the primary score (report.primary)
         if any(r.get("method") == "pushtorch" for r in chosen):
             chosen = [r for r in chosen if r.get("method") == "pushtorch"]
         if not chosen:

@@ -21,7 +21,7 @@ from pushtorch import viz
 from pushtorch.errors import InvalidParameterError, PushtorchError
 from pushtorch.experiments import quickstart
 from pushtorch.experiments.common import sample_test_poses, summarise
-from pushtorch.experiments.report import PAPER_LINEAR_CM, acceptance_checks, pool
+from pushtorch.experiments.report import PAPER_LINEAR_CM, acceptance_checks, pool, primary
 from pushtorch.metrics import Accuracy
 from pushtorch.models.library import ModelSettings, load_model
 from pushtorch.objects import load_object
@@ -193,11 +193,17 @@ def test_tiny_quickstart_writes_tidy_results(tiny_run):
     assert set(results) == {"experiment", "config", "overrides", "wall_s", "records"}
     assert results["experiment"] == "quickstart" and results["wall_s"] > 0
     assert results["config"]["experiment"]["parts"]["pose_estimation"]["runs"] == 2
-    records = results["records"]
-    for r in records:
-        expected = RECORD_KEYS | ({"selection_rate"} if r["task"] == "selection" else set())
+    every = results["records"]
+    for r in every:
+        expected = (RECORD_KEYS | ({"selection_rate"} if r["task"] == "selection" else set())
+                    | ({"metric"} if r["task"] != "pose" else set()))
         assert set(r) == expected
         assert r["n"] >= 1 and r["hacc_mean"] >= 0 and r["hacc_std"] >= 0 and r["linear_cm"] >= 0
+    # every prediction and selection group is scored twice: displacement (primary) and frame
+    scored = [r for r in every if r["task"] != "pose"]
+    assert {r["metric"] for r in scored} == {"displacement", "frame"}
+    assert len([r for r in scored if r["metric"] == "frame"]) == len(scored) // 2
+    records = primary(every)
     by_task = {t: [r for r in records if r["task"] == t] for t in ("selection", "pose", "prediction")}
     assert {(r["object"], r["method"]) for r in by_task["selection"]} == {
         (o, m) for o in ("cube", "cylinder") for m in ("congruent", "incongruent", "adaptive")}
@@ -222,7 +228,7 @@ def test_tiny_quickstart_writes_tidy_results(tiny_run):
     # a push moves the object ~40 cm: standing still is far off, our prediction is not
     still = pool([r for r in friction if r["method"] == "no_motion"])
     assert still["linear_cm"] > 20
-    assert summary["results"] == str(out / "results.json") and summary["records"] == len(records)
+    assert summary["results"] == str(out / "results.json") and summary["records"] == len(every)
 
 
 def test_tiny_quickstart_writes_report_figures_and_recording(tiny_run):
@@ -332,7 +338,7 @@ def test_full_paper_protocol(tmp_path):
     checks = []
     for name, count in (("model_selection", 6), ("pose_estimation", 6), ("friction_biasing", 6 * 4 * 3 * 4),
                         ("mass_biasing", 6 * 4 * 3 * 4)):
-        records = json.loads((out / name / "results.json").read_text())["records"]
+        records = primary(json.loads((out / name / "results.json").read_text())["records"])
         assert len(records) == count
         for r in records:
             if not (r["task"] == "pose" and r["method"] == "centroid"):

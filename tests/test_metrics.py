@@ -93,3 +93,42 @@ def test_bad_inputs_raise_named_errors():
         metrics.hacc(bad_q, truth, cube.dimensions, cube.symmetry)
     with pytest.raises(InvalidParameterError, match="dimensions"):
         metrics.hacc(truth, truth, torch.tensor([0.2, 0.0, 0.2]), cube.symmetry)
+
+
+def _planar(x: float, y: float, yaw: float, z: float = 0.1) -> se3.Pose:
+    return se3.from_xy_yaw(torch.tensor(x), torch.tensor(y), torch.tensor(yaw), z=z)
+
+
+@given(start=st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-math.pi, math.pi)),
+       motion=st.tuples(st.floats(-0.5, 0.5), st.floats(-0.5, 0.5), st.floats(-math.pi, math.pi)),
+       offset=st.tuples(st.floats(-0.1, 0.1), st.floats(-0.1, 0.1), st.floats(-math.pi, math.pi)),
+       symmetry=st.integers(0, 23))
+def test_displacement_score_is_invariant_to_the_estimated_frame(start, motion, offset, symmetry):
+    """The same motion, predicted from two frames related by a symmetry of the training object (the cube's
+    24 rotations) or by any body-fixed offset, moves the true start pose to where the true push ends."""
+    cube = load_object("cube")
+    truth_initial = _planar(*start)
+    world_motion = _planar(*motion, z=0.0)
+    truth_final = se3.compose(world_motion, truth_initial)
+    scores = []
+    for frame in (cube.symmetry.discrete[symmetry], None):
+        body = se3.Pose(torch.zeros(3), frame) if frame is not None else _planar(*offset, z=0.0)
+        estimate_initial = se3.compose(truth_initial, body)  # the true start seen in another frame
+        estimate_final = se3.compose(world_motion, estimate_initial)
+        moved = metrics.displaced(estimate_initial, estimate_final, truth_initial)
+        scores.append(float(metrics.accuracy(moved, truth_final, cube).hacc))
+    assert scores[0] == pytest.approx(0.0, abs=1e-5) and scores[1] == pytest.approx(0.0, abs=1e-5)
+
+
+def test_displacement_moves_the_true_start_and_broadcasts():
+    """``(B̂1 ∘ B̂0⁻¹) ∘ B0`` for estimates ``(N, A)`` and true starts ``(N, 1)``."""
+    truth_initial = se3.Pose(torch.tensor([[0.0, 0.0, 0.1], [1.0, 0.0, 0.1]]).unsqueeze(1),
+                             torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2).unsqueeze(1))
+    estimate_initial = _planar(0.05, 0.0, 0.0).expand(2, 3)
+    estimate_final = _planar(0.35, 0.0, 0.0).expand(2, 3)  # a 30 cm push along x
+    moved = metrics.displaced(estimate_initial, estimate_final, truth_initial)
+    assert moved.batch_shape == (2, 3)
+    torch.testing.assert_close(moved.p[:, 0, 0], torch.tensor([0.3, 1.3]))
+    # no motion leaves the true start where it is, whatever the estimate
+    still = metrics.displaced(estimate_initial, estimate_initial, truth_initial)
+    torch.testing.assert_close(still.p, truth_initial.p.expand(2, 3, 3))

@@ -154,7 +154,7 @@ def test_annealing_and_hacc_series_are_logged(selection_run):
     # one H_acc point per results.json record, at the record's index on the group timeline
     records = json.loads((out / "results.json").read_text())["records"]
     for index, record in enumerate(records):
-        path = f"{hacc_root('model_selection')}/{entity_name(record['object'])}/{record['method']}"
+        path = f"{hacc_root('model_selection')}/{entity_name(record['object'])}/{record['method']}/{record['metric']}"
         columns = _columns(out / "recording.rrd", path)
         assert [s for s in columns[GROUP_TIMELINE] if s is not None] == [index]
         value = [v for v in columns["Scalars:scalars"] if v is not None][0]

@@ -29,11 +29,13 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from pushtorch import se3
 from pushtorch.errors import InvalidParameterError
 from pushtorch.experiments.common import (
     ExperimentContext,
     as_names,
     compare,
+    compare_displacement,
     entity_label,
     load_test_objects,
     log_examples,
@@ -61,6 +63,11 @@ def prior_label(bias: str, friction: str, mass: str) -> str:
     if bias == "mass":
         return f"mass:{mass}"
     return f"friction:{friction},mass:{mass}"
+
+
+def _upright(obj, pose: se3.Pose) -> se3.Pose:
+    """``pose`` set upright on the ground at its position and heading (as nominal physics simulates it)."""
+    return se3.from_xy_yaw(pose.p[..., 0], pose.p[..., 1], se3.yaw_of(pose.q), z=obj.rest_height).to(pose.p)
 
 
 def _pairs(node: Mapping[str, Any], what: str) -> list[tuple[str, str]]:
@@ -143,12 +150,19 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
                 thrown.append({"object": obj.name, "method": "pushtorch", "model": model_name,
                                "condition": condition, "thrown": int(broken[c].sum()),
                                "pushes": broken[c].numel()})
-                methods = (("pushtorch", predictions.final), ("no_motion", predictions.estimate),
-                           ("mean_motion", predictions.mean_motion), ("nominal_physics", predictions.nominal))
-                for method, estimate in methods:
-                    acc = compare(estimate, truth.take(c), obj)
-                    records.append(summarise("prediction", obj.name, method, acc, model_name, condition))
+                estimate = predictions.estimate
+                # (method, the start pose its prediction moves from, its final pose): nominal physics
+                # simulates from the estimate set upright on the ground
+                methods = (("pushtorch", estimate, predictions.final), ("no_motion", estimate, estimate),
+                           ("mean_motion", estimate, predictions.mean_motion),
+                           ("nominal_physics", _upright(obj, estimate), predictions.nominal))
+                for method, start, final in methods:
+                    acc = compare_displacement(start, final, predictions.truth_initial, truth.take(c), obj)
+                    records.append(summarise("prediction", obj.name, method, acc, model_name, condition,
+                                             metric="displacement"))
                     hacc_samples.append(sample_entry(records[-1], acc.hacc.reshape(-1, samples)))
+                    records.append(summarise("prediction", obj.name, method, compare(final, truth.take(c), obj),
+                                             model_name, condition, metric="frame"))
             if examples:
                 label = entity_label(name, obj.name, model_name)
                 log_examples(ctx, label, obj, examples, predictions, truth.take(0))

@@ -32,7 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, RecordFormatError
 from pushtorch.features import SurfaceFeatures, compute_surface_features
-from pushtorch.metrics import Accuracy, accuracy
+from pushtorch.metrics import Accuracy, accuracy, displaced
 from pushtorch.models.library import ModelLibrary, ModelSettings, PushModel, load_model, train_push_model
 from pushtorch.objects import ObjectModel, load_object
 from pushtorch.paths import contained_path
@@ -672,6 +672,17 @@ def simulate_truth(
 # --- records ------------------------------------------------------------------------------------------
 
 
+#: The scores of a prediction record, primary first (see :func:`summarise`).
+METRICS = ("displacement", "frame")
+
+
+def compare_displacement(initial_estimate: se3.Pose, final_estimate: se3.Pose, truth_initial: se3.Pose,
+                         truth_final: se3.Pose, obj: ObjectModel) -> Accuracy:
+    """Accuracy of predicted displacements ``(N, A)`` (from ``initial_estimate`` to ``final_estimate``)
+    applied to the true start poses ``(N,)``, against ground truths ``(N, A, S)``."""
+    return compare(displaced(initial_estimate, final_estimate, truth_initial.unsqueeze(-1)), truth_final, obj)
+
+
 def compare(estimate: se3.Pose, truth: se3.Pose, obj: ObjectModel) -> Accuracy:
     """Accuracy of estimates ``(...)`` against ground truths ``(..., S)`` (each estimate vs each sample)."""
     shape = truth.batch_shape
@@ -688,8 +699,13 @@ def summarise(
     model: str | None = None,
     condition: str | None = None,
     selection_rate: float | None = None,
+    metric: str | None = None,
 ) -> dict[str, Any]:
-    """One results.json record: a group's H_acc mean and std, and mean raw errors, over ``n`` comparisons."""
+    """One results.json record: a group's H_acc mean and std, and mean raw errors, over ``n`` comparisons.
+
+    ``metric`` (prediction and selection records): ``displacement``, the predicted motion applied to the
+    true start pose (:func:`pushtorch.metrics.displaced`, the primary score), or ``frame``, the predicted
+    final pose as it is (the estimated frame against the test object's own); pose records carry none."""
     h = acc.hacc.reshape(-1).double()
     record = {
         "task": task,
@@ -705,6 +721,10 @@ def summarise(
     }
     if task == "selection":
         record["selection_rate"] = None if selection_rate is None else float(selection_rate)
+    if metric is not None:
+        if metric not in METRICS:
+            raise InvalidParameterError(f"unknown metric {metric!r}; use one of {', '.join(METRICS)}")
+        record["metric"] = metric
     return record
 
 

@@ -27,6 +27,7 @@ from pushtorch.experiments.common import (
     ExperimentContext,
     as_names,
     compare,
+    compare_displacement,
     entity_label,
     log_examples,
     plain,
@@ -111,9 +112,13 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             truth, broken = simulate_truth(ctx, key, obj, predictions, [condition], samples,
                                            seed_key=f"{name}_{obj_name}")
             rate = float((predictions.selected == congruent).double().mean())
-            acc = compare(predictions.final, truth.take(0), obj)
-            records.append(summarise("selection", obj_name, method, acc, selection_rate=rate))
+            acc = compare_displacement(predictions.estimate, predictions.final, predictions.truth_initial,
+                                       truth.take(0), obj)
+            records.append(summarise("selection", obj_name, method, acc, selection_rate=rate,
+                                     metric="displacement"))
             hacc_samples.append(sample_entry(records[-1], acc.hacc.reshape(-1, samples)))
+            records.append(summarise("selection", obj_name, method, compare(predictions.final, truth.take(0), obj),
+                                     selection_rate=rate, metric="frame"))
             thrown.append({"object": obj_name, "method": method, "model": None, "condition": None,
                            "thrown": int(broken.sum()), "pushes": broken.numel()})
             if examples:

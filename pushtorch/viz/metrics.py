@@ -7,7 +7,7 @@ and a markdown summary per part lists the same groups as a table (with their ind
 beside the logged example predictions.
 
 Entity paths:
-    metrics/<part>/hacc/<object>[/<model>][/<condition>]/<method>   ``Scalars``: the group's mean H_acc
+    metrics/<part>/hacc/<object>[/<model>][/<condition>]/<method>[/<metric>]   ``Scalars``: the group's mean H_acc
         on the ``group`` sequence timeline, at the record's index in results.json; ``SeriesPoints``
         (static): the method's name and colour
     metrics/<part>/summary                                          ``TextDocument`` (markdown)
@@ -43,7 +43,7 @@ SUMMARY = f"{METRICS}/summary"
 GROUP_TIMELINE = "group"
 
 # the group levels of a results.json record, outermost first (absent ones are skipped)
-_GROUP_LEVELS = ("object", "model", "condition", "method")
+_GROUP_LEVELS = ("object", "model", "condition", "method", "metric")
 
 
 def hacc_root(part: str) -> str:
@@ -87,7 +87,10 @@ def log_group_hacc(
         path = f"{hacc_root(part)}/{entity_name('/'.join(level.replace('/', '_') for level in levels))}"
         method = str(record["method"])
         # one point per entity: markers, since a line needs two points to show
-        rec.log(path, rr.SeriesPoints(names=method, colors=colours[method], marker_sizes=4.0), static=True)
+        name = method if record.get("metric") in (None, "displacement") else f"{method} ({record['metric']})"
+        # the secondary (frame) score as smaller marks beside the primary one
+        size = 4.0 if name == method else 2.0
+        rec.log(path, rr.SeriesPoints(names=name, colors=colours[method], marker_sizes=size), static=True)
         rec.send_columns(
             path,
             indexes=[rr.TimeColumn(GROUP_TIMELINE, sequence=[first_group + k])],
@@ -104,12 +107,12 @@ def part_summary(
     lines = [f"# {part}", "", f"{len(records)} groups; the `group` column is the index on the "
              f"`{GROUP_TIMELINE}` timeline (and in results.json).", ""]
     if records:
-        lines += ["| group | object | model | condition | method | n | H_acc | linear cm | angular deg |",
-                  "|---:|---|---|---|---|---:|---|---:|---:|"]
+        lines += ["| group | object | model | condition | method | metric | n | H_acc | linear cm | angular deg |",
+                  "|---:|---|---|---|---|---|---:|---|---:|---:|"]
         for k, r in enumerate(records):
             lines.append(
                 f"| {first_group + k} | {r.get('object')} | {r.get('model') or '–'} | "
-                f"{r.get('condition') or '–'} | {r.get('method')} | {r.get('n')} | "
+                f"{r.get('condition') or '–'} | {r.get('method')} | {r.get('metric') or '–'} | {r.get('n')} | "
                 f"{float(r['hacc_mean']):.3f} ± {float(r.get('hacc_std', 0.0)):.3f} | "
                 f"{float(r.get('linear_cm', float('nan'))):.2f} | {float(r.get('angular_deg', float('nan'))):.1f} |"
             )
