@@ -20,10 +20,27 @@ its local mode by mean shift (``polish_steps``, :func:`pushtorch.anneal.polish_c
 motion kernels whose contact weight is zero included — one density at a time, the full annealing
 schedule). Both optimise the same densities; their random streams differ; ``tools/bench_predict.py``
 checks that their accuracy agrees.
+
+Collision-free starts (issue 15): the robot's query density knows nothing of the robot's volume, so an
+annealed start can put the bumper or the chassis inside the object, and the physics engine then throws the
+object. Every push condition's start is therefore checked against the observed cloud before it is used
+(:func:`clear_robot_start`): it is backed off straight along the approach (the robot's −x) until the
+bumper and chassis boxes clear the observed surface by :data:`START_CLEARANCE`, by the exact distance
+:func:`pushtorch.robot.backoff_distance` gives, and recorded in ``PushCondition.backoff``; no prediction
+is made from an overlapping start. A start that needed more than :data:`MAX_BACKOFF` is no longer the
+model's choice: its condition is marked invalid (``PushCondition.valid`` False, a warning is logged, and
+:meth:`PushCondition.check_start` raises :class:`~pushtorch.errors.ModelError` for callers that refuse
+it), while the start it carries is still the collision-free one. The check covers the observed surface only (the
+single shot sees the side facing the camera): besides the observed points it takes the space just behind
+them, :data:`OCCLUDED_DEPTH` along each point's inward normal, as occupied (:func:`clearance_points`),
+which catches a bumper buried wholly behind the visible face; deeper hidden parts of the object are not
+checked.
 """
 
 from __future__ import annotations
 
+import logging
+import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
@@ -31,7 +48,7 @@ import torch
 
 from pushtorch import se3
 from pushtorch.anneal import AnnealResult, AnnealSchedule
-from pushtorch.errors import InvalidParameterError
+from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.features import SurfaceFeatures, compute_surface_features
 from pushtorch.kde import KernelBandwidth
 from pushtorch.models.contact import place_environment_contacts
@@ -49,13 +66,49 @@ from pushtorch.models.query import (
     optimise_query_density,
 )
 from pushtorch.perception import PointCloud
+from pushtorch.robot import backed_off, backoff_distance
 
-__all__ = ["Prediction", "PushCondition", "estimate_pose", "generate_push_condition", "predict", "predict_many"]
+__all__ = [
+    "MAX_BACKOFF",
+    "OCCLUDED_DEPTH",
+    "OCCLUDED_STEP",
+    "START_CLEARANCE",
+    "Prediction",
+    "PushCondition",
+    "clear_robot_start",
+    "clearance_points",
+    "estimate_pose",
+    "generate_push_condition",
+    "predict",
+    "predict_many",
+]
+
+log = logging.getLogger("pushtorch.predict")
+
+#: Clearance (m) the robot's bumper and chassis keep from the observed cloud at a push's start: the 2 mm gap
+#: of the training placement (:func:`pushtorch.sim.push.place_robot_against`).
+START_CLEARANCE = 0.002
+#: Largest back-off (m) along the approach that still counts as the start the model chose: 0.10 m is 1 s of
+#: the paper's 0.1 m/s push, a quarter of its 0.4 m travel. A start that needs more sat deep in (or on) the
+#: object: its condition is marked invalid (``PushCondition.valid``), though still backed off to a clear start.
+MAX_BACKOFF = 0.10
+#: Depth (m) behind each observed point, along its inward normal, taken as occupied by the object: deeper
+#: than the 1.25 cm slot between the chassis and the bumper, so a bumper buried wholly behind the visible
+#: face is caught, and shallower than half the thinnest catalogue object (0.1 m), so a robot flush against a
+#: hidden face is not pushed away by it.
+OCCLUDED_DEPTH = 0.02
+#: Spacing (m) of the occluded samples: below the bumper's 0.02 m thickness, so it cannot slip between them.
+OCCLUDED_STEP = 0.01
 
 
 @dataclass
 class PushCondition:
-    """Where the push starts: the paper's "push condition" for one cloud and model."""
+    """Where the push starts: the paper's "push condition" for one cloud and model.
+
+    ``robot_start`` clears the observed cloud by :data:`START_CLEARANCE`: it is the robot query's annealed
+    pose backed off along the approach by ``backoff`` metres when that pose overlapped the cloud. A back-off
+    beyond :data:`MAX_BACKOFF` makes the condition invalid (:attr:`valid`, :meth:`check_start`).
+    """
 
     robot_start: se3.Pose  # () base pose on the ground
     manipulator_frame: ContactFrames  # (1,)
@@ -65,6 +118,27 @@ class PushCondition:
     pose_query: QueryResult
     features: SurfaceFeatures = field(repr=False)  # the cloud's surface features
     model: PushModel = field(repr=False)
+    #: metres the annealed start (``robot_query.pose``) was moved back along the approach to clear the
+    #: observed cloud by START_CLEARANCE (:func:`clear_robot_start`); 0.0 when it already cleared.
+    backoff: float = 0.0
+
+    @property
+    def valid(self) -> bool:
+        """False when the annealed start overlapped the observed object so deeply that clearing it took more
+        than :data:`MAX_BACKOFF`: the push starts from where the model would not have put the robot (the
+        start itself is still collision-free). Score or report such conditions apart."""
+        return self.backoff <= MAX_BACKOFF
+
+    def check_start(self) -> PushCondition:
+        """This condition, if :attr:`valid`.
+
+        Raises:
+            ModelError: the model's start overlapped the observed object beyond :data:`MAX_BACKOFF` of
+                back-off (the message names the overlap).
+        """
+        if not self.valid:
+            raise ModelError(_overlap_message(self.backoff, self.model.name))
+        return self
 
     @cached_property
     def feature_distance(self) -> torch.Tensor:
@@ -240,6 +314,61 @@ def _subsample(kernels: MotionKernels, count: int, generator: torch.Generator | 
     return kernels.take(torch.randperm(len(kernels), generator=generator)[:count])
 
 
+def clearance_points(features: SurfaceFeatures, depth: float = OCCLUDED_DEPTH,
+                     step: float = OCCLUDED_STEP) -> torch.Tensor:
+    """The points a robot start must clear: the observed surface and the occluded space just behind it.
+
+    Each feature's point ``p`` gives ``p − t·n`` for ``t = 0, step, …, depth`` (``n`` its outward normal),
+    ``(K·N, 3)`` with ``K = ⌊depth/step⌋ + 1`` layers, surface first. The single-shot cloud shows only the
+    side facing the camera; the layers stand for the object right behind that surface (for a convex object
+    at least as thick as ``depth`` they lie inside it), so a bumper wholly behind the visible face still
+    overlaps them. The object's hidden side further back is not represented.
+
+    Raises:
+        InvalidParameterError: a negative depth or a step that is not positive.
+    """
+    if not (math.isfinite(depth) and depth >= 0 and math.isfinite(step) and step > 0):
+        raise InvalidParameterError(f"need depth >= 0 and step > 0 (m), got depth={depth!r}, step={step!r}")
+    layers = torch.arange(int(round(depth / step, 9)) + 1, dtype=features.p.dtype, device=features.p.device)
+    offsets = layers * step
+    return (features.p.unsqueeze(0) - offsets[:, None, None] * features.normal.unsqueeze(0)).reshape(-1, 3)
+
+
+def _overlap_message(backoff: float, model_name: str | None) -> str:
+    who = f" of model {model_name!r}" if model_name else ""
+    return (
+        f"the predicted robot start{who} overlaps the observed object: its bumper or chassis stays within "
+        f"{START_CLEARANCE * 1000:g} mm of the cloud (or of the {OCCLUDED_DEPTH * 100:g} cm behind its visible "
+        f"surface) until backed off {backoff:.3f} m along the approach, beyond the {MAX_BACKOFF:.2f} m allowed"
+    )
+
+
+def clear_robot_start(robot_start: se3.Pose, features: SurfaceFeatures,
+                      clearance: float = START_CLEARANCE) -> tuple[se3.Pose, float]:
+    """A robot start pose ``()`` that clears the observed cloud, and how far it was backed off (m).
+
+    The start is moved straight back along its own −x (the approach reversed) by
+    :func:`pushtorch.robot.backoff_distance` against :func:`clearance_points`: the smallest distance after
+    which the bumper and chassis boxes are at least ``clearance`` from every observed point and from the
+    occluded layer behind it. A start that already clears is returned unchanged with back-off 0. The
+    back-off is not bounded here; :class:`PushCondition` judges it against :data:`MAX_BACKOFF`.
+    """
+    distance = backoff_distance(robot_start, clearance_points(features), clearance)
+    value = float(distance)
+    if value <= 0.0:
+        return robot_start, 0.0
+    return backed_off(robot_start, distance), value
+
+
+def _condition(robot: QueryResult, environment: ContactFrames, pose: QueryResult, features: SurfaceFeatures,
+               model: PushModel) -> PushCondition:
+    """The push condition, its annealed robot start cleared of the cloud (an invalid one logged)."""
+    start, backoff = clear_robot_start(robot.pose, features)
+    if backoff > MAX_BACKOFF:
+        log.warning("%s; the condition is marked invalid (PushCondition.valid)", _overlap_message(backoff, model.name))
+    return PushCondition(start, robot.nearest_kernel, environment, pose.pose, robot, pose, features, model, backoff)
+
+
 def generate_push_condition(
     model: PushModel,
     cloud: PointCloud | SurfaceFeatures,
@@ -251,7 +380,10 @@ def generate_push_condition(
     """Robot start pose, manipulator and environment contact frames, and initial pose (paper, Query Density).
 
     ``method``: ``"fast"`` (default) anneals the robot's (planar) and the object's query densities in
-    one batch with pruned, fused densities; ``"dense"`` is the reference, one after the other.
+    one batch with pruned, fused densities; ``"dense"`` is the reference, one after the other. The
+    annealed start is then backed off along the approach to clear the observed cloud
+    (:func:`clear_robot_start`; ``PushCondition.backoff``); beyond :data:`MAX_BACKOFF` the condition is
+    marked invalid (``PushCondition.valid``) and a warning is logged.
     """
     _check_method(method)
     generator = as_generator(generator)
@@ -269,7 +401,7 @@ def generate_push_condition(
     )
     environment = _environment_frames(model, features, action_index, generator)
     pose = estimate_pose(model.position, features, settings, generator, record_history, method)
-    return PushCondition(robot.pose, robot.nearest_kernel, environment, pose.pose, robot, pose, features, model)
+    return _condition(robot, environment, pose, features, model)
 
 
 def _environment_frames(model: PushModel, features: SurfaceFeatures, action_index: int,
@@ -305,8 +437,7 @@ def _push_conditions_fast(
     for i, (f, a) in enumerate(zip(features, action_indices, strict=True)):
         robot, pose = results[i], _verified_pose(results[n + i], model.position, f, generator)
         environment = _environment_frames(model, f, a, generator)
-        conditions.append(PushCondition(robot.pose, robot.nearest_kernel, environment, pose.pose, robot, pose, f,
-                                        model))
+        conditions.append(_condition(robot, environment, pose, f, model))
     return conditions
 
 
@@ -337,6 +468,11 @@ def predict(
         InvalidParameterError: an unknown method, or an action that is not finite, misshaped or unknown
             to the model.
         InvalidPointCloudError: an empty, misshaped or non-finite cloud (a float64 cloud is cast).
+
+    The robot start (``prediction.condition.robot_start``) clears the observed cloud by
+    :data:`START_CLEARANCE`: an overlapping annealed start is backed off along the approach
+    (``condition.backoff``), and ``condition.valid`` is False if that took more than :data:`MAX_BACKOFF`
+    (``condition.check_start()`` raises ModelError then).
     """
     return predict_many(model, [cloud], action, generator=generator, record_history=record_history,
                         method=method)[0]
@@ -394,6 +530,8 @@ def predict_many(
 
     Raises:
         InvalidParameterError: an unknown method, a batch size < 1 or actions that do not match.
+
+    Every condition's robot start is cleared of its cloud as in :func:`predict`.
     """
     _check_method(method)
     if isinstance(batch_size, bool) or not isinstance(batch_size, int | float) or int(batch_size) != batch_size \

@@ -12,11 +12,18 @@ here the bumper). One URDF, ``pushtorch/assets/pioneer_bumper.urdf``, serves two
 Frames: world z up, ground z = 0. The base frame lies on the ground at the centre of rotation, x forward.
 The bumper link frame is the centre of the plate's front face, x along its outward normal, z up; the
 plate's collision box lies behind it (x in [-thickness, 0]).
+
+Start clearance (issue 15): :func:`start_clearance` is the signed distance from points (an observed cloud)
+to the robot's two collision boxes, the chassis and the bumper, both axis-aligned in the base frame (the
+bumper box spans base x 0.24–0.26 m, ahead of the chassis' 0.2275 m: the robot approaches along its +x);
+:func:`backoff_distance` is the exact distance the robot must reverse along its −x for every point to clear
+both boxes by a margin, and :func:`backed_off` moves it there.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,13 +33,15 @@ import torch
 import trimesh
 
 from pushtorch import se3
-from pushtorch.errors import InvalidPoseError
+from pushtorch.errors import InvalidParameterError, InvalidPointCloudError, InvalidPoseError
 
 __all__ = [
     "BASE_LINK",
     "BUMPER_LINK",
     "URDF_PATH",
     "BumperGeometry",
+    "backed_off",
+    "backoff_distance",
     "base_pose_from_bumper",
     "base_pose_to_joints",
     "bumper_geometry",
@@ -42,6 +51,8 @@ __all__ = [
     "joints_to_base_pose",
     "kinematic_chain",
     "robot_mesh",
+    "robot_boxes",
+    "start_clearance",
     "urdf_text",
 ]
 
@@ -226,3 +237,137 @@ def robot_mesh() -> trimesh.Trimesh:
     bumper = bumper_mesh()
     bumper.apply_transform(se3.to_matrix(geometry.mount).numpy())
     return trimesh.util.concatenate([chassis, bumper])
+
+
+def robot_boxes(dtype: torch.dtype = torch.float32, device: str | torch.device | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The chassis and bumper collision boxes in the base frame, axis-aligned: ``(centres, half_extents)``.
+
+    Both are ``(2, 3)`` (row 0 the chassis, row 1 the bumper). The bumper box is its URDF box moved through
+    the mount (``base_T_bumper``); a mount turned by a quarter turn swaps the plate's x and y extents.
+
+    Raises:
+        InvalidPoseError: the bumper mount is turned by other than a multiple of 90° (its box would not
+            be axis-aligned with the base, which the clearance and back-off computations rely on), or the
+            bumper is not ahead of the chassis (the robot approaches along its +x).
+    """
+    centres, halves = _robot_boxes64()
+    return centres.to(dtype=dtype, device=device, copy=True), halves.to(dtype=dtype, device=device, copy=True)
+
+
+@functools.lru_cache(maxsize=1)
+def _robot_boxes64() -> tuple[torch.Tensor, torch.Tensor]:
+    geometry = bumper_geometry()
+    yaw = float(se3.yaw_of(geometry.mount.q))
+    quarter = round(yaw / (math.pi / 2))
+    if abs(yaw - quarter * math.pi / 2) > 1e-9:
+        raise InvalidPoseError(f"the bumper mount must face along a base axis (yaw a multiple of 90°), got {yaw}")
+    bumper_size = geometry.size[[1, 0, 2]] if quarter % 2 else geometry.size
+    bumper_centre = se3.apply(geometry.mount, torch.as_tensor(geometry.box_centre, dtype=torch.float64))
+    centres = torch.stack([torch.as_tensor(geometry.chassis_centre, dtype=torch.float64), bumper_centre])
+    halves = torch.as_tensor(np.stack([geometry.chassis_size, bumper_size]) / 2, dtype=torch.float64)
+    if not centres[1, 0] - halves[1, 0] > centres[0, 0]:  # the approach (and the back-off) assume it
+        raise InvalidPoseError("the bumper box must sit ahead of the chassis centre, along the base's +x")
+    return centres, halves
+
+
+def _points_in_boxes(robot_start: se3.Pose, points: torch.Tensor, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points ``(..., N, 3)`` relative to each box centre in the base frame, ``(..., 2, N, 3)``, and the
+    boxes' half extents ``(2, 1, 3)``, in the points' dtype and device."""
+    if not isinstance(points, torch.Tensor) or not points.is_floating_point() or points.dim() < 2 \
+            or points.shape[-1] != 3:
+        got = tuple(points.shape) if isinstance(points, torch.Tensor) else type(points).__name__
+        raise InvalidPointCloudError(f"{name}: points must be a floating tensor (..., N, 3), got {got}")
+    if not torch.isfinite(points).all():
+        raise InvalidPointCloudError(f"{name}: points hold NaN or infinite values")
+    se3.check_pose(robot_start, "robot_start")
+    start = robot_start.to(dtype=points.dtype, device=points.device)
+    rotation = se3.to_matrix(se3.Pose(torch.zeros_like(start.p), start.q))[..., :3, :3]  # world_R_base (..., 3, 3)
+    local = (points - start.p.unsqueeze(-2)) @ rotation  # (..., N, 3) in the base frame: R^T (x - p) per row
+    centres, halves = robot_boxes(points.dtype, points.device)
+    return local.unsqueeze(-3) - centres[:, None, :], halves[:, None, :]
+
+
+def start_clearance(robot_start: se3.Pose, points: torch.Tensor) -> torch.Tensor:
+    """Smallest signed distance (m) from ``points`` to the robot's chassis and bumper boxes, negative inside.
+
+    Each box is an oriented box in the world: the base pose composed with the box's frame in the base
+    (:func:`robot_boxes`). Exact box signed distances, batched.
+
+    Args:
+        robot_start: base poses ``(...)`` (any rigid pose; starts lie on the ground).
+        points: ``(..., N, 3)`` world points (e.g. an observed cloud); batch dims broadcast with the poses.
+
+    Returns:
+        ``(...)`` the minimum over both boxes and all points; ``+inf`` for an empty point set.
+
+    Raises:
+        InvalidPointCloudError: misshaped or non-finite points. InvalidPoseError: a malformed pose.
+    """
+    rel, halves = _points_in_boxes(robot_start, points, "start_clearance")
+    excess = rel.abs() - halves  # (..., 2, N, 3)
+    distance = excess.clamp(min=0).norm(dim=-1) + excess.amax(-1).clamp(max=0)
+    if distance.shape[-1] == 0:
+        return distance.new_full(distance.shape[:-2], math.inf)
+    return distance.flatten(-2).amin(-1)
+
+
+def backoff_distance(robot_start: se3.Pose, points: torch.Tensor, clearance: float = 0.002) -> torch.Tensor:
+    """How far (m) the robot must reverse along its own −x so every point clears both boxes by ``clearance``.
+
+    The robot approaches along its +x (the bumper is ahead of the chassis), so reversing by ``s`` moves every
+    point by ``+s`` along the base x. A point at distance ``e`` from a box's y–z cross-section is closer than
+    ``clearance`` to the box exactly while its base-x offset from the box centre lies in the open interval
+    ``±(h_x + sqrt(clearance² − e²))`` (never if ``e >= clearance``): each (point, box) pair gives an open
+    interval of ``s``. The result is the smallest ``s >= 0`` in no interval
+    (a sorted sweep, batched): 0 if the start already clears, otherwise at least the exit distance of
+    every point inside the inflated boxes, and more if reversing would run the chassis into a point behind
+    it. Exact for the given points.
+
+    Args:
+        robot_start: base poses ``(...)``.
+        points: ``(..., N, 3)`` world points; batch dims broadcast with the poses.
+        clearance: required distance (m), finite and >= 0.
+
+    Returns:
+        ``(...)`` back-off distances, ``>= 0``, in the points' dtype.
+
+    Raises:
+        InvalidParameterError: a negative or non-finite clearance. InvalidPointCloudError, InvalidPoseError:
+            as :func:`start_clearance`.
+    """
+    if isinstance(clearance, bool) or not isinstance(clearance, int | float) or not math.isfinite(clearance) \
+            or clearance < 0:
+        raise InvalidParameterError(f"clearance must be a finite distance >= 0 (m), got {clearance!r}")
+    rel, halves = _points_in_boxes(robot_start, points, "backoff_distance")
+    cross = (rel[..., 1:].abs() - halves[..., 1:]).clamp(min=0).square().sum(-1)  # (..., 2, N)
+    width = halves[..., 0] + (clearance**2 - cross).clamp(min=0).sqrt()
+    hit = (cross < clearance**2) | (cross == 0)  # the footprint itself even when clearance² underflows
+    x = rel[..., 0]
+    s_out = (width - x).flatten(-2)
+    live = hit.flatten(-2) & (s_out > 0)  # an interval wholly behind s = 0 never matters
+    if not bool(live.any()):  # the usual case: nothing within reach ahead of or behind the robot
+        return s_out.new_zeros(s_out.shape[:-1])
+    s_in = (-width - x).flatten(-2)
+    inf = torch.tensor(math.inf, dtype=s_in.dtype, device=s_in.device)
+    s_in = torch.where(live, s_in, inf)
+    s_out = torch.where(live, s_out, -inf)
+    sentinel = s_in.new_full((*s_in.shape[:-1], 1), math.inf)  # an always-free gap after every interval
+    s_in = torch.cat([s_in, sentinel], -1)
+    s_out = torch.cat([s_out, -sentinel], -1)
+    s_in, order = s_in.sort(-1)
+    s_out = s_out.gather(-1, order)
+    covered = s_out.cummax(-1).values.clamp(min=0)  # the union of the intervals so far reaches here
+    before = torch.cat([torch.zeros_like(covered[..., :1]), covered[..., :-1]], -1)
+    first_gap = (s_in >= before).int().argmax(-1, keepdim=True)  # argmax returns the first True
+    return before.gather(-1, first_gap).squeeze(-1)
+
+
+def backed_off(robot_start: se3.Pose, distance: torch.Tensor | float) -> se3.Pose:
+    """The base poses ``(...)`` moved ``distance (...)`` metres straight back along their own −x axis."""
+    distance = torch.as_tensor(distance, dtype=robot_start.p.dtype, device=robot_start.p.device)
+    shape = torch.broadcast_shapes(robot_start.batch_shape, distance.shape)
+    forward = se3.apply(se3.Pose(torch.zeros_like(robot_start.p), robot_start.q),
+                        torch.tensor([1.0, 0.0, 0.0], dtype=robot_start.p.dtype, device=robot_start.p.device))
+    p = robot_start.p - distance.unsqueeze(-1) * forward
+    return se3.Pose(p.expand(*shape, 3), robot_start.q.expand(*shape, 4))
