@@ -40,6 +40,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from bench_predict import cpu_name  # tools/ is on sys.path when a tool runs as a script
+
 PYTHON = sys.executable
 #: Overrides that keep a simulation small if a case is (wrongly) accepted.
 SIM_SMALL = ["samples_per_action=2", "workers=1", "rerun_pushes=0", "progress=false"]
@@ -336,16 +338,6 @@ def _cell(text: str, limit: int = 140) -> str:
     return text.replace("|", "\\|")
 
 
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return f"{line.split(':', 1)[1].strip()} ({os.cpu_count()} logical CPUs)"
-    except OSError:
-        pass
-    return f"unknown ({os.cpu_count()} logical CPUs)"
-
-
 def report(results: list[Result], wall: float) -> None:
     print()
     print("| id | category | outcome | exit | first stderr line | folder made |")
@@ -369,7 +361,7 @@ def report(results: list[Result], wall: float) -> None:
         python = sum(r.outcome == "traceback" and "Traceback" in r.stdout + r.stderr for r in results)
         print(f"of the {counts['traceback']} raw tracebacks, {python} print a Python traceback; the others exit "
               "with another status or print more than one stderr line")
-    print(f"CPU: {_cpu()}")
+    print(f"CPU: {cpu_name()} ({os.cpu_count()} logical CPUs)")
     print(f"wall time: {wall:.1f} s")
     missing = [r for r in results if r.outcome == "clear error" and r.case.expect
                and r.case.expect.lower() not in r.stderr.lower()]

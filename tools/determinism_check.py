@@ -20,6 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_predict import cpu_name  # tools/ is on sys.path when a tool runs as a script
+
 _PREDICT = r"""
 import json, sys, torch
 from pushtorch.models.library import load_model
@@ -33,16 +35,6 @@ clouds = [capture_partial_cloud(obj, obj.resting_pose(0.0, 0.0, 0.3 * k), genera
 out = predict_many(model, clouds, model.actions[0], generator=7)
 print(json.dumps([p.final_pose.p.tolist() + p.final_pose.q.tolist() for p in out]))
 """
-
-
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def _simulate_and_train(folder: Path, workers: int, per_action: int) -> tuple[Path, Path]:
@@ -98,7 +90,7 @@ def main() -> None:
     parser.add_argument("--pushes-per-action", type=int, default=40)
     parser.add_argument("--conditions", type=int, default=8)
     args = parser.parse_args()
-    print(f"CPU: {_cpu()} ({os.cpu_count()} cores), python {platform.python_version()}")
+    print(f"CPU: {cpu_name()} ({os.cpu_count()} cores), python {platform.python_version()}")
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="pushtorch-determinism-") as tmp:
         one, two = Path(tmp, "workers1"), Path(tmp, "workers2")

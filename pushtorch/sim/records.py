@@ -344,13 +344,13 @@ def write_shard(folder: str | Path, shard_id: int, arrays: Mapping[str, np.ndarr
     return path
 
 
-def _read_manifest(path: Path) -> dict:
+def _read_manifest(path: Path, what: str = "shard manifest") -> dict:
     try:
         manifest = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
-        raise RecordFormatError(f"{path} is not a readable shard manifest: {exc}") from exc
+        raise RecordFormatError(f"{path} is not a readable {what}: {exc}") from exc
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
-        raise RecordFormatError(f"{path} is not a {FORMAT} manifest")
+        raise RecordFormatError(f"{path} is not a {FORMAT} {what.removeprefix('shard ')}")
     if manifest.get("version") != VERSION:
         raise RecordFormatError(
             f"{path} has format version {manifest.get('version')}, this reader knows {VERSION}"
@@ -574,14 +574,7 @@ def _read_run_manifest(folder: Path) -> dict | None:
     path = folder / RUN_MANIFEST
     if not path.is_file():
         return None
-    try:
-        manifest = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise RecordFormatError(f"{path} is not a readable run manifest: {exc}") from exc
-    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
-        raise RecordFormatError(f"{path} is not a {FORMAT} run manifest")
-    if manifest.get("version") != VERSION:
-        raise RecordFormatError(f"{path} has format version {manifest.get('version')}, this reader knows {VERSION}")
+    manifest = _read_manifest(path, "run manifest")
     for key in ("pushes", "shard_size"):
         value = manifest.get(key)
         if not isinstance(value, int) or isinstance(value, bool) or value < (1 if key == "shard_size" else 0):
