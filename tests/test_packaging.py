@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import tomllib
 import zipfile
 from pathlib import Path
 
-import tomllib
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 

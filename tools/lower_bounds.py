@@ -7,9 +7,9 @@ that CI has run (README, "Set-up"). Requirements whose environment marker does n
 from __future__ import annotations
 
 import sys
+import tomllib
 from pathlib import Path
 
-import tomllib
 from packaging.requirements import Requirement
 
 
