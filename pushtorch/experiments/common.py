@@ -757,7 +757,8 @@ def _one_push(plan, k: int):
 
 def _truth_push(ctx: ExperimentContext, obj: ObjectModel, predictions: PredictionSet, i: int, j: int):
     """The ground-truth push shown with example ``(i, j)``: test condition 0, sample 0, re-simulated here
-    with its trajectory (pybullet is deterministic: the final pose is the recorded one); None if
+    with its trajectory (its final pose is compared with the recorded one by :func:`log_examples`: for
+    the cube they agree bit for bit, for round objects they have differed by a few mm); None if
     :func:`simulate_truth` did not run for these predictions while recording."""
     from pushtorch.sim.runner import simulate_plan
     from pushtorch.sim.world import object_spec
