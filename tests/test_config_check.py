@@ -115,18 +115,20 @@ def _cli(tmp_path, *argv):
                           timeout=120, env=env)
 
 
+# one case per path a refusal takes (the callback, a sweep, Hydra's composition, after the folder is made);
+# the rest are slow here (a subprocess each) and covered by tools/bad_input_battery.py as well
+_SLOW = pytest.mark.slow
 @pytest.mark.parametrize("argv", [
-    ("pushtorch", "seed=abc"),
-    ("pushtorch", "-m", "model=tiny", "seed=1,abc"),
-    ("pushtorch.simulate", "actions.duration=1e5"),
-    ("pushtorch.predict", "models=[a.npz]", "x=1e9"),
-    ("pushtorch.train", "data=x", "hydra.run.dir=a_file/run"),
-    ("pushtorch", "experiment=nope"),
-    ("pushtorch", "sed=1"),
-    ("pushtorch", "-m", "model=tiny,huge"),
-    ("pushtorch.train", "data=nowhere"),
-], ids=["seed", "sweep", "duration", "position", "folder-under-a-file", "unknown-option", "unknown-key",
-        "unknown-option-in-a-sweep", "error-after-the-folder-is-made"])
+    pytest.param(("pushtorch", "seed=abc"), id="seed"),
+    pytest.param(("pushtorch", "-m", "model=tiny", "seed=1,abc"), id="sweep"),
+    pytest.param(("pushtorch.simulate", "actions.duration=1e5"), id="duration", marks=_SLOW),
+    pytest.param(("pushtorch.predict", "models=[a.npz]", "x=1e9"), id="position", marks=_SLOW),
+    pytest.param(("pushtorch.train", "data=x", "hydra.run.dir=a_file/run"), id="folder-under-a-file", marks=_SLOW),
+    pytest.param(("pushtorch", "experiment=nope"), id="unknown-option"),
+    pytest.param(("pushtorch", "sed=1"), id="unknown-key", marks=_SLOW),
+    pytest.param(("pushtorch", "-m", "model=tiny,huge"), id="unknown-option-in-a-sweep", marks=_SLOW),
+    pytest.param(("pushtorch.train", "data=nowhere"), id="error-after-the-folder-is-made"),
+])
 def test_the_command_line_exits_2_with_one_line_and_makes_no_folder(tmp_path, argv):
     (tmp_path / "a_file").write_text("")
     result = _cli(tmp_path, *argv)
