@@ -118,6 +118,8 @@ def _cli(tmp_path, *argv):
 # one case per path a refusal takes (the callback, a sweep, Hydra's composition, after the folder is made);
 # the rest are slow here (a subprocess each) and covered by tools/bad_input_battery.py as well
 _SLOW = pytest.mark.slow
+
+
 @pytest.mark.parametrize("argv", [
     pytest.param(("pushtorch", "seed=abc"), id="seed"),
     pytest.param(("pushtorch", "-m", "model=tiny", "seed=1,abc"), id="sweep"),
