@@ -37,15 +37,7 @@ TINY_SELECTION = [
     "experiment.methods=[adaptive]",
     "experiment.test_conditions=1",
     "experiment.truth_samples=2",
-    "model.samples_per_action=3",
-    "model.settings.query_kernels=200",
-    "model.settings.anneal_candidates=40",
-    "model.settings.anneal_steps=8",
-    "model.settings.environment_kernels=200",
-    "model.settings.manipulator_kernels=40",
-    "model.settings.environment_samples=20",
-    "model.settings.voxel_size=0.008",
-    "model.settings.feature_radius=0.02",
+    "model=tiny",  # conf/model/tiny.yaml: the default model at the smallest sizes
 ]
 
 
