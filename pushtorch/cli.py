@@ -182,7 +182,9 @@ def _one_line(message: str) -> str:
 def compose_or_exit(app: str, config_name: str, argv: Sequence[str] | None = None) -> None:
     """Compose the config the command line asks for (every job of a sweep, up to 256) before Hydra does,
     so an unknown option of a config group or a key that does not exist is one line and exit 2 (Hydra
-    itself prints several lines and exits 1). ``--help``, ``--cfg`` and the like are left to Hydra.
+    itself prints several lines and exits 1); every sweep job's config is also checked here
+    (:func:`pushtorch.config_check.check_config`), before the sweep folder exists. ``--help``, ``--cfg``
+    and the like are left to Hydra.
     """
     from hydra import compose, initialize_config_module
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
@@ -207,10 +209,17 @@ def compose_or_exit(app: str, config_name: str, argv: Sequence[str] | None = Non
         sys.exit(2)
     if GlobalHydra.instance().is_initialized():
         return  # called inside another Hydra app (a test): leave it to that app
+    from pushtorch.config_check import APPS, ConfigError, check_config
+
     try:
         with initialize_config_module(config_module=CONFIG_PATH.removeprefix("pkg://"), version_base="1.3"):
             for job in jobs:
-                compose(config_name, overrides=job, return_hydra_config=True)
+                composed = compose(config_name, overrides=job, return_hydra_config=True)
+                if args.multirun and config_name in APPS:  # a single run is checked by the callback
+                    check_config(composed, config_name)
+    except ConfigError as exc:
+        print(f"{app}: {exc} (sweep job {' '.join(job)})", file=sys.stderr)
+        sys.exit(2)
     except Exception as exc:
         where = f" (sweep job {' '.join(job)})" if args.multirun else ""
         print(f"{app}: {_one_line(str(exc))}{where}", file=sys.stderr)

@@ -11,7 +11,8 @@ Bounds (decisions, docs/method.md "Config bounds"): durations at most 60 s per p
 counts capped far above the paper's tables (kernels and candidates at 10^6); the trajectories a run keeps
 in memory at most a quarter of this machine's RAM; positions inside the simulated ground with room for the
 robot and the push. The Hydra callback :class:`ConfigCheck` (``conf/hydra/output/pushtorch.yaml``) runs the
-check before Hydra makes a run folder, for every job of a sweep before the first starts;
+check before Hydra makes a run folder (:func:`pushtorch.cli.compose_or_exit` checks every job of a sweep
+before the sweep folder exists);
 :func:`pushtorch.cli.run_stage` runs it again for configs that did not come through that callback.
 """
 
@@ -468,35 +469,18 @@ except ImportError:  # pragma: no cover - hydra-core is a dependency
 
 
 class ConfigCheck(Callback):
-    """Hydra callback: :func:`check_config` before the run folder exists (``on_run_start``), and for every
-    job of a sweep before the first one starts (``on_multirun_start``). A bad config prints one line and
-    exits with status 2."""
+    """Hydra callback: :func:`check_config` before the run folder exists (``on_run_start``), and a check that
+    the sweep folder can be made (``on_multirun_start``; each sweep job's config is checked by
+    :func:`pushtorch.cli.compose_or_exit` before Hydra starts). A bad config prints one line and exits with
+    status 2."""
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._check_or_exit(config, kwargs.get("config_name"))
         self._folder_or_exit(config, "run", kwargs.get("config_name"))
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        from hydra import compose
-        from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-        from hydra.core.override_parser.overrides_parser import OverridesParser
-
-        name = kwargs.get("config_name")
-        if name not in APPS:
-            return
-        self._folder_or_exit(config, "sweep", name)
-        overrides = [str(o) for o in config.hydra.overrides.task]
-        try:
-            parsed = OverridesParser.create().parse_overrides(overrides)
-            jobs = [job for batch in BasicSweeper.split_arguments(parsed, None) for job in batch]
-        except Exception:  # a sweeper of the user's own syntax: each job is checked by run_stage instead
-            return
-        for job in jobs[:256]:  # beyond that, run_stage checks each job as it starts
-            try:
-                composed = compose(config_name=name, overrides=list(job))
-            except Exception:  # Hydra reports its own composition errors when the job is launched
-                continue
-            self._check_or_exit(composed, name, f" (sweep job {' '.join(job)})")
+        # every job's config was composed and checked by pushtorch.cli.compose_or_exit already
+        self._folder_or_exit(config, "sweep", kwargs.get("config_name"))
 
     @staticmethod
     def _folder_or_exit(config: DictConfig, mode: str, config_name: str | None) -> None:

@@ -19,7 +19,6 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-import numpy as np
 import rerun as rr
 
 from pushtorch.viz.core import entity_name
@@ -57,12 +56,12 @@ def part_summary_path(part: str) -> str:
 
 
 def _method_colours(records: Sequence[Mapping[str, Any]]) -> dict[str, tuple[int, int, int]]:
-    """One tab10 colour per method, in sorted order (the same method keeps its colour across a part)."""
-    from matplotlib import colormaps
+    """Each method's colour as in the report's figures (:func:`pushtorch.experiments.report.colour_of`)."""
+    from matplotlib.colors import to_rgb
 
-    palette = (np.asarray(colormaps["tab10"].colors)[:, :3] * 255).astype(np.uint8)
-    methods = sorted({str(r["method"]) for r in records})
-    return {m: tuple(int(c) for c in palette[k % len(palette)]) for k, m in enumerate(methods)}
+    from pushtorch.experiments.report import colour_of
+
+    return {m: tuple(round(255 * c) for c in to_rgb(colour_of(m))) for m in {str(r["method"]) for r in records}}
 
 
 def log_group_hacc(
