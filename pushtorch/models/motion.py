@@ -62,6 +62,7 @@ __all__ = [
     "MotionKernels",
     "MotionModel",
     "anneal_motion_densities",
+    "contact_log_weights",
     "fit_motion_model",
     "local_motions",
     "motion_frames",
@@ -211,6 +212,25 @@ def fit_motion_model(
     return MotionModel(torch.as_tensor(action, dtype=x.p.dtype), manipulator, environment, se3.mean_pose(in_robot))
 
 
+def contact_log_weights(frames: ContactFrames, kernels: MotionKernels, robot_start: se3.Pose,
+                        contact_bandwidth: KernelBandwidth) -> Tensor:
+    """``(F, N)`` log ``K^c(c_e | c_j)``: how much each of the frames ``c_e`` (world) resembles each training
+    kernel ``c_j`` of one contact kind, over ``(u, r, g)`` (Eq. contact_frame_probability and the ``g`` term
+    of the module docstring), each frame's contact density widened by its own trial rounds until some kernel
+    reaches it."""
+    n_frames, n_kernels = frames.r.reshape(-1, 2).shape[0], len(kernels)
+    contact_kde = PoseKDE(
+        se3.Pose(kernels.u.p.expand(n_frames, n_kernels, 3), kernels.u.q.expand(n_frames, n_kernels, 4)),
+        contact_bandwidth,
+        descriptors=torch.cat([embed_descriptors(kernels.r), kernels.g], -1).expand(n_frames, n_kernels, 5),
+    )
+    query_u = se3.Pose(frames.u.p.reshape(-1, 1, 3), frames.u.q.reshape(-1, 1, 4))
+    frame_g = se3.apply(se3.inverse(robot_start), frames.v.p.reshape(-1, 3))
+    query_r = torch.cat([embed_descriptors(frames.r.reshape(-1, 2)), frame_g], -1).unsqueeze(-2)
+    _, log_w = contact_kde.fitted_log_kernels(query_u, query_r)
+    return log_w.squeeze(-2)
+
+
 def _block_diagonal(blocks: list[Tensor], fill: float) -> Tensor:
     """Matrices placed along the diagonal of one matrix, ``fill`` elsewhere."""
     rows, cols = sum(b.shape[0] for b in blocks), sum(b.shape[1] for b in blocks)
@@ -266,25 +286,14 @@ class MotionDensity:
                 f"for the frame's position in the robot frame; got {contact_bandwidth.descriptor_dim}"
             )
         frames = [(manipulator_frame, model.manipulator), (environment_frames, model.environment)]
-        to_robot = se3.inverse(robot_start)
         # Motions are expressed in the robot's start frame (motion_frames), the same for every contact
         # frame: each kind's kernels become one set of final poses R0 ∘ m_j ∘ R0⁻¹ ∘ B0' that all of its
         # experts share; the experts differ only in their contact weights K^c.
         to_final = se3.relative(robot_start, object_pose)
         experts, shared_means, shared_weights = [], [], []
         for frame, kernels in frames:
-            n_frames, n_kernels = frame.r.reshape(-1, 2).shape[0], len(kernels)
-            # one contact density per frame, so trial rounds widen each frame's kernels on their own
-            contact_kde = PoseKDE(
-                se3.Pose(kernels.u.p.expand(n_frames, n_kernels, 3), kernels.u.q.expand(n_frames, n_kernels, 4)),
-                contact_bandwidth,
-                descriptors=torch.cat([embed_descriptors(kernels.r), kernels.g], -1).expand(n_frames, n_kernels, 5),
-            )
-            query_u = se3.Pose(frame.u.p.reshape(-1, 1, 3), frame.u.q.reshape(-1, 1, 4))
-            frame_g = se3.apply(to_robot, frame.v.p.reshape(-1, 3))
-            query_r = torch.cat([embed_descriptors(frame.r.reshape(-1, 2)), frame_g], -1).unsqueeze(-2)
-            _, log_w = contact_kde.fitted_log_kernels(query_u, query_r)
-            log_w = log_w.squeeze(-2)  # (F, N): log K^c(c_e | c_j)
+            n_frames = frame.r.reshape(-1, 2).shape[0]
+            log_w = contact_log_weights(frame, kernels, robot_start, contact_bandwidth)  # (F, N)
             finals = se3.compose(se3.compose(robot_start, kernels.m), to_final)  # (N,)
             # kernels the contact kernel cut off carry no weight
             keep = torch.isfinite(log_w) | (not drop_cut_kernels)  # (F, N)

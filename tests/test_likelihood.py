@@ -1,0 +1,212 @@
+"""The likelihood score (issue 15, item 2) and the equal-information baselines (item 3): normalisers against
+closed forms and Monte Carlo, the nll of a real prediction's density at its own samples against far poses,
+symmetry and frame invariance, and the baselines on real clouds, models and pybullet pushes."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hypothesis import given
+from hypothesis import strategies as st
+
+from pushtorch import se3
+from pushtorch.baselines import (
+    cloud_body,
+    nearest_push_prediction,
+    oracle_physics_prediction,
+    physics_from_cloud_prediction,
+)
+from pushtorch.errors import ModelError
+from pushtorch.features import compute_surface_features
+from pushtorch.likelihood import (
+    log_rotation_normaliser,
+    mean_motion_density,
+    motion_product_density,
+    nll,
+    point_density,
+    product_density,
+)
+from pushtorch.models.library import ModelSettings, train_push_model
+from pushtorch.objects import load_object
+from pushtorch.perception import capture_partial_cloud
+from pushtorch.predict import contact_bandwidth, predict
+from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_training_pushes, run_plan
+
+
+def _unit(q: torch.Tensor) -> torch.Tensor:
+    return q / q.norm(dim=-1, keepdim=True)
+
+
+# -- normalisers -------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kappa", [0.3, 3.0, 40.0])
+def test_rotation_normaliser_matches_monte_carlo_over_uniform_rotations(kappa):
+    g = torch.Generator().manual_seed(0)
+    q = _unit(torch.randn(1_000_000, 4, generator=g, dtype=torch.float64))
+    estimate = torch.exp(-kappa * (1.0 - q[:, 0].abs())).mean().log()
+    assert float(log_rotation_normaliser(torch.tensor(kappa))) == pytest.approx(float(estimate), abs=5e-3)
+
+
+def test_rotation_normaliser_tends_to_the_gaussian_limit():
+    # large κ: (4/π) κ^(-3/2) √2 Γ(3/2) = √(2/π) · 2 κ^(-3/2) / √π · ...: the closed Laplace limit
+    kappa = torch.tensor([1e4, 1e6])
+    limit = math.log(4.0 / math.pi) - 1.5 * torch.log(kappa) + math.log(math.sqrt(2.0) * math.gamma(1.5))
+    torch.testing.assert_close(log_rotation_normaliser(kappa), limit.double(), atol=1e-3, rtol=0)
+
+
+@given(offset=st.floats(0.0, 0.04), p_std=st.floats(0.005, 0.03), seed=st.integers(0, 2**31 - 1))
+def test_product_of_two_kernels_is_normalised_as_the_closed_form(offset, p_std, seed):
+    rot_std = 0.05
+    means = se3.Pose(torch.tensor([[0.0, 0.0, 0.0], [offset, 0.0, 0.0]]), torch.tensor([[1.0, 0, 0, 0]] * 2))
+    weights = torch.tensor([[0.0, -math.inf], [-math.inf, 0.0]])  # expert e holds kernel e only
+    mode = se3.Pose(torch.tensor([[offset / 2, 0.0, 0.0]]), torch.tensor([[1.0, 0, 0, 0]]))  # as annealing finds
+    density = product_density(means, weights, p_std, rot_std, generator=torch.Generator().manual_seed(seed),
+                              centres=mode, samples=1024)
+    variance = 2.0 * p_std**2  # ∫ N(x; 0, s²) N(x; δ, s²) dx = N(δ; 0, 2 s²)
+    kappa = 4.0 / rot_std**2
+    rotation = log_rotation_normaliser(torch.tensor(2 * kappa)) - 2 * log_rotation_normaliser(torch.tensor(kappa))
+    closed = -offset**2 / (2 * variance) - 1.5 * math.log(2 * math.pi * variance) + float(rotation)
+    assert float(density.log_z) == pytest.approx(closed, abs=0.05)
+
+
+def test_one_kernel_scores_its_documented_peak():
+    peak = point_density(se3.identity(), 0.01, 0.05).log_prob(se3.identity())
+    assert -float(peak) == pytest.approx(-21.66, abs=0.01)  # docs/method.md, "Likelihood score"
+
+
+def test_mean_motion_density_fits_the_spread_of_its_motions():
+    g = torch.Generator().manual_seed(1)
+    sigma = 0.02
+    p = torch.tensor([0.3, -0.1, 0.0]) + sigma * torch.randn(4000, 3, generator=g)
+    q = _unit(torch.cat([torch.ones(4000, 1), 0.5 * 0.03 * torch.randn(4000, 3, generator=g)], -1))
+    centre = se3.Pose(torch.tensor([0.3, -0.1, 0.0]), torch.tensor([1.0, 0, 0, 0]))
+    density = mean_motion_density(se3.Pose(p, q), centre, se3.identity(), se3.identity())
+    bandwidth = density.kde.bandwidth
+    assert bandwidth.p_std == pytest.approx(sigma, rel=0.05)
+    assert bandwidth.rot_std == pytest.approx(0.03, rel=0.1)
+
+
+# -- a real prediction's density ---------------------------------------------------------------------
+
+SMALL = ModelSettings(query_kernels=400, anneal_candidates=60, anneal_steps=15, position_frames=800,
+                      environment_kernels=300, manipulator_kernels=40)
+
+
+@pytest.fixture(scope="module")
+def cube_prediction(tmp_path_factory):
+    cube = load_object("cube")
+    plan = plan_training_pushes(cube, make_actions(3), 8, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=0)
+    folder = tmp_path_factory.mktemp("cube_pushes")
+    run_plan(object_spec(cube), plan, folder, workers=2, progress=False)
+    model = train_push_model(cube, load_records(folder), SMALL, generator=torch.Generator().manual_seed(0))
+    pose = cube.resting_pose(yaw=0.3)
+    cloud = capture_partial_cloud(cube, pose)
+    prediction = predict(model, cloud, model.actions[2], torch.Generator().manual_seed(0))
+    return cube, model, pose, cloud, prediction
+
+
+def test_nll_at_the_densitys_own_samples_is_lower_than_at_far_poses(cube_prediction):
+    cube, _, pose, _, prediction = cube_prediction
+    density = motion_product_density(prediction.density, torch.Generator().manual_seed(0))
+    samples = prediction.density.sample(64, torch.Generator().manual_seed(1))
+    start = prediction.condition.object_pose
+    # samples of B̂1, read as truths moving from the estimated start itself
+    near = nll(density, samples, start, start, cube.symmetry)
+    far_shift = se3.Pose(samples.p + torch.tensor([0.15, -0.1, 0.0]), samples.q)
+    far = nll(density, far_shift, start, start, cube.symmetry)
+    assert torch.isfinite(near).all() and torch.isfinite(far).all()
+    assert float(near.max()) < float(far.min())
+    print(f"\nnll at own samples: median {float(near.median()):.1f}, 15 cm away: median {float(far.median()):.1f}")
+
+
+def test_nll_does_not_depend_on_the_truths_symmetric_copy(cube_prediction):
+    cube, _, pose, _, prediction = cube_prediction
+    density = motion_product_density(prediction.density, torch.Generator().manual_seed(0))
+    truth_final = se3.Pose(prediction.final_pose.p.reshape(1, 3) + torch.tensor([0.01, 0.0, 0.0]),
+                           prediction.final_pose.q.reshape(1, 4))
+    start = prediction.condition.object_pose
+    base = nll(density, truth_final, start, start, cube.symmetry)
+    for s in cube.symmetry.discrete[1:6]:  # the same truth, its final body frame turned by a symmetry
+        turned = se3.compose(truth_final, se3.Pose(torch.zeros(3), s))
+        torch.testing.assert_close(nll(density, turned, start, start, cube.symmetry), base, atol=1e-3, rtol=0)
+        started = se3.compose(start, se3.Pose(torch.zeros(3), s))  # ... or its start's
+        torch.testing.assert_close(nll(density, truth_final, started, start, cube.symmetry), base, atol=1e-3,
+                                   rtol=0)
+
+
+def test_nll_does_not_depend_on_the_frame_the_estimate_is_expressed_in(cube_prediction):
+    """The same predicted displacement from two estimated frames related by a symmetry S of the training
+    object (``B̂0 ∘ S``, every kernel at ``B̂1 ∘ S``) scores the same."""
+    cube, _, pose, _, prediction = cube_prediction
+    start = prediction.condition.object_pose
+    truths = se3.Pose(prediction.final_pose.p.reshape(1, 3) + torch.tensor([[0.01, 0.0, 0.0], [0.0, -0.02, 0.0]]),
+                      prediction.final_pose.q.reshape(1, 4).expand(2, 4))
+    means, log_weights = prediction.density.shared_kernels()
+    bandwidth = prediction.density.experts.bandwidth
+    rounds = prediction.density.experts.trial_rounds[0]
+    scores = []
+    for s in cube.symmetry.discrete[:4]:
+        turn = se3.Pose(torch.zeros(3), s)
+        density = product_density(se3.compose(means, turn), log_weights, bandwidth.p_std, bandwidth.rot_std,
+                                  rounds, generator=torch.Generator().manual_seed(0),
+                                  centres=se3.compose(prediction.candidates, turn))
+        scores.append(nll(density, truths, pose, se3.compose(start, turn), cube.symmetry))
+        point = point_density(se3.compose(prediction.final_pose, turn), 0.01, 0.05)
+        scores.append(nll(point, truths, pose, se3.compose(start, turn), cube.symmetry))
+    for k in range(2, len(scores)):  # importance sampling leaves hundredths of a nat, float32 kernels 1e-4
+        torch.testing.assert_close(scores[k], scores[k % 2], atol=0.1 if k % 2 == 0 else 1e-3, rtol=0)
+
+
+def test_a_continuous_symmetry_is_scored_at_the_nearest_turn():
+    cylinder = load_object("cylinder")
+    density = point_density(cylinder.resting_pose(0.2, 0.1, 0.4), 0.01, 0.05)
+    start = cylinder.resting_pose()
+    turns = torch.linspace(0.0, 2 * math.pi, 17)[:-1] + 0.013  # off the 3° grid
+    finals = se3.Pose.stack([cylinder.resting_pose(0.2, 0.1, 0.4 + float(t)) for t in turns])
+    values = nll(density, finals, start, start, cylinder.symmetry)
+    assert float(values.max() - values.min()) < 0.02
+    assert float(values.mean()) == pytest.approx(-21.66, abs=0.05)
+
+
+# -- baselines on equal information ------------------------------------------------------------------
+
+
+def test_nearest_push_replays_one_training_motion(cube_prediction):
+    _, model, _, _, prediction = cube_prediction
+    condition = prediction.condition
+    motion = model.motions[2]
+    final = nearest_push_prediction(motion, condition.manipulator_frame, condition.robot_start,
+                                    condition.object_pose, contact_bandwidth(model.settings))
+    replayed = se3.compose(se3.compose(condition.robot_start, motion.manipulator.m),
+                           se3.compose(se3.inverse(condition.robot_start), condition.object_pose))
+    gaps = (replayed.p - final.p).norm(dim=-1)
+    assert float(gaps.min()) < 1e-5
+
+
+def test_the_cloud_body_is_the_visible_cube_swept_down_and_pushes_like_the_cube(cube_prediction):
+    cube, _, pose, cloud, prediction = cube_prediction
+    features = compute_surface_features(cloud)
+    body, start = cloud_body(features.p, prediction.condition.object_pose)
+    # the camera sees the top and the -x faces: the swept hull is nearly the whole cube
+    assert 0.8 * cube.mesh.volume < body.mesh.volume <= 1.02 * cube.mesh.volume
+    assert float(start.p[2]) == pytest.approx(body.rest_height, abs=1e-6)
+    action = prediction.action
+    robot_start = prediction.condition.robot_start
+    cloud_start, cloud_final = physics_from_cloud_prediction(features.p, prediction.condition.object_pose,
+                                                             robot_start, action, 0.5, 0.3)
+    oracle = oracle_physics_prediction(cube, robot_start, pose, action, 0.5, 0.3)
+    moved = se3.compose(se3.compose(cloud_final, se3.inverse(cloud_start)), pose)
+    gap = float((moved.p - oracle.p).norm())
+    print(f"\nphysics from the cloud vs the oracle on the cube: {100 * gap:.2f} cm apart; "
+          f"oracle moved {100 * float((oracle.p - pose.p).norm()):.1f} cm")
+    assert gap < 0.05
+
+
+def test_a_flat_cloud_cannot_make_a_body():
+    flat = torch.rand(50, 3)
+    flat[:, 2] = 0.0
+    with pytest.raises(ModelError, match="spans no volume"):
+        cloud_body(flat, se3.identity())
