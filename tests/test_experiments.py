@@ -196,9 +196,14 @@ def test_tiny_quickstart_writes_tidy_results(tiny_run):
     every = results["records"]
     for r in every:
         expected = (RECORD_KEYS | ({"selection_rate"} if r["task"] == "selection" else set())
-                    | ({"metric"} if r["task"] != "pose" else set()))
+                    | ({"metric", "nll_mean", "nll_median"} if r["task"] != "pose" else set()))
         assert set(r) == expected
         assert r["n"] >= 1 and r["hacc_mean"] >= 0 and r["hacc_std"] >= 0 and r["linear_cm"] >= 0
+        # the likelihood is a displacement-sense score: a finite number there, empty on frame records
+        if r.get("metric") == "displacement":
+            assert math.isfinite(r["nll_mean"]) and math.isfinite(r["nll_median"])
+        elif r.get("metric") == "frame":
+            assert r["nll_mean"] is None
     # every prediction and selection group is scored twice: displacement (primary) and frame
     scored = [r for r in every if r["task"] != "pose"]
     assert {r["metric"] for r in scored} == {"displacement", "frame"}
@@ -221,13 +226,16 @@ def test_tiny_quickstart_writes_tidy_results(tiny_run):
     assert {(r["object"], r["model"], r["condition"], r["method"]) for r in friction} == {
         (o, f"friction:{m}", f"friction:{c}", method) for o in ("cube", "prism_thin") for m in ("low", "high")
         for c in ("low", "medium", "high")
-        for method in ("pushtorch", "no_motion", "mean_motion", "nominal_physics")}
+        for method in ("pushtorch", "no_motion", "mean_motion", "nearest_push", "physics_from_cloud",
+                       "oracle_physics")}
     assert all(r["n"] == 1 * 2 * 2 for r in friction)
     mass = [r for r in by_task["prediction"] if r["model"].startswith("mass:")]
     assert {r["condition"] for r in mass} == {"mass:low", "mass:high"}
     # a push moves the object ~40 cm: standing still is far off, our prediction is not
     still = pool([r for r in friction if r["method"] == "no_motion"])
-    assert still["linear_cm"] > 20
+    ours = pool([r for r in friction if r["method"] == "pushtorch"])
+    assert still["linear_cm"] > 20 and ours["linear_cm"] < still["linear_cm"]
+    assert ours["nll_mean"] < still["nll_mean"]  # a point that stands still is far less likely than our density
     assert summary["results"] == str(out / "results.json") and summary["records"] == len(every)
 
 

@@ -9,8 +9,10 @@ normals) on one physical parameter; every model predicts the same test poses of 
 the same seeds: a paired comparison of the models), and each prediction is compared with ground truths
 simulated under the *low*, *medium* and *high* test
 conditions ("144 sets of simulated ground truths compared with 48 sets of generated predictions").
-Baselines on the same pushes: no motion, the training pushes' mean motion, and nominal physics
-(pybullet with the training prior's mean mass and friction).
+Baselines on the same pushes (:mod:`pushtorch.baselines`): no motion, the training pushes' mean motion, the
+nearest training push, physics on a body reconstructed from the cloud, and oracle physics (the true mesh at
+the true pose) — the last two with the training prior's mean mass and friction. Every prediction is scored
+on its displacement (H_acc) and by the likelihood of the truth under its density (``nll_mean``).
 
 One module serves both experiments (``experiment=friction_biasing``, ``experiment=mass_biasing``): the
 config names the biased parameter (``bias``), the trained priors (``model.friction`` × ``model.mass``,
@@ -29,7 +31,6 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from pushtorch import se3
 from pushtorch.errors import InvalidParameterError
 from pushtorch.experiments.common import (
     ExperimentContext,
@@ -37,6 +38,7 @@ from pushtorch.experiments.common import (
     compare,
     compare_displacement,
     entity_label,
+    likelihood_scores,
     load_test_objects,
     log_examples,
     plain,
@@ -48,9 +50,11 @@ from pushtorch.experiments.common import (
     summarise,
     train_model,
     training_records,
+    truth_fingerprint,
 )
 from pushtorch.experiments.report import sample_entry
 from pushtorch.objects import load_object
+from pushtorch.predict import MAX_BACKOFF
 
 __all__ = ["prior_label", "run", "run_part"]
 
@@ -63,11 +67,6 @@ def prior_label(bias: str, friction: str, mass: str) -> str:
     if bias == "mass":
         return f"mass:{mass}"
     return f"friction:{friction},mass:{mass}"
-
-
-def _upright(obj, pose: se3.Pose) -> se3.Pose:
-    """``pose`` set upright on the ground at its position and heading (as nominal physics simulates it)."""
-    return se3.from_xy_yaw(pose.p[..., 0], pose.p[..., 1], se3.yaw_of(pose.q), z=obj.rest_height).to(pose.p)
 
 
 def _pairs(node: Mapping[str, Any], what: str) -> list[tuple[str, str]]:
@@ -100,7 +99,8 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
         model_cfg: ``friction``, ``mass``: the trained priors (a name or a list each; their product).
 
     Returns:
-        Four records (pushtorch and the three baselines) per object, model and condition; extras
+        Two records (``metric`` displacement and frame) per method (pushtorch and the five baselines),
+        object, model and condition; extras
         ``{"training_scatter": {name: {training object: {prior label: [[dx, dy], ...]}}}}``, the action
         index of each of those pushes (``training_actions``, same layout), the thrown pushes, and each
         record's per-comparison H_acc for the figures' intervals (``hacc_samples``, see
@@ -138,28 +138,30 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             else:
                 candidates, adaptive = [models[(t, f, m)] for t in training], True
             key = f"{name}_{obj.name}_{f}_{m}"
-            nominal = (ctx.prior("mass", m).mean, ctx.prior("friction", f).mean)
+            physics = (ctx.prior("mass", m).mean, ctx.prior("friction", f).mean)
+            truth_key = truth_fingerprint(ctx, conditions, samples, f"{name}_{obj.name}")
             predictions, examples = predict_set(
-                ctx, key, obj, candidates, poses, adaptive=adaptive, nominal=nominal,
+                ctx, key, obj, candidates, poses, truth=truth_key, adaptive=adaptive, physics=physics,
                 seed_key=f"{name}_{obj.name}", bar=bar, examples=ctx.log_examples if k == 0 else 0,
             )
             truth, broken = simulate_truth(ctx, key, obj, predictions, conditions, samples,
                                            seed_key=f"{name}_{obj.name}")
+            nll = likelihood_scores(ctx, key, obj, predictions, truth, truth_key)
+            invalid = int((predictions.backoff > MAX_BACKOFF).sum())
             for c, (cf, cm) in enumerate(conditions):
                 condition = prior_label(bias, cf, cm)
                 thrown.append({"object": obj.name, "method": "pushtorch", "model": model_name,
                                "condition": condition, "thrown": int(broken[c].sum()),
-                               "pushes": broken[c].numel()})
-                estimate = predictions.estimate
-                # (method, the start pose its prediction moves from, its final pose): nominal physics
-                # simulates from the estimate set upright on the ground
-                methods = (("pushtorch", estimate, predictions.final), ("no_motion", estimate, estimate),
-                           ("mean_motion", estimate, predictions.mean_motion),
-                           ("nominal_physics", _upright(obj, estimate), predictions.nominal))
-                for method, start, final in methods:
+                               "pushes": broken[c].numel(),
+                               # the starts are the conditions': counted once, not once per truth condition
+                               "invalid_starts": invalid if c == 0 else 0,
+                               "starts": predictions.backoff.numel() if c == 0 else 0})
+                # every method predicts the displacement from its own start pose: the estimate, the
+                # reconstructed body (physics from the cloud) or the true pose (the oracle)
+                for method, (start, final) in predictions.methods().items():
                     acc = compare_displacement(start, final, predictions.truth_initial, truth.take(c), obj)
                     records.append(summarise("prediction", obj.name, method, acc, model_name, condition,
-                                             metric="displacement"))
+                                             metric="displacement", nll=nll[method][c]))
                     hacc_samples.append(sample_entry(records[-1], acc.hacc.reshape(-1, samples)))
                     records.append(summarise("prediction", obj.name, method, compare(final, truth.take(c), obj),
                                              model_name, condition, metric="frame"))

@@ -51,6 +51,7 @@ __all__ = [
     "entity_label",
     "fingerprint",
     "load_arrays",
+    "likelihood_scores",
     "load_test_objects",
     "log_examples",
     "merged_model_config",
@@ -65,6 +66,7 @@ __all__ = [
     "summarise",
     "train_model",
     "training_records",
+    "truth_fingerprint",
 ]
 
 log = logging.getLogger("pushtorch.experiments")
@@ -403,7 +405,11 @@ def fingerprint(**inputs: Any) -> str:
     return hashlib.sha256(json.dumps(inputs, sort_keys=True, default=str).encode()).hexdigest()
 
 
-_POSE_FIELDS = ("truth_initial", "robot_start", "estimate", "final", "mean_motion", "nominal")
+_POSE_FIELDS = ("truth_initial", "robot_start", "estimate", "final", "mean_motion", "nearest", "oracle",
+                "cloud_start", "cloud_final")
+#: Bump when the predictions a cached set holds would come out differently for the same settings (collision-free
+#: starts, new baselines): cached sets of an older version are recomputed.
+PREDICTION_VERSION = 2
 
 
 @dataclass
@@ -416,10 +422,18 @@ class PredictionSet:
         estimate: estimated initial object poses ``B0'`` ``(N, A)`` (the no-motion baseline).
         final: predicted final poses ``(N, A)``.
         mean_motion: the mean-motion baseline's final poses ``(N, A)``.
-        nominal: the nominal-physics baseline's final poses ``(N, A)``, or None (not computed).
+        nearest: the nearest-push baseline's final poses ``(N, A)`` (from ``estimate``).
+        oracle: the oracle-physics baseline's final poses ``(N, A)`` (from ``truth_initial``), or None.
+        cloud_start, cloud_final: the physics-from-cloud baseline's reconstructed body before and after the
+            push ``(N, A)``, or None.
+        backoff: ``(N, A)`` metres each robot start was backed off to clear the observed cloud
+            (:attr:`pushtorch.predict.PushCondition.backoff`).
         selected: ``(N, A)`` index into ``model_names`` of the model that made each prediction.
         model_names: names of the candidate models.
         fingerprint: what the set was computed from (a cached set is reused only if it matches).
+        densities: per condition and action, ``{method: PoseDensity}`` of the methods that predict a
+            density (``pushtorch``, ``mean_motion``), kept in memory for :func:`likelihood_scores`; None
+            for a set read from the cache (its scores were cached with it).
     """
 
     truth_initial: se3.Pose
@@ -427,14 +441,33 @@ class PredictionSet:
     estimate: se3.Pose
     final: se3.Pose
     mean_motion: se3.Pose
-    nominal: se3.Pose | None
+    nearest: se3.Pose
+    oracle: se3.Pose | None
+    cloud_start: se3.Pose | None
+    cloud_final: se3.Pose | None
+    backoff: torch.Tensor
     selected: torch.Tensor
     model_names: list[str]
     fingerprint: str
+    densities: list[list[dict]] | None = field(default=None, repr=False)
+
+    def methods(self) -> dict[str, tuple[se3.Pose, se3.Pose]]:
+        """``{method: (start, final)}`` of every method in the set, each ``(N, A)``: the displacement from
+        start to final is what the method predicts (oracle physics starts at the true pose)."""
+        n, a = self.final.batch_shape
+        truth = se3.Pose(self.truth_initial.p.unsqueeze(1).expand(n, a, 3),
+                         self.truth_initial.q.unsqueeze(1).expand(n, a, 4))
+        out = {"pushtorch": (self.estimate, self.final), "no_motion": (self.estimate, self.estimate),
+               "mean_motion": (self.estimate, self.mean_motion), "nearest_push": (self.estimate, self.nearest)}
+        if self.cloud_final is not None:
+            out["physics_from_cloud"] = (self.cloud_start, self.cloud_final)
+        if self.oracle is not None:
+            out["oracle_physics"] = (truth, self.oracle)
+        return out
 
     def save(self, path: Path) -> None:
-        """Write atomically as a plain ``.npz`` (no pickle)."""
-        arrays = {"selected": self.selected}
+        """Write atomically as a plain ``.npz`` (no pickle); the densities are not kept."""
+        arrays = {"selected": self.selected, "backoff": self.backoff}
         for name in _POSE_FIELDS:
             pose = getattr(self, name)
             if pose is not None:
@@ -452,9 +485,9 @@ class PredictionSet:
         try:
             poses = {n: se3.Pose(arrays[f"{n}_p"], arrays[f"{n}_q"]) if f"{n}_p" in arrays else None
                      for n in _POSE_FIELDS}
-            return PredictionSet(**poses, selected=arrays["selected"], model_names=list(meta["model_names"]),
-                                 fingerprint=str(meta["fingerprint"]))
-        except KeyError as exc:
+            return PredictionSet(**poses, backoff=arrays["backoff"], selected=arrays["selected"],
+                                 model_names=list(meta["model_names"]), fingerprint=str(meta["fingerprint"]))
+        except (KeyError, TypeError) as exc:
             raise RecordFormatError(f"{path} is not a complete prediction set: missing {exc}") from exc
 
 
@@ -468,6 +501,19 @@ class Example:
     features: SurfaceFeatures
 
 
+def _scores_path(ctx: ExperimentContext, key: str) -> Path:
+    return contained_path(ctx.run_dir, "scores", f"{key}.npz", what="experiment, object or prior name")
+
+
+def truth_fingerprint(ctx: ExperimentContext, conditions: Sequence[tuple[str, str]], samples: int,
+                      seed_key: str) -> str:
+    """What a group's ground truth is made from besides its predictions (conditions, priors, samples, seeds,
+    simulator): the scores cached with a prediction set are reused only for the same truth."""
+    priors = [(repr(ctx.prior("friction", f)), repr(ctx.prior("mass", m))) for f, m in conditions]
+    return fingerprint(conditions=list(conditions), priors=priors, samples=samples, seed=ctx.seed,
+                       seed_key=seed_key, sim=asdict(ctx.sim), duration=ctx.duration)
+
+
 def predict_set(
     ctx: ExperimentContext,
     key: str,
@@ -475,15 +521,16 @@ def predict_set(
     candidates: Sequence[PushModel],
     poses: se3.Pose,
     *,
+    truth: str,
     adaptive: bool = False,
     choose: Callable[[int], int] | None = None,
-    nominal: tuple[float, float] | None = None,
+    physics: tuple[float, float] | None = None,
     seed_key: str | None = None,
     memo: dict | None = None,
     examples: int = 0,
     bar=None,
 ) -> tuple[PredictionSet, list[Example]]:
-    """Predict every test condition and action of one group, with the motion baselines (cached).
+    """Predict every test condition and action of one group, with the baselines (cached).
 
     Paper, Fig. prediction_accuracy_methodology: capture the partial cloud, generate the push condition,
     predict. The prediction of condition ``i`` and action ``j`` is seeded with
@@ -498,11 +545,14 @@ def predict_set(
         candidates: the models; with ``adaptive`` the one with the lowest ``H_r`` on each cloud is used
             (paper, Model Selection), else ``candidates[choose(i)]`` for condition ``i`` (default 0).
         poses: true initial poses ``(N,)``.
-        nominal: (mass kg, ground friction) of the nominal-physics baseline (the training prior's means),
-            or None to skip that baseline.
+        truth: :func:`truth_fingerprint` of the ground truth the set will be scored against: a cached set
+            is reused only with the likelihood scores of that truth (:func:`likelihood_scores`), since the
+            densities they need are not cached.
+        physics: (mass kg, ground friction) of the physics baselines (the training prior's means), or None
+            to skip them.
         seed_key: the name the seeds derive from (default ``key``).
         memo: a dict shared by groups with the same ``seed_key`` and object, keyed by (condition,
-            model name, action); holds derived poses, not predictions.
+            model name, action); holds derived poses and densities, not predictions.
         examples: how many conditions' predictions to return whole, with their annealing history (for
             the recording; recomputed with the same seeds when the set comes from the cache).
         bar: a tqdm bar advanced once per prediction.
@@ -510,8 +560,14 @@ def predict_set(
     Returns:
         The predictions, and the kept examples.
     """
-    from pushtorch.baselines import mean_motion_prediction, nominal_physics_prediction
-    from pushtorch.predict import predict
+    from pushtorch.baselines import (
+        mean_motion_prediction,
+        nearest_push_prediction,
+        oracle_physics_prediction,
+        physics_from_cloud_prediction,
+    )
+    from pushtorch.likelihood import mean_motion_density, motion_product_density
+    from pushtorch.predict import contact_bandwidth, predict
 
     n, a_count = int(poses.p.shape[0]), int(ctx.actions.shape[0])
     choose = choose or (lambda i: 0)
@@ -520,17 +576,20 @@ def predict_set(
         key=key, seed=ctx.seed, seed_key=seed_key, models=[m.name for m in candidates], adaptive=adaptive,
         choice=[choose(i) for i in range(n)], settings=asdict(ctx.settings),
         poses=poses.p.tolist() + poses.q.tolist(), actions=ctx.actions.tolist(),
-        nominal=nominal, samples_per_action=ctx.samples_per_action,
+        physics=physics, samples_per_action=ctx.samples_per_action, version=PREDICTION_VERSION,
     )
     path = contained_path(ctx.run_dir, "predictions", f"{key}.npz", what="experiment, object or prior name")
     cached = None
-    if path.is_file():
+    if path.is_file() and _scores_path(ctx, key).is_file():
         try:
             cached = PredictionSet.load(path)
+            _, scores_meta = load_arrays(_scores_path(ctx, key))
         except RecordFormatError as exc:
             log.warning("recomputing %s: %s", key, exc)
-        if cached is not None and cached.fingerprint != made_from:
             cached = None
+        else:
+            if cached.fingerprint != made_from or scores_meta.get("made_from") != [made_from, truth]:
+                cached = None
     library = ModelLibrary(list(candidates)) if adaptive else None
     wanted = min(int(examples), n) if ctx.recording is not None else 0
     memo = {} if memo is None else memo
@@ -550,10 +609,18 @@ def predict_set(
             prediction = predict(model, features, ctx.actions[j], generator, record_history=record)
             condition = prediction.condition
             motion = model.motions[model.action_index(ctx.actions[j])]
+            start, estimate = condition.robot_start, condition.object_pose
+            scoring = torch.Generator().manual_seed(stable_seed(ctx.seed, seed_key, i, j, "likelihood"))
             memo[memo_key] = {
-                "robot_start": condition.robot_start, "estimate": condition.object_pose,
-                "final": prediction.final_pose,
-                "mean_motion": mean_motion_prediction(motion, condition.robot_start, condition.object_pose),
+                "robot_start": start, "estimate": estimate, "final": prediction.final_pose,
+                "mean_motion": mean_motion_prediction(motion, start, estimate),
+                "nearest": nearest_push_prediction(motion, condition.manipulator_frame, start, estimate,
+                                                   contact_bandwidth(model.settings)),
+                "backoff": condition.backoff,
+                "densities": {
+                    "pushtorch": motion_product_density(prediction.density, scoring, prediction.candidates),
+                    "mean_motion": mean_motion_density(motion.manipulator.m, motion.mean_motion, start, estimate),
+                },
             }
             derived.append(memo[memo_key])
             if record:
@@ -568,37 +635,89 @@ def predict_set(
             predict_condition(i, features, True)
         return cached, kept
 
-    names = ("robot_start", "estimate", "final", "mean_motion", "nominal")
+    names = ("robot_start", "estimate", "final", "mean_motion", "nearest", "oracle", "cloud_start", "cloud_final")
     fields: dict[str, list] = {name: [] for name in names}
     selected = torch.zeros(n, a_count, dtype=torch.int64)
+    backoff = torch.zeros(n, a_count)
+    densities: list[list[dict]] = []
     for i in range(n):
         _, features = observe(obj, poses.take(i), ctx.settings)
         index, derived = predict_condition(i, features, i < wanted)
         selected[i] = index
+        densities.append([d["densities"] for d in derived])
         for j, poses_ij in enumerate(derived):
-            for name in ("robot_start", "estimate", "final", "mean_motion"):
+            for name in ("robot_start", "estimate", "final", "mean_motion", "nearest"):
                 fields[name].append(poses_ij[name])
-            if nominal is not None:
-                fields["nominal"].append(nominal_physics_prediction(
-                    obj, poses_ij["robot_start"], poses_ij["estimate"], ctx.actions[j], *nominal
-                ))
+            backoff[i, j] = poses_ij["backoff"]
+            if physics is not None:
+                fields["oracle"].append(oracle_physics_prediction(
+                    obj, poses_ij["robot_start"], poses.take(i), ctx.actions[j], *physics))
+                cloud_start, cloud_final = physics_from_cloud_prediction(
+                    features.p, poses_ij["estimate"], poses_ij["robot_start"], ctx.actions[j], *physics)
+                fields["cloud_start"].append(cloud_start)
+                fields["cloud_final"].append(cloud_final)
             if bar is not None:
                 bar.update(1)
 
-    def stacked(items: list[se3.Pose]) -> se3.Pose:
+    def stacked(items: list[se3.Pose]) -> se3.Pose | None:
+        if not items:
+            return None
         flat = [se3.Pose(p.p.reshape(3).float().cpu(), p.q.reshape(4).float().cpu()) for p in items]
         return se3.Pose.stack(flat).reshape(n, a_count)
 
     result = PredictionSet(
         truth_initial=se3.Pose(poses.p.float(), poses.q.float()),
-        **{name: stacked(fields[name]) for name in ("robot_start", "estimate", "final", "mean_motion")},
-        nominal=stacked(fields["nominal"]) if nominal is not None else None,
+        **{name: stacked(fields[name]) for name in names},
+        backoff=backoff,
         selected=selected,
         model_names=[m.name for m in candidates],
         fingerprint=made_from,
+        densities=densities,
     )
     result.save(path)
+    stale = _scores_path(ctx, key)
+    stale.unlink(missing_ok=True)  # scores of an older set must not pass for this one's
     return result, kept
+
+
+def likelihood_scores(ctx: ExperimentContext, key: str, obj: ObjectModel, predictions: PredictionSet,
+                      truth_final: se3.Pose, truth: str) -> dict[str, torch.Tensor]:
+    """Negative log-likelihoods (nats) of the ground truths ``(C, N, A, S)`` under every method's predicted
+    density, in the displacement sense (:func:`pushtorch.likelihood.nll`): ``{method: (C, N, A, S)}``.
+
+    ``pushtorch`` and ``mean_motion`` are scored under their own densities; the point predictions under one
+    kernel of the model's motion bandwidth (:func:`pushtorch.likelihood.point_density`). Cached as
+    ``<run_dir>/scores/<key>.npz`` with the set's and the truth's fingerprints (``truth``:
+    :func:`truth_fingerprint`).
+
+    Raises:
+        RecordFormatError: the set came from the cache but its scores did not (they are written together).
+    """
+    from pushtorch.likelihood import nll, point_density
+
+    path = _scores_path(ctx, key)
+    made_from = [predictions.fingerprint, truth]
+    if predictions.densities is None:
+        arrays, meta = load_arrays(path)
+        if meta.get("made_from") != made_from:
+            raise RecordFormatError(f"{path} holds the scores of another prediction set or ground truth")
+        return arrays
+    c_count, n, a_count, samples = truth_final.batch_shape
+    p_std, rot_std = ctx.settings.motion_p_std, ctx.settings.motion_rot_std
+    scores: dict[str, torch.Tensor] = {}
+    for method, (start, final) in predictions.methods().items():
+        out = torch.empty(c_count, n, a_count, samples)
+        for i in range(n):
+            for j in range(a_count):
+                density = predictions.densities[i][j].get(method) or point_density(final.take((i, j)), p_std,
+                                                                                  rot_std)
+                truths = se3.Pose(truth_final.p[:, i, j].reshape(-1, 3), truth_final.q[:, i, j].reshape(-1, 4))
+                values = nll(density, truths, predictions.truth_initial.take(i), start.take((i, j)),
+                             obj.symmetry)
+                out[:, i, j] = values.reshape(c_count, samples).float()
+        scores[method] = out
+    save_arrays(path, scores, {"made_from": made_from})
+    return scores
 
 
 # --- ground truth -------------------------------------------------------------------------------------
@@ -700,12 +819,15 @@ def summarise(
     condition: str | None = None,
     selection_rate: float | None = None,
     metric: str | None = None,
+    nll: torch.Tensor | None = None,
 ) -> dict[str, Any]:
     """One results.json record: a group's H_acc mean and std, and mean raw errors, over ``n`` comparisons.
 
     ``metric`` (prediction and selection records): ``displacement``, the predicted motion applied to the
     true start pose (:func:`pushtorch.metrics.displaced`, the primary score), or ``frame``, the predicted
-    final pose as it is (the estimated frame against the test object's own); pose records carry none."""
+    final pose as it is (the estimated frame against the test object's own); pose records carry none.
+    ``nll`` (displacement records): the per-comparison negative log-likelihoods of the truth under the
+    method's density (:func:`likelihood_scores`), summarised as ``nll_mean`` and ``nll_median`` (nats)."""
     h = acc.hacc.reshape(-1).double()
     record = {
         "task": task,
@@ -725,6 +847,9 @@ def summarise(
         if metric not in METRICS:
             raise InvalidParameterError(f"unknown metric {metric!r}; use one of {', '.join(METRICS)}")
         record["metric"] = metric
+        # the likelihood is scored in the displacement sense only; frame records carry the key, empty
+        record["nll_mean"] = None if nll is None else float(nll.double().mean())
+        record["nll_median"] = None if nll is None else float(nll.double().median())
     return record
 
 

@@ -29,6 +29,7 @@ from pushtorch.experiments.common import (
     compare,
     compare_displacement,
     entity_label,
+    likelihood_scores,
     log_examples,
     plain,
     predict_set,
@@ -38,9 +39,11 @@ from pushtorch.experiments.common import (
     stable_seed,
     summarise,
     train_model,
+    truth_fingerprint,
 )
 from pushtorch.experiments.report import sample_entry
 from pushtorch.objects import load_object
+from pushtorch.predict import MAX_BACKOFF
 
 __all__ = ["METHODS", "run", "run_part"]
 
@@ -104,23 +107,27 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
         memo: dict = {}  # every method predicts a condition with the same seeds: a model's answer is shared
         for method in methods:
             key = f"{name}_{obj_name}_{method}"
+            truth_key = truth_fingerprint(ctx, [condition], samples, f"{name}_{obj_name}")
             predictions, examples = predict_set(
-                ctx, key, obj, models, poses, adaptive=method == "adaptive", choose=choices[method],
-                seed_key=f"{name}_{obj_name}", memo=memo, bar=bar,
+                ctx, key, obj, models, poses, truth=truth_key, adaptive=method == "adaptive",
+                choose=choices[method], seed_key=f"{name}_{obj_name}", memo=memo, bar=bar,
                 examples=ctx.log_examples if method == "adaptive" else 0,
             )
             truth, broken = simulate_truth(ctx, key, obj, predictions, [condition], samples,
                                            seed_key=f"{name}_{obj_name}")
+            nll = likelihood_scores(ctx, key, obj, predictions, truth, truth_key)["pushtorch"]
             rate = float((predictions.selected == congruent).double().mean())
             acc = compare_displacement(predictions.estimate, predictions.final, predictions.truth_initial,
                                        truth.take(0), obj)
             records.append(summarise("selection", obj_name, method, acc, selection_rate=rate,
-                                     metric="displacement"))
+                                     metric="displacement", nll=nll[0]))
             hacc_samples.append(sample_entry(records[-1], acc.hacc.reshape(-1, samples)))
             records.append(summarise("selection", obj_name, method, compare(predictions.final, truth.take(0), obj),
                                      selection_rate=rate, metric="frame"))
             thrown.append({"object": obj_name, "method": method, "model": None, "condition": None,
-                           "thrown": int(broken.sum()), "pushes": broken.numel()})
+                           "thrown": int(broken.sum()), "pushes": broken.numel(),
+                           "invalid_starts": int((predictions.backoff > MAX_BACKOFF).sum()),
+                           "starts": predictions.backoff.numel()})
             if examples:
                 label = entity_label(name, obj_name, method)
                 log_examples(ctx, label, obj, examples, predictions, truth.take(0))
