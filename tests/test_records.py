@@ -137,6 +137,21 @@ def test_a_folder_of_another_run_is_not_resumed_into(tmp_path):
         run_plan(spec, other, tmp_path, workers=1, shard_size=1, progress=False)
 
 
+def test_pushes_of_an_older_world_are_refused_never_mixed(tmp_path):
+    cube = load_object("cube")
+    plan = plan_training_pushes(cube, make_actions(1), 2, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=0)
+    run_plan(object_spec(cube), plan, tmp_path, workers=1, shard_size=1, progress=False)
+    manifest_path = tmp_path / "manifest.json"  # the run manifest (shards have their own)
+    manifest = json.loads(manifest_path.read_text())
+    assert manifest.get("world") is not None
+    del manifest["world"]  # as written before the world had a version
+    manifest_path.write_text(json.dumps(manifest))
+    with pytest.raises(RecordFormatError, match="another version of the world"):
+        load_records(tmp_path)
+    with pytest.raises(RecordFormatError, match="another version of the world"):
+        run_plan(object_spec(cube), plan, tmp_path, workers=1, shard_size=1, progress=False)
+
+
 def _overrides(run_dir: Path) -> list[str]:
     return ["samples_per_action=10", "shard_size=2", "progress=false", "rerun_pushes=0", "seed=21",
             f"hydra.run.dir={run_dir}"]

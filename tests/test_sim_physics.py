@@ -210,8 +210,9 @@ def test_object_inertia_is_the_mesh_inertia():
     assert np.allclose(spec.inertia_per_kg, (0.2**2 + 0.2**2) / 12)
 
 
-def test_same_plan_gives_identical_records_in_any_order():
-    model = load_object("cube")
+@pytest.mark.parametrize("name", ["cube", "cylinder", "hybrid"])  # box primitives and convex hulls
+def test_same_plan_gives_identical_records_in_any_order(name):
+    model = load_object(name)
     plan = plan_training_pushes(model, make_actions(3), 2, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=3)
     first = simulate_plan(object_spec(model), plan)
     again = simulate_plan(object_spec(model), plan)
@@ -221,7 +222,7 @@ def test_same_plan_gives_identical_records_in_any_order():
     arrays = plan.arrays()
     reversed_arrays = {k: v[::-1].copy() for k, v in arrays.items()}
     with PushWorld(object_spec(model)) as world:
-        backwards = simulate_arrays(world, reversed_arrays, "cube", plan.seed, plan.duration)
+        backwards = simulate_arrays(world, reversed_arrays, name, plan.seed, plan.duration)
     assert np.array_equal(backwards["object_final_p"][::-1], first.object_final.p.numpy())
 
 

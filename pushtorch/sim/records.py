@@ -575,6 +575,14 @@ def _read_run_manifest(folder: Path) -> dict | None:
     if not path.is_file():
         return None
     manifest = _read_manifest(path, "run manifest")
+    from pushtorch.sim.world import WORLD_VERSION
+
+    if manifest.get("world", 1) != WORLD_VERSION:  # manifests before the world had a version were world 1
+        raise RecordFormatError(
+            f"{folder} holds pushes simulated by another version of the world (world {manifest.get('world', 1)}, "
+            f"this pushtorch simulates world {WORLD_VERSION}); they are never mixed with new ones: simulate them "
+            "again into a fresh folder"
+        )
     for key in ("pushes", "shard_size"):
         value = manifest.get(key)
         if not isinstance(value, int) or isinstance(value, bool) or value < (1 if key == "shard_size" else 0):

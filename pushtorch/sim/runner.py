@@ -44,7 +44,7 @@ from pushtorch.sim.records import (
     records_from_arrays,
     write_shard,
 )
-from pushtorch.sim.world import ObjectSpec, PushWorld, SimSettings, check_inside_world, object_spec
+from pushtorch.sim.world import WORLD_VERSION, ObjectSpec, PushWorld, SimSettings, check_inside_world, object_spec
 
 __all__ = [
     "PushPool",
@@ -310,6 +310,7 @@ def _manifest(plan: PushPlan, spec: ObjectSpec, settings: SimSettings, shard_siz
         "shard_size": int(shard_size),
         "plan_sha256": plan.fingerprint(),
         "settings": asdict(settings),
+        "world": WORLD_VERSION,
     }
     manifest.update(plan_digests(plan.index.numpy(), plan.action_index.numpy(), plan.action.numpy()))
     manifest["resume"] = resume
@@ -333,6 +334,12 @@ def _prepare_folder(folder: Path, manifest: dict) -> None:
             raise RecordFormatError(f"{path} is not a run manifest")
         changed = [k for k in manifest if k != "resume" and (k not in _DERIVED_KEYS or k in existing)
                    and existing.get(k) != manifest.get(k)]
+        if "world" in changed:
+            raise RecordFormatError(
+                f"{folder} holds pushes simulated by another version of the world (world "
+                f"{existing.get('world', 1)}, this pushtorch simulates world {manifest['world']}); they are "
+                "never mixed: use a fresh folder (or delete this one) to simulate them again"
+            )
         if changed:
             raise RecordFormatError(
                 f"{folder} holds shards of a different run (differs in {', '.join(changed)}); "

@@ -47,6 +47,7 @@ __all__ = [
     "ObjectSpec",
     "PushWorld",
     "SimSettings",
+    "WORLD_VERSION",
     "check_inside_world",
     "object_spec",
     "quat_conjugate",
@@ -56,6 +57,11 @@ __all__ = [
     "xyzw",
     "yaw_quat",
 ]
+
+#: Version of the simulated world, written into every run manifest: records of another version are refused
+#: (pushtorch.sim.runner), never mixed. 2: a fresh object collision shape per push (1 let a convex hull's
+#: state carry over between the pushes of one worker).
+WORLD_VERSION = 2
 
 #: Joint indices of pushtorch/assets/pioneer_bumper.urdf as pybullet numbers them.
 JOINT_X, JOINT_Y, JOINT_YAW = 0, 1, 2
@@ -325,8 +331,9 @@ class PushWorld:
     """One pybullet DIRECT client holding the ground, the robot and one object.
 
     The world is built once; every push resets it (poses, joint states, mass, friction) instead of
-    rebuilding it. A push's outcome depends only on its own inputs: the object body is re-created from
-    cached collision shapes before every push, so no contact cache survives from the previous push.
+    rebuilding it. A push's outcome depends only on its own inputs: the object's collision shape and body
+    are re-created before every push, so neither a contact cache nor a shape's internal state survives
+    from the previous push (tests/test_sim_physics.py checks a push after another against a fresh world).
 
     Args:
         spec: the object to push.
@@ -385,7 +392,7 @@ class PushWorld:
         for joint in (JOINT_X, JOINT_Y, JOINT_YAW):
             pb.changeDynamics(self.robot, joint, jointDamping=0.0, linearDamping=0.0, angularDamping=0.0,
                               physicsClientId=cid)
-        self._object_shape = self._create_object_shape()
+        self._object_shape = -1
         self.object = -1
         # rotation of the principal (inertial) frame in the object frame, and its inverse
         self._q_principal = np.asarray(spec.principal_rotation, dtype=np.float64)
@@ -452,6 +459,11 @@ class PushWorld:
         pb, cid, s = self.pb, self.client, self.settings
         if self.object >= 0:
             pb.removeBody(self.object, physicsClientId=cid)
+        # A fresh collision shape for every push: a convex-hull shape keeps state from the pushes it took
+        # part in (a cylinder pushed after another push ended 27 mm from where it ends in a fresh world);
+        # rebuilt, every push is a function of its own inputs alone (2-3 ms). pybullet refuses to remove a
+        # shape a removed body used, so the old ones stay (a few kB each).
+        self._object_shape = self._create_object_shape()
         pos, orn = self._principal_pose(position, q_object)
         self.object = pb.createMultiBody(
             baseMass=float(mass),
