@@ -27,7 +27,8 @@ from pushtorch.sim import (
 )
 
 
-def measure(model, workers: int, pushes: int, shard_size: int, folder: Path) -> tuple[float, float, float]:
+def measure(model, workers: int, pushes: int, shard_size: int, folder: Path,
+            settings: SimSettings | None = None) -> tuple[float, float, float]:
     """(pushes per second, seconds, pool start-up seconds) of one timed run with ``workers`` processes."""
     spec = object_spec(model)
     actions = make_actions(3)
@@ -35,7 +36,7 @@ def measure(model, workers: int, pushes: int, shard_size: int, folder: Path) -> 
     plan = plan_training_pushes(model, actions, per_action, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=0)
     warm = plan_training_pushes(model, actions[:1], workers, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=1)
     started = time.perf_counter()
-    with PushPool(spec, SimSettings(), workers) as pool:
+    with PushPool(spec, settings or SimSettings(), workers) as pool:
         pool.run(warm, folder / f"warm-{workers}", shard_size=1, progress=False)
         startup = time.perf_counter() - started
         summary = pool.run(plan, folder / f"run-{workers}", shard_size=shard_size, progress=False)

@@ -278,7 +278,7 @@ def execute_push(
     joints[0] = world.robot_joints()
     touched = False
     first_contact = math.nan
-    control_every = int(s.control_every)
+    control_every = world.control_every
     k = 1
     for step in range(1, n_steps + 1):
         if (step - 1) % control_every == 0:

@@ -35,6 +35,7 @@ x,y,z,w happen here and nowhere else in the simulator.
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 from dataclasses import dataclass, field
@@ -42,6 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pushtorch.errors import InvalidParameterError, SimulationError
+from pushtorch.sim.drive import DRIVES, DriveSettings, DriveState, wheel_forces
 
 __all__ = [
     "ObjectSpec",
@@ -86,6 +88,10 @@ class SimSettings:
         tip_angle_deg: an object whose up axis tilts more than this during the push has "tipped".
         lift_tolerance: m; an object whose centre rises or sinks more than this "left the ground".
         ground_half_extent: m, half side of the square ground box.
+        robot: ``p3dx`` (the Pioneer's wheels, traction and motors: :mod:`pushtorch.sim.drive`) or ``ideal``
+            (the planar joints' velocity motors bounded by ``max_force`` and ``max_torque``, the world before
+            issue 16).
+        drive: the ``p3dx`` drive's parameters (a :class:`~pushtorch.sim.drive.DriveSettings` or a mapping).
     """
 
     time_step: float = 1.0 / 240.0
@@ -100,8 +106,17 @@ class SimSettings:
     tip_angle_deg: float = 10.0
     lift_tolerance: float = 0.01
     ground_half_extent: float = 50.0
+    robot: str = "ideal"
+    drive: DriveSettings = field(default_factory=DriveSettings)
 
     def __post_init__(self) -> None:
+        if self.robot not in DRIVES:
+            raise InvalidParameterError(f"sim.robot must be one of {', '.join(DRIVES)}, got {self.robot!r}")
+        if not isinstance(self.drive, DriveSettings):
+            try:
+                object.__setattr__(self, "drive", DriveSettings(**dict(self.drive)))
+            except TypeError as exc:
+                raise InvalidParameterError(f"sim.drive: {exc}") from exc
         positive = {
             "time_step": self.time_step,
             "record_rate": self.record_rate,
@@ -392,6 +407,8 @@ class PushWorld:
         for joint in (JOINT_X, JOINT_Y, JOINT_YAW):
             pb.changeDynamics(self.robot, joint, jointDamping=0.0, linearDamping=0.0, angularDamping=0.0,
                               physicsClientId=cid)
+        if s.robot == "p3dx":  # the base carries the robot's mass, which the wheels' traction depends on
+            pb.changeDynamics(self.robot, BASE_LINK_INDEX, mass=s.drive.robot_mass, physicsClientId=cid)
         self._object_shape = -1
         self.object = -1
         # rotation of the principal (inertial) frame in the object frame, and its inverse
@@ -513,15 +530,29 @@ class PushWorld:
         )
         for joint in (JOINT_X, JOINT_Y, JOINT_YAW):
             pb.resetJointState(self.robot, joint, 0.0, 0.0, physicsClientId=cid)
+        self._drive_state = DriveState()
+        if self.settings.robot == "p3dx":
+            # the wheels' forces replace the joints' velocity motors (which would otherwise hold the joints)
+            pb.setJointMotorControlArray(self.robot, [JOINT_X, JOINT_Y, JOINT_YAW], pb.VELOCITY_CONTROL,
+                                         targetVelocities=[0.0, 0.0, 0.0], forces=[0.0, 0.0, 0.0],
+                                         physicsClientId=cid)
         self.drive(0.0, 0.0)
 
-    def drive(self, speed: float, yaw_rate: float) -> None:
-        """Command the body twist (forward speed m/s, yaw rate rad/s) with bounded force and torque.
+    @property
+    def control_every(self) -> int:
+        """Physics steps between two calls of :meth:`drive`: the wheels' forces act for one step only."""
+        return 1 if self.settings.robot == "p3dx" else int(self.settings.control_every)
 
-        The planar joints live in the start frame, so the forward speed is split along the current
-        heading; each drive axis is bounded by ``max_force`` (yaw by ``max_torque``), which is what makes
-        a heavy or high-friction object slow the robot down.
+    def drive(self, speed: float, yaw_rate: float) -> None:
+        """Command the body twist (forward speed m/s, yaw rate rad/s) through the robot's drive.
+
+        ``p3dx``: the wheels' forces of :func:`pushtorch.sim.drive.wheel_forces` for the next physics step.
+        ``ideal``: the planar joints live in the start frame, so the forward speed is split along the current
+        heading; each drive axis is bounded by ``max_force`` (yaw by ``max_torque``).
         """
+        if self.settings.robot == "p3dx":
+            self._drive_wheels(speed, yaw_rate)
+            return
         pb, cid, s = self.pb, self.client, self.settings
         heading = pb.getJointState(self.robot, JOINT_YAW, physicsClientId=cid)[0]
         pb.setJointMotorControlArray(
@@ -531,6 +562,21 @@ class PushWorld:
             targetVelocities=[speed * np.cos(heading), speed * np.sin(heading), yaw_rate],
             forces=[s.max_force, s.max_force, s.max_torque],
             physicsClientId=cid,
+        )
+
+    def _drive_wheels(self, speed: float, yaw_rate: float) -> None:
+        pb, cid, s = self.pb, self.client, self.settings
+        states = pb.getJointStates(self.robot, [JOINT_X, JOINT_Y, JOINT_YAW], physicsClientId=cid)
+        heading, (vx, vy, spin) = states[2][0], (st[1] for st in states)
+        cos, sin = math.cos(heading), math.sin(heading)
+        left, right, sideways = wheel_forces(s.drive, (speed, yaw_rate),
+                                             (vx * cos + vy * sin, -vx * sin + vy * cos, spin), self._drive_state,
+                                             s.time_step)
+        forward = left + right
+        torque = (right - left) * s.drive.wheel_separation / 2.0
+        pb.setJointMotorControlArray(
+            self.robot, [JOINT_X, JOINT_Y, JOINT_YAW], pb.TORQUE_CONTROL,
+            forces=[forward * cos - sideways * sin, forward * sin + sideways * cos, torque], physicsClientId=cid,
         )
 
     def robot_joints(self) -> np.ndarray:
