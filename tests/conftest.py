@@ -1,7 +1,9 @@
-"""Shared test settings: deterministic hypothesis profile sized for a 2-core CI."""
+"""Shared test settings: deterministic hypothesis profile sized for a 2-core CI, and the small trained models
+several test modules predict with."""
 
 import os
 
+import pytest
 from hypothesis import HealthCheck, settings
 
 settings.register_profile(
@@ -9,3 +11,30 @@ settings.register_profile(
 )
 settings.register_profile("dev", max_examples=200, deadline=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+
+@pytest.fixture(scope="session")
+def small_model(tmp_path_factory):
+    """``small_model(name)``: a model of a catalogue object trained on 8 real pybullet pushes per action at small
+    prediction sizes (seconds per prediction), trained once per test process and object."""
+    import torch
+
+    from pushtorch.models.library import ModelSettings, train_push_model
+    from pushtorch.objects import load_object
+    from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_training_pushes, run_plan
+
+    settings = ModelSettings(query_kernels=400, anneal_candidates=60, anneal_steps=15, position_frames=800,
+                             environment_kernels=300, manipulator_kernels=40)
+    models = {}
+
+    def make(name: str):
+        if name not in models:
+            obj = load_object(name)
+            plan = plan_training_pushes(obj, make_actions(3), 8, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=0)
+            folder = tmp_path_factory.mktemp(f"{name}_pushes")
+            run_plan(object_spec(obj), plan, folder, workers=2, progress=False)
+            models[name] = train_push_model(obj, load_records(folder), settings,
+                                            generator=torch.Generator().manual_seed(0))
+        return models[name]
+
+    return make

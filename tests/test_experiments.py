@@ -344,8 +344,8 @@ def test_full_paper_protocol(tmp_path):
     assert result.returncode == 0
     expected_n = {"selection": 50 * 3 * 4, "pose": 100, "prediction": 100 * 3 * 3}
     checks = []
-    for name, count in (("model_selection", 6), ("pose_estimation", 6), ("friction_biasing", 6 * 4 * 3 * 4),
-                        ("mass_biasing", 6 * 4 * 3 * 4)):
+    for name, count in (("model_selection", 6), ("pose_estimation", 6), ("friction_biasing", 6 * 4 * 3 * 6),
+                        ("mass_biasing", 6 * 4 * 3 * 6)):  # objects x models x conditions x methods
         records = primary(json.loads((out / name / "results.json").read_text())["records"])
         assert len(records) == count
         for r in records:

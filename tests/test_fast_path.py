@@ -27,7 +27,6 @@ from pushtorch.kde import (
     fused_function,
 )
 from pushtorch.models.frames import embed_descriptors
-from pushtorch.models.library import ModelSettings, train_push_model
 from pushtorch.models.query import (
     _fast_kernel_draws,
     _group_weight_sums,
@@ -37,12 +36,6 @@ from pushtorch.models.query import (
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.predict import predict, predict_many
-from pushtorch.sim.plan import plan_training_pushes
-from pushtorch.sim.priors import Normal
-from pushtorch.sim.push import make_actions
-from pushtorch.sim.records import load_records
-from pushtorch.sim.runner import run_plan
-from pushtorch.sim.world import object_spec
 
 
 @pytest.fixture(autouse=True)
@@ -327,18 +320,9 @@ def test_fast_heuristic_equals_dense():
 
 # -- end to end --------------------------------------------------------------------------------
 
-SMALL = ModelSettings(query_kernels=400, anneal_candidates=60, anneal_steps=15, position_frames=800,
-                      environment_kernels=300, manipulator_kernels=40)
-
-
 @pytest.fixture(scope="module")
-def small_cube_model(tmp_path_factory):
-    cube = load_object("cube")
-    plan = plan_training_pushes(cube, make_actions(3), 8, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=0)
-    folder = tmp_path_factory.mktemp("fast_path_pushes")
-    run_plan(object_spec(cube), plan, folder, workers=2, progress=False)
-    model = train_push_model(cube, load_records(folder), SMALL, generator=torch.Generator().manual_seed(0))
-    return cube, model
+def small_cube_model(small_model):
+    return load_object("cube"), small_model("cube")
 
 
 def _check_own_density(prediction):
@@ -361,7 +345,7 @@ def test_fast_prediction_optimises_its_own_density(small_cube_model):
     assert torch.allclose(value_fast[finite], fast.candidate_log_prob[finite], atol=1e-3)
     robot = fast.condition.robot_start  # planar annealing of the robot's query density
     assert float(robot.p[2]) == 0.0 and float(robot.q[1:3].abs().max()) < 1e-6
-    assert fast.condition.robot_query.anneal.candidates.p.shape == (SMALL.anneal_candidates, 3)
+    assert fast.condition.robot_query.anneal.candidates.p.shape == (model.settings.anneal_candidates, 3)
 
 
 def test_predict_many_batches_conditions_and_keeps_single_seeds(small_cube_model):
@@ -376,7 +360,8 @@ def test_predict_many_batches_conditions_and_keeps_single_seeds(small_cube_model
     for prediction in batched:  # annealed together, each still on its own density
         _check_own_density(prediction)
         # the initial candidates, every annealing step and the polished candidates
-        assert prediction.anneal.history.p.shape == (SMALL.fast_anneal_steps + 2, SMALL.anneal_candidates, 3)
+        sizes = model.settings
+        assert prediction.anneal.history.p.shape == (sizes.fast_anneal_steps + 2, sizes.anneal_candidates, 3)
     with pytest.raises(InvalidParameterError):
         predict_many(model, clouds, actions, batch_size=0)
     with pytest.raises(InvalidParameterError):

@@ -28,11 +28,9 @@ from pushtorch.likelihood import (
     point_density,
     product_density,
 )
-from pushtorch.models.library import ModelSettings, train_push_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.predict import contact_bandwidth, predict
-from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_training_pushes, run_plan
 
 
 def _unit(q: torch.Tensor) -> torch.Tensor:
@@ -91,17 +89,10 @@ def test_mean_motion_density_fits_the_spread_of_its_motions():
 
 # -- a real prediction's density ---------------------------------------------------------------------
 
-SMALL = ModelSettings(query_kernels=400, anneal_candidates=60, anneal_steps=15, position_frames=800,
-                      environment_kernels=300, manipulator_kernels=40)
-
-
 @pytest.fixture(scope="module")
-def cube_prediction(tmp_path_factory):
+def cube_prediction(small_model):
     cube = load_object("cube")
-    plan = plan_training_pushes(cube, make_actions(3), 8, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=0)
-    folder = tmp_path_factory.mktemp("cube_pushes")
-    run_plan(object_spec(cube), plan, folder, workers=2, progress=False)
-    model = train_push_model(cube, load_records(folder), SMALL, generator=torch.Generator().manual_seed(0))
+    model = small_model("cube")
     pose = cube.resting_pose(yaw=0.3)
     cloud = capture_partial_cloud(cube, pose)
     prediction = predict(model, cloud, model.actions[2], torch.Generator().manual_seed(0))

@@ -15,7 +15,6 @@ from hypothesis import strategies as st
 from pushtorch import robot, se3
 from pushtorch.errors import InvalidParameterError, InvalidPointCloudError, ModelError
 from pushtorch.features import compute_surface_features
-from pushtorch.models.library import ModelSettings, train_push_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.predict import (
@@ -26,7 +25,6 @@ from pushtorch.predict import (
     generate_push_condition,
     predict,
 )
-from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_training_pushes, run_plan
 from pushtorch.sim.push import place_robot_against
 from pushtorch.sim.runner import simulate_pushes
 
@@ -162,17 +160,9 @@ def test_a_start_deep_inside_the_cube_is_backed_off_beyond_the_bound(cube_scene)
 
 # -- real predictions ----------------------------------------------------------------------------
 
-SMALL = ModelSettings(query_kernels=400, anneal_candidates=60, anneal_steps=15, position_frames=800,
-                      environment_kernels=300, manipulator_kernels=40)  # tests/test_fast_path.py's sizes
-
-
 @pytest.fixture(scope="module")
-def small_cylinder_model(tmp_path_factory):
-    cylinder = load_object("cylinder")
-    plan = plan_training_pushes(cylinder, make_actions(3), 8, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=0)
-    folder = tmp_path_factory.mktemp("cylinder_pushes")
-    run_plan(object_spec(cylinder), plan, folder, workers=2, progress=False)
-    return train_push_model(cylinder, load_records(folder), SMALL, generator=torch.Generator().manual_seed(0))
+def small_cylinder_model(small_model):
+    return small_model("cylinder")
 
 
 def _check_clear(condition, cloud_points):
