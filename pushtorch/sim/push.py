@@ -265,8 +265,17 @@ def execute_push(
     robot_start_q = robot_start_q / np.linalg.norm(robot_start_q)
     check_inside_world(world.spec, s, object_p, object_q, robot_start_p, speed, duration)
 
-    world.spawn_object(object_p, object_q, float(mass), float(ground_friction))
-    world.place_robot(robot_start_p, robot_start_q)
+    # Every push is simulated in the robot's start frame (robot at the origin heading +x) and mapped back:
+    # pybullet's friction directions follow the world axes, so the same push turned by 30° about the
+    # world's z ended up to 7 cm elsewhere; in one frame, a push is a function of its relative set-up alone.
+    to_start = quat_conjugate(robot_start_q)
+    world.spawn_object(quat_rotate(to_start, object_p - robot_start_p), quat_multiply(to_start, object_q),
+                       float(mass), float(ground_friction))
+    world.place_robot(np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+
+    def object_pose() -> tuple[np.ndarray, np.ndarray]:
+        p, q = world.object_pose()
+        return robot_start_p + quat_rotate(robot_start_q, p), quat_multiply(robot_start_q, q)
 
     steps, _ = record_times(duration, s.time_step, s.record_rate)
     n_steps = int(round(duration / s.time_step))
@@ -274,7 +283,7 @@ def execute_push(
     obj_traj_p = np.empty((n_records, 3))
     obj_traj_q = np.empty((n_records, 4))
     joints = np.empty((n_records, 3))
-    obj_traj_p[0], obj_traj_q[0] = world.object_pose()
+    obj_traj_p[0], obj_traj_q[0] = object_pose()
     joints[0] = world.robot_joints()
     touched = False
     first_contact = math.nan
@@ -287,7 +296,7 @@ def execute_push(
         if not touched and world.touching():
             touched, first_contact = True, step * s.time_step
         if k < n_records and step == steps[k]:
-            obj_traj_p[k], obj_traj_q[k] = world.object_pose()
+            obj_traj_p[k], obj_traj_q[k] = object_pose()
             joints[k] = world.robot_joints()
             k += 1
     world.drive(0.0, 0.0)
@@ -297,7 +306,7 @@ def execute_push(
         world.step()
         if not touched and world.touching():
             touched, first_contact = True, (n_steps + step + 1) * s.time_step
-    final_p, final_q = world.object_pose()
+    final_p, final_q = object_pose()
     if not (np.isfinite(final_p).all() and np.isfinite(final_q).all()):
         raise SimulationError(f"the pose of {world.spec.name!r} became non-finite during the push")
     # An object thrown off the ground (a robot start inside it: issue 15) is recorded with left_ground set,

@@ -52,6 +52,7 @@ __all__ = [
     "WORLD_VERSION",
     "check_inside_world",
     "object_spec",
+    "support_points",
     "quat_conjugate",
     "quat_multiply",
     "quat_rotate",
@@ -62,8 +63,9 @@ __all__ = [
 
 #: Version of the simulated world, written into every run manifest: records of another version are refused
 #: (pushtorch.sim.runner), never mixed. 2: a fresh object collision shape per push (1 let a convex hull's
-#: state carry over between the pushes of one worker).
-WORLD_VERSION = 2
+#: state carry over between the pushes of one worker). 3: mirror-symmetric pushes (a compliant floor, hulls
+#: on support spheres, no early solver exit, every push simulated in the robot's start frame).
+WORLD_VERSION = 3
 
 #: Joint indices of pushtorch/assets/pioneer_bumper.urdf as pybullet numbers them.
 JOINT_X, JOINT_Y, JOINT_YAW = 0, 1, 2
@@ -342,6 +344,40 @@ def _matrix_to_wxyz(m: np.ndarray) -> np.ndarray:
     return -q if q[0] < 0 else q
 
 
+#: Support spheres of an object whose bottom is a convex hull (:meth:`PushWorld._create_object_shape`), their
+#: radius (m), and how far the hull's own bottom is lifted above the spheres' lowest points (m).
+SUPPORT_SPHERES, SUPPORT_RADIUS, SUPPORT_LIFT = 8, 0.005, 0.002
+#: pybullet keeps only this many children of a compound collision shape.
+MAX_COMPOUND_CHILDREN = 16
+#: Ground contact stiffness and damping per kg of the object (N/m, N s/m): ERP 0.5 at 240 Hz, so the support
+#: forces under an object are the unique ones of a compliant floor, not whichever of the statically
+#: indeterminate solutions the solver's order settles on.
+GROUND_STIFFNESS_PER_KG, GROUND_DAMPING_PER_KG = 19200.0, 80.0
+
+
+def support_points(parts: list[np.ndarray], count: int = SUPPORT_SPHERES, radius: float = SUPPORT_RADIUS,
+                   directions: int = 720) -> np.ndarray:
+    """``(count, 2)`` points spread round an object's footprint, ``radius`` inside its edge.
+
+    The footprint is the convex hull of the vertices at the object's bottom; the points lie on rays from
+    the centre of mass (the object frame's origin) at angles ``2πk/count``, where a ray leaves the hull
+    (``min_n h(n) / <d, n>`` over ``directions`` outward normals ``n``, ``h`` the hull's support function:
+    exact to a micrometre for a 0.3 m footprint), pulled in by ``radius``.
+    """
+    if count <= 0:
+        return np.zeros((0, 2))
+    bottom = min(float(p[:, 2].min()) for p in parts)
+    footprint = np.concatenate([p[p[:, 2] <= bottom + 1e-6, :2] for p in parts])
+    angles = 2 * np.pi * np.arange(directions) / directions
+    normals = np.stack([np.cos(angles), np.sin(angles)], -1)  # (D, 2)
+    support = (footprint @ normals.T).max(0)  # (D,)
+    rays = 2 * np.pi * np.arange(count) / count
+    d = np.stack([np.cos(rays), np.sin(rays)], -1)  # (K, 2)
+    along = d @ normals.T  # (K, D)
+    reach = np.where(along > 1e-9, support / np.where(along > 1e-9, along, 1.0), np.inf).min(-1)
+    return d * (reach - radius)[:, None]
+
+
 class PushWorld:
     """One pybullet DIRECT client holding the ground, the robot and one object.
 
@@ -379,6 +415,8 @@ class PushWorld:
             numSolverIterations=int(s.solver_iterations),
             numSubSteps=0,
             deterministicOverlappingPairs=1,
+            # the solver's early exit (default 1e-7) stopped its iterations at an order-dependent point
+            solverResidualThreshold=1e-9,
             physicsClientId=cid,
         )
         half = s.ground_half_extent
@@ -417,14 +455,23 @@ class PushWorld:
     # --- object ---------------------------------------------------------------------------------
 
     def _create_object_shape(self) -> int:
-        """One compound collision shape: exact boxes as box primitives, other pieces as convex hulls.
+        """One compound collision shape: exact boxes as box primitives, other pieces as convex hulls standing
+        on a ring of small spheres.
 
-        Box primitives are exact and collide several times faster than an 8-vertex hull.
+        Box primitives are exact and collide several times faster than an 8-vertex hull. A hull keeps at
+        most four ground contact points, added one per step wherever the solver finds them (on a cylinder's
+        96-gon rim sometimes all on one side), which made round objects' pushes depend on their history: a
+        hull piece's bottom is therefore lifted by :data:`SUPPORT_LIFT` and the object stands on
+        :data:`SUPPORT_SPHERES` spheres spread round its footprint (:func:`support_points`), as many as
+        pybullet's 16 compound children leave room for.
         """
         pb, cid = self.pb, self.client
-        types, half_extents, files, positions = [], [], [], []
+        parts = [np.asarray(p, dtype=np.float64) for p in self.spec.parts]
+        bottom = min(float(p[:, 2].min()) for p in parts)
+        types, half_extents, files, positions, radii = [], [], [], [], []
+        hull_on_ground = False
         with tempfile.TemporaryDirectory(prefix="pushtorch-shape-") as folder:
-            for i, (vertices, faces) in enumerate(zip(self.spec.parts, self.spec.part_faces, strict=True)):
+            for i, (vertices, faces) in enumerate(zip(parts, self.spec.part_faces, strict=True)):
                 box = _as_axis_aligned_box(vertices)
                 if box is not None:
                     centre, half = box
@@ -432,20 +479,39 @@ class PushWorld:
                     half_extents.append([float(v) for v in half])
                     files.append("")
                     positions.append([float(v) for v in centre])
+                    radii.append(0.0)
                     continue
+                low = vertices[:, 2] < bottom + SUPPORT_LIFT
+                hull_on_ground |= bool((vertices[:, 2] <= bottom + 1e-6).any())
+                lifted = vertices.copy()
+                lifted[low, 2] = bottom + SUPPORT_LIFT  # exact for the vertical walls of the catalogue's pieces
                 path = os.path.join(folder, f"part{i}.obj")
                 # pybullet builds a dynamic mesh's convex hull from the vertices its faces reference
                 with open(path, "w") as f:
-                    f.write("".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in vertices))
+                    f.write("".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in lifted))
                     f.write("".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces))
                 types.append(pb.GEOM_MESH)
                 half_extents.append([0.0, 0.0, 0.0])
                 files.append(path)
                 positions.append([0.0, 0.0, 0.0])
+                radii.append(0.0)
+            count = min(SUPPORT_SPHERES, MAX_COMPOUND_CHILDREN - len(types)) if hull_on_ground else 0
+            if hull_on_ground and count < 3:
+                raise SimulationError(
+                    f"{self.spec.name!r} has {len(types)} convex pieces: too many to stand on support spheres "
+                    f"within pybullet's {MAX_COMPOUND_CHILDREN} compound children"
+                )
+            for x, y in support_points(parts, count):
+                types.append(pb.GEOM_SPHERE)
+                half_extents.append([0.0, 0.0, 0.0])
+                files.append("")
+                positions.append([float(x), float(y), bottom + SUPPORT_RADIUS])
+                radii.append(SUPPORT_RADIUS)
             shape = pb.createCollisionShapeArray(
                 shapeTypes=types,
                 halfExtents=half_extents,
                 fileNames=files,
+                radii=radii,
                 meshScales=[[1.0, 1.0, 1.0]] * len(types),
                 collisionFramePositions=positions,
                 collisionFrameOrientations=[[0.0, 0.0, 0.0, 1.0]] * len(types),
@@ -512,7 +578,8 @@ class PushWorld:
             physicsClientId=cid,
         )
         pb.changeDynamics(self.ground, -1, lateralFriction=float(ground_friction) / s.object_friction,
-                          restitution=0.0, physicsClientId=cid)
+                          restitution=0.0, contactStiffness=GROUND_STIFFNESS_PER_KG * float(mass),
+                          contactDamping=GROUND_DAMPING_PER_KG * float(mass), physicsClientId=cid)
 
     def object_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """The object's current pose: position ``(3,)`` and wxyz quaternion ``(4,)`` of the object frame."""
