@@ -21,6 +21,7 @@ from pushtorch.sim import (
     Normal,
     PushRecords,
     PushWorld,
+    SimSettings,
     load_records,
     make_actions,
     object_spec,
@@ -135,6 +136,9 @@ def test_a_folder_of_another_run_is_not_resumed_into(tmp_path):
     other = plan_training_pushes(cube, make_actions(1), 2, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=1)
     with pytest.raises(RecordFormatError, match="different run"):
         run_plan(spec, other, tmp_path, workers=1, shard_size=1, progress=False)
+    # pushes of another robot are refused by name, never mixed in
+    with pytest.raises(RecordFormatError, match="sim.robot: 'ideal' -> 'p3dx'"):
+        run_plan(spec, plan, tmp_path, SimSettings(robot="p3dx"), workers=1, shard_size=1, progress=False)
 
 
 def test_pushes_of_an_older_world_are_refused_never_mixed(tmp_path):

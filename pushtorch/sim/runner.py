@@ -317,6 +317,20 @@ def _manifest(plan: PushPlan, spec: ObjectSpec, settings: SimSettings, shard_siz
     return manifest
 
 
+def _differences(existing: dict, manifest: dict, changed: list[str]) -> list[str]:
+    """The changed manifest keys, with the simulator settings that differ named one by one (``sim.robot:
+    'ideal' -> 'p3dx'``): pushes of another robot or world are never mixed into a run."""
+    out = []
+    for key in changed:
+        old, new = existing.get(key), manifest.get(key)
+        if key == "settings" and isinstance(old, dict) and isinstance(new, dict):
+            out += [f"sim.{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(set(old) | set(new))
+                    if old.get(k) != new.get(k)]
+        else:
+            out.append(key)
+    return out
+
+
 def _prepare_folder(folder: Path, manifest: dict) -> None:
     """Check ``folder``'s run manifest against ``manifest`` (or write it) and drop killed writers'
     temporaries; the caller holds the folder's lock, so no other writer is between check and write."""
@@ -341,8 +355,9 @@ def _prepare_folder(folder: Path, manifest: dict) -> None:
                 "never mixed: use a fresh folder (or delete this one) to simulate them again"
             )
         if changed:
+            differences = ", ".join(_differences(existing, manifest, changed))
             raise RecordFormatError(
-                f"{folder} holds shards of a different run (differs in {', '.join(changed)}); "
+                f"{folder} holds shards of a different run (differs in {differences}); "
                 "use a fresh folder or the same configuration to resume"
             )
         if any(k not in existing for k in _DERIVED_KEYS) or (existing.get("resume") is None and manifest["resume"]):
