@@ -137,8 +137,8 @@ def test_a_folder_of_another_run_is_not_resumed_into(tmp_path):
     with pytest.raises(RecordFormatError, match="different run"):
         run_plan(spec, other, tmp_path, workers=1, shard_size=1, progress=False)
     # pushes of another robot are refused by name, never mixed in
-    with pytest.raises(RecordFormatError, match="sim.robot: 'ideal' -> 'p3dx'"):
-        run_plan(spec, plan, tmp_path, SimSettings(robot="p3dx"), workers=1, shard_size=1, progress=False)
+    with pytest.raises(RecordFormatError, match="sim.robot: 'p3dx' -> 'ideal'"):
+        run_plan(spec, plan, tmp_path, SimSettings(robot="ideal"), workers=1, shard_size=1, progress=False)
 
 
 def test_pushes_of_an_older_world_are_refused_never_mixed(tmp_path):

@@ -85,9 +85,10 @@ def test_a_heavy_cube_moves_less_than_a_light_one_under_the_same_command():
     assert turned[0] == pytest.approx(40.0, abs=1.0) and turned[1] < turned[0] - 0.8  # measured 39.8 vs 38.5
 
 
-def test_the_ideal_pusher_ignores_mass_and_is_the_default_world():
+def test_the_ideal_pusher_ignores_mass_and_the_default_is_the_p3dx():
     distance, _ = _final_distance(SimSettings(robot="ideal"), 10.0, [0.1, 5.0])
-    assert abs(float(distance[0] - distance[1])) < 1e-3
+    assert abs(float(distance[0] - distance[1])) < 1e-3  # the stiff pusher of the runs before issue 16
+    assert SimSettings().robot == "p3dx"
     default, _ = _final_distance(SimSettings(), 10.0, [0.5])
-    ideal, _ = _final_distance(SimSettings(robot="ideal"), 10.0, [0.5])
-    assert torch.equal(default, ideal)
+    p3dx, _ = _final_distance(SimSettings(robot="p3dx"), 10.0, [0.5])
+    assert torch.equal(default, p3dx)

@@ -90,9 +90,9 @@ class SimSettings:
         tip_angle_deg: an object whose up axis tilts more than this during the push has "tipped".
         lift_tolerance: m; an object whose centre rises or sinks more than this "left the ground".
         ground_half_extent: m, half side of the square ground box.
-        robot: ``p3dx`` (the Pioneer's wheels, traction and motors: :mod:`pushtorch.sim.drive`) or ``ideal``
-            (the planar joints' velocity motors bounded by ``max_force`` and ``max_torque``, the world before
-            issue 16).
+        robot: ``p3dx`` (default: the Pioneer's wheels, traction and motors, :mod:`pushtorch.sim.drive`) or
+            ``ideal`` (the planar joints' velocity motors bounded by ``max_force`` and ``max_torque``, the
+            robot before issue 16).
         drive: the ``p3dx`` drive's parameters (a :class:`~pushtorch.sim.drive.DriveSettings` or a mapping).
     """
 
@@ -108,7 +108,7 @@ class SimSettings:
     tip_angle_deg: float = 10.0
     lift_tolerance: float = 0.01
     ground_half_extent: float = 50.0
-    robot: str = "ideal"
+    robot: str = "p3dx"
     drive: DriveSettings = field(default_factory=DriveSettings)
 
     def __post_init__(self) -> None:
