@@ -8,7 +8,7 @@ that is wrong but says it is unsure. Decisions (docs/method.md, "Likelihood scor
 * **Base measure and units.** Densities are taken with respect to Lebesgue measure on positions (m³) times
   the uniform *probability* measure on SO(3) (q and −q one rotation), so ``nll`` is in nats: one kernel of
   the model's motion bandwidth (1 cm, 0.05 rad) scores −21.7 at its own centre (−11.1 from the position,
-  −10.6 from the orientation), and every further kernel std of distance costs ½ nat. The Haar measure of
+  −10.6 from the orientation), and a truth k kernel stds away costs k²/2 nats more. The Haar measure of
   SE(3) is invariant under left and right multiplication, so a density moved by rigid motions keeps its
   values (used below for the displacement sense and the mean-motion baseline).
 * **Kernels without cut-offs.** The model's kernels are the paper's cut-off Gaussians and vMF pairs
@@ -68,7 +68,7 @@ MIN_P_STD = 1e-4
 MIN_ROT_STD = 1e-3
 _NO_CUTOFF = (math.inf, math.inf, math.inf)
 _CONTINUOUS_STEPS = 120  # a 3° grid about a continuous symmetry axis
-_REFINE = torch.linspace(-1.5, 1.5, 13, dtype=torch.float64)  # ±1.5 grid steps in quarter-degree steps
+_REFINE = torch.linspace(-1.5, 1.5, 37, dtype=torch.float64)  # ±1.5 grid steps (±4.5°) in 0.25° steps
 
 
 def log_rotation_normaliser(kappa: Tensor) -> Tensor:
