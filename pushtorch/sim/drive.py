@@ -28,8 +28,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
-import numpy as np
-
 from pushtorch.errors import InvalidParameterError
 
 __all__ = ["DRIVES", "DriveSettings", "DriveState", "wheel_forces"]
@@ -68,7 +66,7 @@ class DriveSettings:
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InvalidParameterError(f"sim.drive.{f.name} must be a positive finite number, got {value!r}")
         if self.drive_load_share > 1.0:
             raise InvalidParameterError(f"sim.drive.drive_load_share must be at most 1, got {self.drive_load_share}")
