@@ -134,7 +134,7 @@ def _prediction_run(obj_name: str = "cube", predictions: int = 6, samples: int =
             truth_p[..., 2] = start.p[2]
             truth = se3.Pose(truth_p, start.q.expand(predictions, samples, 4))
             offsets = {"pushtorch": 0.01 * (1 + m + c), "no_motion": 0.4, "mean_motion": 0.03,
-                       "nominal_physics": 0.05}
+                       "oracle_physics": 0.05}
             for method, offset in offsets.items():
                 estimate = se3.Pose(truth_p[:, 0] + torch.tensor([offset, 0.0, 0.0]), start.q.expand(predictions, 4))
                 acc = compare(estimate, truth, obj)
