@@ -37,6 +37,7 @@ from pushtorch.sim.records import (
     RUN_MANIFEST,
     VERSION,
     PushRecords,
+    _read_run_manifest,
     atomic_write_bytes,
     complete_shards,
     folder_lock,
@@ -339,21 +340,10 @@ def _prepare_folder(folder: Path, manifest: dict) -> None:
     for stale in folder.glob(f".{MANIFEST}.tmp-*"):
         stale.unlink(missing_ok=True)
     path = folder / MANIFEST
-    if path.exists():
-        try:
-            existing = json.loads(path.read_text())
-        except ValueError as exc:
-            raise RecordFormatError(f"{path} is not a readable run manifest: {exc}") from exc
-        if not isinstance(existing, dict):
-            raise RecordFormatError(f"{path} is not a run manifest")
+    existing = _read_run_manifest(folder)  # refuses an unreadable manifest and pushes of another world
+    if existing is not None:
         changed = [k for k in manifest if k != "resume" and (k not in _DERIVED_KEYS or k in existing)
                    and existing.get(k) != manifest.get(k)]
-        if "world" in changed:
-            raise RecordFormatError(
-                f"{folder} holds pushes simulated by another version of the world (world "
-                f"{existing.get('world', 1)}, this pushtorch simulates world {manifest['world']}); they are "
-                "never mixed: use a fresh folder (or delete this one) to simulate them again"
-            )
         if changed:
             differences = ", ".join(_differences(existing, manifest, changed))
             raise RecordFormatError(
