@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import tempfile
 from dataclasses import dataclass, field
 
@@ -447,6 +448,8 @@ class PushWorld:
                               physicsClientId=cid)
         if s.robot == "p3dx":  # the base carries the robot's mass, which the wheels' traction depends on
             pb.changeDynamics(self.robot, BASE_LINK_INDEX, mass=s.drive.robot_mass, physicsClientId=cid)
+        self._shape_folder = tempfile.mkdtemp(prefix="pushtorch-shape-")
+        self._shape_args = self._shape_arguments(self._shape_folder)
         self._object_shape = -1
         self.object = -1
         # rotation of the principal (inertial) frame in the object frame, and its inverse
@@ -454,9 +457,11 @@ class PushWorld:
 
     # --- object ---------------------------------------------------------------------------------
 
-    def _create_object_shape(self) -> int:
-        """One compound collision shape: exact boxes as box primitives, other pieces as convex hulls standing
-        on a ring of small spheres.
+    def _shape_arguments(self, folder: str) -> dict:
+        """The arguments of ``createCollisionShapeArray`` for the object: one compound collision shape, exact
+        boxes as box primitives, other pieces as convex hulls (written as OBJ files into ``folder``) standing
+        on a ring of small spheres. Made once per world; :meth:`_create_object_shape` builds a fresh shape
+        from them for every push.
 
         Box primitives are exact and collide several times faster than an 8-vertex hull. A hull keeps at
         most four ground contact points, added one per step wherever the solver finds them (on a cylinder's
@@ -465,58 +470,54 @@ class PushWorld:
         :data:`SUPPORT_SPHERES` spheres spread round its footprint (:func:`support_points`), as many as
         pybullet's 16 compound children leave room for.
         """
-        pb, cid = self.pb, self.client
+        pb = self.pb
         parts = [np.asarray(p, dtype=np.float64) for p in self.spec.parts]
         bottom = min(float(p[:, 2].min()) for p in parts)
         types, half_extents, files, positions, radii = [], [], [], [], []
         hull_on_ground = False
-        with tempfile.TemporaryDirectory(prefix="pushtorch-shape-") as folder:
-            for i, (vertices, faces) in enumerate(zip(parts, self.spec.part_faces, strict=True)):
-                box = _as_axis_aligned_box(vertices)
-                if box is not None:
-                    centre, half = box
-                    types.append(pb.GEOM_BOX)
-                    half_extents.append([float(v) for v in half])
-                    files.append("")
-                    positions.append([float(v) for v in centre])
-                    radii.append(0.0)
-                    continue
-                low = vertices[:, 2] < bottom + SUPPORT_LIFT
-                hull_on_ground |= bool((vertices[:, 2] <= bottom + 1e-6).any())
-                lifted = vertices.copy()
-                lifted[low, 2] = bottom + SUPPORT_LIFT  # exact for the vertical walls of the catalogue's pieces
-                path = os.path.join(folder, f"part{i}.obj")
-                # pybullet builds a dynamic mesh's convex hull from the vertices its faces reference
-                with open(path, "w") as f:
-                    f.write("".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in lifted))
-                    f.write("".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces))
-                types.append(pb.GEOM_MESH)
-                half_extents.append([0.0, 0.0, 0.0])
-                files.append(path)
-                positions.append([0.0, 0.0, 0.0])
-                radii.append(0.0)
-            count = min(SUPPORT_SPHERES, MAX_COMPOUND_CHILDREN - len(types)) if hull_on_ground else 0
-            if hull_on_ground and count < 3:
-                raise SimulationError(
-                    f"{self.spec.name!r} has {len(types)} convex pieces: too many to stand on support spheres "
-                    f"within pybullet's {MAX_COMPOUND_CHILDREN} compound children"
-                )
-            for x, y in support_points(parts, count):
-                types.append(pb.GEOM_SPHERE)
-                half_extents.append([0.0, 0.0, 0.0])
+        for i, (vertices, faces) in enumerate(zip(parts, self.spec.part_faces, strict=True)):
+            box = _as_axis_aligned_box(vertices)
+            if box is not None:
+                centre, half = box
+                types.append(pb.GEOM_BOX)
+                half_extents.append([float(v) for v in half])
                 files.append("")
-                positions.append([float(x), float(y), bottom + SUPPORT_RADIUS])
-                radii.append(SUPPORT_RADIUS)
-            shape = pb.createCollisionShapeArray(
-                shapeTypes=types,
-                halfExtents=half_extents,
-                fileNames=files,
-                radii=radii,
-                meshScales=[[1.0, 1.0, 1.0]] * len(types),
-                collisionFramePositions=positions,
-                collisionFrameOrientations=[[0.0, 0.0, 0.0, 1.0]] * len(types),
-                physicsClientId=cid,
+                positions.append([float(v) for v in centre])
+                radii.append(0.0)
+                continue
+            low = vertices[:, 2] < bottom + SUPPORT_LIFT
+            hull_on_ground |= bool((vertices[:, 2] <= bottom + 1e-6).any())
+            lifted = vertices.copy()
+            lifted[low, 2] = bottom + SUPPORT_LIFT  # exact for the vertical walls of the catalogue's pieces
+            path = os.path.join(folder, f"part{i}.obj")
+            # pybullet builds a dynamic mesh's convex hull from the vertices its faces reference
+            with open(path, "w") as f:
+                f.write("".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in lifted))
+                f.write("".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces))
+            types.append(pb.GEOM_MESH)
+            half_extents.append([0.0, 0.0, 0.0])
+            files.append(path)
+            positions.append([0.0, 0.0, 0.0])
+            radii.append(0.0)
+        count = min(SUPPORT_SPHERES, MAX_COMPOUND_CHILDREN - len(types)) if hull_on_ground else 0
+        if hull_on_ground and count < 3:
+            raise SimulationError(
+                f"{self.spec.name!r} has {len(types)} convex pieces: too many to stand on support spheres "
+                f"within pybullet's {MAX_COMPOUND_CHILDREN} compound children"
             )
+        for x, y in support_points(parts, count):
+            types.append(pb.GEOM_SPHERE)
+            half_extents.append([0.0, 0.0, 0.0])
+            files.append("")
+            positions.append([float(x), float(y), bottom + SUPPORT_RADIUS])
+            radii.append(SUPPORT_RADIUS)
+        return {"shapeTypes": types, "halfExtents": half_extents, "fileNames": files, "radii": radii,
+                "meshScales": [[1.0, 1.0, 1.0]] * len(types), "collisionFramePositions": positions,
+                "collisionFrameOrientations": [[0.0, 0.0, 0.0, 1.0]] * len(types)}
+
+    def _create_object_shape(self) -> int:
+        """A fresh compound collision shape of the object (:meth:`_shape_arguments`)."""
+        shape = self.pb.createCollisionShapeArray(**self._shape_args, physicsClientId=self.client)
         if shape < 0:
             raise SimulationError(f"pybullet could not create the collision shape of {self.spec.name!r}")
         return shape
@@ -667,6 +668,7 @@ class PushWorld:
                 self.pb.disconnect(physicsClientId=self.client)
             finally:
                 self._closed = True
+                shutil.rmtree(self._shape_folder, ignore_errors=True)
 
     def __enter__(self) -> PushWorld:
         return self
