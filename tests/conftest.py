@@ -38,3 +38,25 @@ def small_model(tmp_path_factory):
         return models[name]
 
     return make
+
+
+@pytest.fixture(scope="session")
+def rotated_surface_gap():
+    """``gap(mesh, q, n=1500)``: the largest distance (m) from ``n`` surface samples of ``mesh`` rotated by the wxyz
+    quaternion ``q`` to the unrotated surface (open3d's exact point-to-triangle distance; sample seed 3, not the
+    seed symmetry detection samples with). 0 when ``q`` is a symmetry of the mesh."""
+    import numpy as np
+    import open3d as o3d
+    import torch
+    import trimesh
+    from pytorch_kinematics import transforms as pkt
+
+    def gap(mesh, q, n: int = 1500) -> float:
+        points, _ = trimesh.sample.sample_surface(mesh, n, seed=3)
+        rotated = pkt.quaternion_apply(torch.as_tensor(q).double(), torch.as_tensor(points)).numpy()
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                            o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+        return float(scene.compute_distance(o3d.core.Tensor(np.asarray(rotated, np.float32))).numpy().max())
+
+    return gap

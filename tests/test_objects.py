@@ -15,7 +15,7 @@ from pytorch_kinematics import transforms as pkt
 
 from pushtorch import se3
 from pushtorch.errors import InvalidMeshError, InvalidParameterError, PushtorchError
-from pushtorch.objects import ObjectModel, catalogue_names, load_mesh_file, load_object
+from pushtorch.objects import catalogue_names, load_mesh_file, load_object
 
 EXPECTED_DIMENSIONS = {
     "cube": (0.2, 0.2, 0.2),
@@ -35,23 +35,6 @@ EXPECTED_GROUP_ORDER = {
     "cylinder": math.inf,
     "cylinder_wide": math.inf,
 }
-
-
-def _surface_distance(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
-    """Unsigned distance of ``points (N, 3)`` to the surface of ``mesh`` (open3d, exact)."""
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
-        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)),
-    )
-    return scene.compute_distance(o3d.core.Tensor(np.asarray(points, np.float32))).numpy()
-
-
-def _rotated_samples_distance(obj: ObjectModel, q: torch.Tensor, n: int = 1500) -> float:
-    """Largest distance from the rotated object's surface samples to the unrotated surface."""
-    points, _ = trimesh.sample.sample_surface(obj.mesh, n, seed=3)
-    rotated = pkt.quaternion_apply(q.double(), torch.as_tensor(points)).numpy()
-    return float(_surface_distance(obj.mesh, rotated).max())
 
 
 def test_catalogue_lists_the_papers_seven_objects():
@@ -90,10 +73,10 @@ def test_symmetry_group_has_the_expected_size(name):
 
 
 @pytest.mark.parametrize("name", sorted(EXPECTED_GROUP_ORDER))
-def test_every_listed_symmetry_maps_the_mesh_onto_itself(name):
+def test_every_listed_symmetry_maps_the_mesh_onto_itself(name, rotated_surface_gap):
     obj = load_object(name)
     for q in obj.symmetry.discrete:
-        assert _rotated_samples_distance(obj, q) < 1e-4, f"{name}: {q.tolist()} is not a symmetry"
+        assert rotated_surface_gap(obj.mesh, q) < 1e-4, f"{name}: {q.tolist()} is not a symmetry"
 
 
 @pytest.mark.parametrize("name", ["cube", "prism_thin", "hybrid", "modified_cube"])
@@ -114,11 +97,11 @@ def test_symmetry_group_is_closed_under_composition(name):
         ("cube", (0.0, 0.0, math.pi / 4)),
     ],
 )
-def test_a_rotation_that_changes_the_look_is_not_in_the_group(name, axis_angle):
+def test_a_rotation_that_changes_the_look_is_not_in_the_group(name, axis_angle, rotated_surface_gap):
     obj = load_object(name)
     q = pkt.axis_angle_to_quaternion(torch.tensor(axis_angle))
     identity = torch.tensor([1.0, 0.0, 0.0, 0.0])
-    assert _rotated_samples_distance(obj, q) > 5e-3  # the rotation really changes the shape's look...
+    assert rotated_surface_gap(obj.mesh, q) > 5e-3  # the rotation really changes the shape's look...
     assert obj.symmetry.canonical_distance(q, identity) > 1e-2  # ...and the measure tells it apart
 
 
@@ -128,13 +111,13 @@ def test_a_rotation_that_changes_the_look_is_not_in_the_group(name, axis_angle):
     flip=st.booleans(),
     name=st.sampled_from(["cylinder", "cylinder_wide"]),
 )
-def test_cylinder_is_invariant_to_any_rotation_about_its_axis(angle, flip, name):
+def test_cylinder_is_invariant_to_any_rotation_about_its_axis(angle, flip, name, rotated_surface_gap):
     obj = load_object(name)
     q = pkt.axis_angle_to_quaternion(torch.tensor([0.0, 0.0, angle], dtype=torch.float64))
     if flip:  # the half turn about x is in the group as well
         q = pkt.quaternion_raw_multiply(q, torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=torch.float64))
     # 96 facets: the polygon deviates from the circle by R (1 - cos(pi / 96)) < 0.1 mm
-    assert _rotated_samples_distance(obj, q.float()) < 2e-4
+    assert rotated_surface_gap(obj.mesh, q.float()) < 2e-4
     identity = torch.tensor([1.0, 0.0, 0.0, 0.0])
     assert obj.symmetry.canonical_distance(q.float(), identity) < 1e-6
 

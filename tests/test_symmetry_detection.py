@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import open3d as o3d
 import pytest
 import torch
 import trimesh
@@ -96,22 +95,6 @@ def _platonic(name: str) -> trimesh.Trimesh:
 # --- helpers ------------------------------------------------------------------------------------------------
 
 
-def _surface_distance(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
-        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)),
-    )
-    return scene.compute_distance(o3d.core.Tensor(np.asarray(points, np.float32))).numpy()
-
-
-def _rotated_samples_distance(mesh: trimesh.Trimesh, q: torch.Tensor, n: int = 1500) -> float:
-    """Largest distance from the rotated mesh's surface samples (another seed than detection's) to the mesh."""
-    points, _ = trimesh.sample.sample_surface(mesh, n, seed=3)
-    rotated = pkt.quaternion_apply(q.double(), torch.as_tensor(points)).numpy()
-    return float(_surface_distance(mesh, rotated).max())
-
-
 def _turn(axis, angle: float) -> torch.Tensor:
     axis = torch.as_tensor(np.asarray(axis, dtype=np.float64))
     return pkt.axis_angle_to_quaternion(axis / axis.norm() * angle).float()
@@ -145,7 +128,8 @@ unit_quaternions = st.tuples(*[st.floats(-1.0, 1.0)] * 4).filter(lambda q: sum(c
     orientation=st.none() | unit_quaternions,
     pose=unit_quaternions,
 )
-def test_ngon_prism_has_its_n_fold_turns_and_half_turns_in_any_orientation(n, radius, height, orientation, pose):
+def test_ngon_prism_has_its_n_fold_turns_and_half_turns_in_any_orientation(n, radius, height, orientation, pose,
+                                                                           rotated_surface_gap):
     mesh = _rotated(_prism(n, radius, height), orientation)
     symmetry = detect_symmetry(mesh)
     axis = _rotate_vector(orientation, Z)
@@ -166,11 +150,11 @@ def test_ngon_prism_has_its_n_fold_turns_and_half_turns_in_any_orientation(n, ra
     # further rotations that pass within the tolerance
     exact = symmetry.order == 2 * n
     for element in symmetry.discrete:
-        assert _rotated_samples_distance(mesh, element) < (1e-5 if exact else 1.5 * tolerance)
+        assert rotated_surface_gap(mesh, element) < (1e-5 if exact else 1.5 * tolerance)
 
 
 @pytest.mark.parametrize("n", [3, 4, 6])
-def test_nearly_axis_aligned_prism_keeps_its_exact_symmetries(n):
+def test_nearly_axis_aligned_prism_keeps_its_exact_symmetries(n, rotated_surface_gap):
     """Turned 0.007° off the axes, the axis-permuting rotations still pass the test (within the tolerance)
     but are not the symmetries: the group holds the exact ones, not their axis-aligned neighbours."""
     orientation = pkt.axis_angle_to_quaternion(torch.tensor([1.2e-4, math.pi, 0.0], dtype=torch.float64))
@@ -178,18 +162,18 @@ def test_nearly_axis_aligned_prism_keeps_its_exact_symmetries(n):
     symmetry = detect_symmetry(mesh)
     assert symmetry.order == 2 * n
     for element in symmetry.discrete:
-        assert _rotated_samples_distance(mesh, element) < 1e-5, f"{element.tolist()} is not exact"
+        assert rotated_surface_gap(mesh, element) < 1e-5, f"{element.tolist()} is not exact"
 
 
 @pytest.mark.parametrize("n", [3, 5, 6, 9, 12])
-def test_half_turns_through_vertices_are_found_for_a_tilted_bipyramid(n):
+def test_half_turns_through_vertices_are_found_for_a_tilted_bipyramid(n, rotated_surface_gap):
     """The half turns of a bipyramid are about no facet normal or principal axis: the plane scan finds them."""
     mesh = _rotated(_bipyramid(n), TILT)
     symmetry = detect_symmetry(mesh)
     assert symmetry.continuous_axis is None
     assert symmetry.order == 2 * n
     for element in symmetry.discrete:
-        assert _rotated_samples_distance(mesh, element) < 1e-5, f"{element.tolist()} is not exact"
+        assert rotated_surface_gap(mesh, element) < 1e-5, f"{element.tolist()} is not exact"
 
 
 @pytest.mark.parametrize(("name", "order"), [("cube", 24), ("tetrahedron", 12), ("octahedron", 24),
@@ -321,7 +305,7 @@ GROUP_CASES = {
 
 
 @pytest.mark.parametrize("case", sorted(GROUP_CASES))
-def test_detected_group_is_closed_under_composition_without_duplicates(case):
+def test_detected_group_is_closed_under_composition_without_duplicates(case, rotated_surface_gap):
     mesh = GROUP_CASES[case]()
     symmetry = detect_symmetry(mesh)
     group = symmetry.discrete
@@ -338,7 +322,7 @@ def test_detected_group_is_closed_under_composition_without_duplicates(case):
     # exact for a polyhedron; a faceted surface of revolution is round only to a fraction of a millimetre
     exact = 1e-5 if symmetry.continuous_axis is None else 2e-4
     for element in group:
-        assert _rotated_samples_distance(mesh, element) < exact
+        assert rotated_surface_gap(mesh, element) < exact
 
 
 # --- Symmetry with an arbitrary continuous axis ---------------------------------------------------------------
