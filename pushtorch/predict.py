@@ -364,9 +364,11 @@ def _condition(robot: QueryResult, environment: ContactFrames, pose: QueryResult
                model: PushModel) -> PushCondition:
     """The push condition, its annealed robot start cleared of the cloud (an invalid one logged)."""
     start, backoff = clear_robot_start(robot.pose, features)
-    if backoff > MAX_BACKOFF:
+    condition = PushCondition(start, robot.nearest_kernel, environment, pose.pose, robot, pose, features, model,
+                              backoff)
+    if not condition.valid:
         log.warning("%s; the condition is marked invalid (PushCondition.valid)", _overlap_message(backoff, model.name))
-    return PushCondition(start, robot.nearest_kernel, environment, pose.pose, robot, pose, features, model, backoff)
+    return condition
 
 
 def generate_push_condition(

@@ -54,7 +54,6 @@ from pushtorch.experiments.common import (
 )
 from pushtorch.experiments.report import sample_entry
 from pushtorch.objects import load_object
-from pushtorch.predict import MAX_BACKOFF
 
 __all__ = ["prior_label", "run", "run_part"]
 
@@ -147,14 +146,13 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             truth, broken = simulate_truth(ctx, key, obj, predictions, conditions, samples,
                                            seed_key=f"{name}_{obj.name}")
             nll = likelihood_scores(ctx, key, obj, predictions, truth, truth_key)
-            invalid = int((predictions.backoff > MAX_BACKOFF).sum())
             for c, (cf, cm) in enumerate(conditions):
                 condition = prior_label(bias, cf, cm)
                 thrown.append({"object": obj.name, "method": "pushtorch", "model": model_name,
                                "condition": condition, "thrown": int(broken[c].sum()),
                                "pushes": broken[c].numel(),
                                # the starts are the conditions': counted once, not once per truth condition
-                               "invalid_starts": invalid if c == 0 else 0,
+                               "invalid_starts": predictions.invalid_starts if c == 0 else 0,
                                "starts": predictions.backoff.numel() if c == 0 else 0})
                 # every method predicts the displacement from its own start pose: the estimate, the
                 # reconstructed body (physics from the cloud) or the true pose (the oracle)

@@ -451,6 +451,14 @@ class PredictionSet:
     fingerprint: str
     densities: list[list[dict]] | None = field(default=None, repr=False)
 
+    @property
+    def invalid_starts(self) -> int:
+        """How many robot starts needed more back-off than :data:`pushtorch.predict.MAX_BACKOFF` (invalid
+        conditions, pushed from the cleared start all the same)."""
+        from pushtorch.predict import MAX_BACKOFF
+
+        return int((self.backoff > MAX_BACKOFF).sum())
+
     def methods(self) -> dict[str, tuple[se3.Pose, se3.Pose]]:
         """``{method: (start, final)}`` of every method in the set, each ``(N, A)``: the displacement from
         start to final is what the method predicts (oracle physics starts at the true pose)."""
@@ -882,8 +890,8 @@ def _one_push(plan, k: int):
 
 def _truth_push(ctx: ExperimentContext, obj: ObjectModel, predictions: PredictionSet, i: int, j: int):
     """The ground-truth push shown with example ``(i, j)``: test condition 0, sample 0, re-simulated here
-    with its trajectory (its final pose is compared with the recorded one by :func:`log_examples`: for
-    the cube they agree bit for bit, for round objects they have differed by a few mm); None if
+    with its trajectory (its final pose is compared with the recorded one by :func:`log_examples`: since
+    every push rebuilds the object's shape they agree bit for bit; the check guards that); None if
     :func:`simulate_truth` did not run for these predictions while recording."""
     from pushtorch.sim.runner import simulate_plan
     from pushtorch.sim.world import object_spec

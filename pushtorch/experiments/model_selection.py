@@ -43,7 +43,6 @@ from pushtorch.experiments.common import (
 )
 from pushtorch.experiments.report import sample_entry
 from pushtorch.objects import load_object
-from pushtorch.predict import MAX_BACKOFF
 
 __all__ = ["METHODS", "run", "run_part"]
 
@@ -126,7 +125,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
                                      selection_rate=rate, metric="frame"))
             thrown.append({"object": obj_name, "method": method, "model": None, "condition": None,
                            "thrown": int(broken.sum()), "pushes": broken.numel(),
-                           "invalid_starts": int((predictions.backoff > MAX_BACKOFF).sum()),
+                           "invalid_starts": predictions.invalid_starts,
                            "starts": predictions.backoff.numel()})
             if examples:
                 label = entity_label(name, obj_name, method)
