@@ -245,8 +245,7 @@ def mean_motion_density(motions: se3.Pose, mean_motion: se3.Pose, robot_start: s
 
 def _axis_turns(axis: Tensor, angles: Tensor) -> Tensor:
     """Quaternions ``(..., 4)`` of turns by ``angles (...)`` about the unit ``axis (3,)``."""
-    half = 0.5 * angles
-    return torch.cat([torch.cos(half).unsqueeze(-1), torch.sin(half).unsqueeze(-1) * axis], -1)
+    return pkt.axis_angle_to_quaternion(axis * angles.unsqueeze(-1))
 
 
 def symmetric_truths(truth_final: se3.Pose, truth_start: se3.Pose, estimate_start: se3.Pose,
