@@ -1555,8 +1555,10 @@ def product_log_prob(
     expert_mask: Tensor | None = None,
     chunk_size: int | None = None,
     method: str = "dense",
+    expert_exponent: Tensor | None = None,
 ) -> Tensor:
-    """log of the product of experts, Σ_e (log w^P_e + log P_e(m)) (Eq. poe in log space).
+    """log of the product of experts, Σ_e (log w^P_e + γ_e log P_e(m)) (Eq. poe in log space, each expert
+    raised to the power ``γ_e``; the paper's product has every ``γ_e = 1``).
 
     Args:
         experts: one PoseKDE whose leading batch dim is the expert dim E: batch shape ``(E, *B)``
@@ -1566,6 +1568,8 @@ def product_log_prob(
         expert_mask: bool ``(E,)`` or ``(E, *B)``; False marks a padding expert that contributes nothing
             (so problems with different expert counts stack). Default: all experts count.
         chunk_size, method: as :meth:`PoseKDE.log_prob` (``"fast"`` prunes and fuses every expert).
+        expert_exponent: ``γ_e >= 0``, shape ``(E,)`` or ``(E, *B)``; default 1. An expert with ``γ_e = 0``
+            contributes nothing (not even a veto).
 
     Returns:
         ``(*broadcast(B, B'), M)``; ``-inf`` where any counted expert vetoes the pose (density 0).
@@ -1587,13 +1591,25 @@ def product_log_prob(
     per_expert = experts.log_prob(pose, chunk_size=chunk_size, method=method)  # (E, *BB, M)
     n_experts, batch = experts.batch_shape[0], experts.batch_shape[1:]
     dtype, device = per_expert.dtype, per_expert.device
+    exponent = _expert_exponents(expert_exponent, expert_mask, n_experts, batch, dtype, device).unsqueeze(-1)
+    per_expert = torch.where(exponent > 0, exponent * per_expert, torch.zeros_like(per_expert))
     if expert_log_weight is not None:
         log_wp = _per_expert(expert_log_weight, "expert_log_weight", n_experts, batch, dtype, device, 0.0)
-        per_expert = per_expert + log_wp.unsqueeze(-1)
-    if expert_mask is not None:
-        mask = _per_expert(expert_mask, "expert_mask", n_experts, batch, torch.bool, device, True)
-        per_expert = per_expert.masked_fill(~mask.unsqueeze(-1), 0.0)
+        per_expert = per_expert + torch.where(exponent > 0, log_wp.unsqueeze(-1), torch.zeros_like(exponent))
     return per_expert.sum(0)
+
+
+def _expert_exponents(expert_exponent, expert_mask, n_experts: int, batch: torch.Size, dtype, device) -> Tensor:
+    """``(E, *B)`` the experts' exponents ``γ_e``, 0 where the mask leaves an expert out.
+
+    Raises:
+        InvalidParameterError: a negative exponent, or a misshaped exponent or mask.
+    """
+    exponent = _per_expert(expert_exponent, "expert_exponent", n_experts, batch, dtype, device, 1.0)
+    if (exponent < 0).any():
+        raise InvalidParameterError(f"expert_exponent must be >= 0, got {exponent.min().item()}")
+    mask = _per_expert(expert_mask, "expert_mask", n_experts, batch, torch.bool, device, True)
+    return torch.where(mask, exponent, torch.zeros_like(exponent))
 
 
 class ProductOfExperts:
@@ -1607,12 +1623,14 @@ class ProductOfExperts:
         experts: PoseKDE,
         expert_log_weight: Tensor | None = None,
         expert_mask: Tensor | None = None,
+        expert_exponent: Tensor | None = None,
     ) -> None:
         if len(experts.batch_shape) == 0:
             raise InvalidParameterError("experts must have a leading expert batch dim, got batch shape ()")
         self.experts = experts
         self.expert_log_weight = expert_log_weight
         self.expert_mask = expert_mask
+        self.expert_exponent = expert_exponent
 
     @property
     def batch_shape(self) -> torch.Size:
@@ -1623,9 +1641,9 @@ class ProductOfExperts:
         return self.experts.batch_shape[0]
 
     def log_prob(self, pose: Pose, chunk_size: int | None = None, method: str = "dense") -> Tensor:
-        """Σ_e (log w^P_e + log P_e(pose)), see :func:`product_log_prob`."""
+        """Σ_e (log w^P_e + γ_e log P_e(pose)), see :func:`product_log_prob`."""
         return product_log_prob(
-            self.experts, pose, self.expert_log_weight, self.expert_mask, chunk_size, method
+            self.experts, pose, self.expert_log_weight, self.expert_mask, chunk_size, method, self.expert_exponent
         )
 
     def __call__(self, pose: Pose) -> Tensor:
@@ -1669,33 +1687,35 @@ def _shared_kernels(x: Tensor, table: Tensor, scale: Tensor, delta_p: float, del
 
 
 def _shared_kernel_product(x: Tensor, table: Tensor, weights: Tensor, scale: Tensor, offset: Tensor,
-                           mask: Tensor, delta_p: float, delta_q: float) -> Tensor:
-    """Σ_e log Σ_k w_ek K(x | μ_k) + offset_e over the counted experts: ``(B, M)`` (fused).
+                           exponent: Tensor, delta_p: float, delta_q: float) -> Tensor:
+    """Σ_e γ_e log Σ_k w_ek K(x | μ_k) + offset_e over the counted experts (``γ_e > 0``): ``(B, M)`` (fused).
 
     x: queries ``(B, 7, M)`` (rows p, q); table: shared kernels ``(B, K, 7)``; weights ``(B, E, K)``
     linear, relative to each expert's largest; scale ``(B, 2)`` (β_p/σ_p, β_q/σ_q); offset ``(B, E, 1)``
-    (log w^P_e plus the expert's largest log weight); mask ``(B, E, 1)``. Exact distances and the
+    (log w^P_e plus γ_e times the expert's largest log weight); exponent ``(B, E, 1)`` (0: a padding
+    expert). Exact distances and the
     cut-offs of :meth:`PoseKDE.log_prob`; one kernel evaluation serves every expert through one matmul,
     laid out ``(E, K) @ (K, M)`` (with few experts ~4× faster than ``(M, K) @ (K, E)``, measured).
     """
     kernels, _ = _shared_kernels(x, table, scale, delta_p, delta_q)
-    per_expert = torch.log(torch.bmm(weights, kernels)) + offset  # (B, E, M)
-    return torch.where(mask, per_expert, torch.zeros_like(per_expert)).sum(1)
+    per_expert = exponent * torch.log(torch.bmm(weights, kernels)) + offset  # (B, E, M)
+    return torch.where(exponent > 0, per_expert, torch.zeros_like(per_expert)).sum(1)
 
 
-def _shared_kernel_shift(x: Tensor, table: Tensor, weights: Tensor, scale: Tensor, mask: Tensor,
+def _shared_kernel_shift(x: Tensor, table: Tensor, weights: Tensor, scale: Tensor, exponent: Tensor,
                          delta_p: float, delta_q: float) -> Tensor:
     """One mean-shift step of the product of experts for queries ``x (B, 7, M)`` → ``(B, 7, M)``
     (fused); arguments as :func:`_shared_kernel_product`.
 
-    With every kernel on one bandwidth, the stationarity conditions of ``Σ_e log P_e`` weigh kernel
-    ``k`` by ``a_k = K_k Σ_e w_ek / P_e``: ``p ← Σ a_k μ_p,k / Σ a_k``, ``q ← normalise(Σ a_k s_k μ_q,k)``.
+    With every kernel on one bandwidth, the stationarity conditions of ``Σ_e γ_e log P_e`` weigh kernel
+    ``k`` by ``a_k = K_k Σ_e γ_e w_ek / P_e``: ``p ← Σ a_k μ_p,k / Σ a_k``, ``q ← normalise(Σ a_k s_k μ_q,k)``.
     A query where a counted expert is zero (the product is) stays.
     """
     kernels, dot = _shared_kernels(x, table, scale, delta_p, delta_q)
     sums = torch.bmm(weights, kernels)  # (B, E, M)
-    alive = ((sums > 0) | ~mask).all(1, keepdim=True)  # (B, 1, M)
-    inverse = torch.where(mask & (sums > 0), 1.0 / sums.clamp_min(1e-30), torch.zeros_like(sums))
+    counted = exponent > 0
+    alive = ((sums > 0) | ~counted).all(1, keepdim=True)  # (B, 1, M)
+    inverse = torch.where(counted & (sums > 0), exponent / sums.clamp_min(1e-30), torch.zeros_like(sums))
     a = torch.bmm(weights.transpose(1, 2), inverse) * kernels  # (B, K, M)
     moved_p = torch.bmm(table[:, :, :3].transpose(1, 2), a) / a.sum(1, keepdim=True).clamp_min(1e-30)
     moved_q = torch.bmm(table[:, :, 3:].transpose(1, 2), torch.where(dot < 0, -a, a))
@@ -1707,7 +1727,7 @@ class SharedKernelProduct:
     """A product of experts (Eq. poe) whose experts weigh one shared set of kernels differently.
 
     Expert ``e`` is ``P_e(x) = Σ_k w_ek K(x | μ_k)`` over kernels ``μ`` shared by every expert, and the
-    product is ``Σ_e (log w^P_e + log P_e(x))``. Where experts share their kernel means — the motion
+    product is ``Σ_e (log w^P_e + γ_e log P_e(x))``. Where experts share their kernel means — the motion
     model's environment experts all transfer the same training motions and differ only in their contact
     weights — the kernels are evaluated once per query and a ``(K × E)`` matmul gives every expert's sum,
     instead of one evaluation per expert. Values equal :class:`ProductOfExperts` over the same experts
@@ -1720,7 +1740,8 @@ class SharedKernelProduct:
             each expert's row is normalised like :class:`PoseKDE`'s.
         bandwidth: kernel bandwidth (no descriptors) shared by every expert.
         trial_rounds: ``(*B, 3)`` or ``(3,)``, the same for every expert of a problem.
-        expert_log_weight, expert_mask: as :func:`product_log_prob`, shape ``(E,)`` or ``(E, *B)``.
+        expert_log_weight, expert_mask, expert_exponent: as :func:`product_log_prob`, shape ``(E,)`` or
+            ``(E, *B)``.
         validate_args: check the queries of every call as :class:`PoseKDE` does (finite, unit
             quaternions, shapes); the annealing turns it off for its own normalised proposals.
 
@@ -1738,6 +1759,7 @@ class SharedKernelProduct:
         expert_log_weight: Tensor | None = None,
         expert_mask: Tensor | None = None,
         validate_args: bool = True,
+        expert_exponent: Tensor | None = None,
     ) -> None:
         if bandwidth.descriptor_dim:
             raise InvalidParameterError("a shared-kernel product is over SE(3) alone: no descriptor stds")
@@ -1752,7 +1774,8 @@ class SharedKernelProduct:
         dtype, device = means.p.dtype, means.p.device
         if torch.isnan(log_weights).any() or (log_weights == math.inf).any():
             raise InvalidParameterError("log_weights hold NaN or +inf (use -inf for a kernel outside an expert)")
-        mask = _per_expert(expert_mask, "expert_mask", n_experts, batch, torch.bool, device, True)
+        exponent = _expert_exponents(expert_exponent, expert_mask, n_experts, batch, dtype, device)
+        mask = exponent > 0
         log_wp = _per_expert(expert_log_weight, "expert_log_weight", n_experts, batch, dtype, device, 0.0)
         total = torch.logsumexp(log_weights, -1)  # (E, *B)
         empty = total == -math.inf
@@ -1761,7 +1784,7 @@ class SharedKernelProduct:
         top = log_weights.amax(-1)
         relative = log_weights - torch.where(empty, torch.zeros_like(top), top).unsqueeze(-1)
         # log P_e = log Σ_k e^relative_k K_k + (largest − logsumexp): each row normalised as PoseKDE's
-        offset = torch.where(empty, torch.zeros_like(top), top - total) + log_wp
+        offset = exponent * torch.where(empty, torch.zeros_like(top), top - total) + log_wp
         d, k = max(1, batch.numel()), means.batch_shape[-1]
         self.batch_shape = batch
         self.num_experts = n_experts
@@ -1772,11 +1795,11 @@ class SharedKernelProduct:
         self.table = torch.cat([means.p, means.q], -1).reshape(d, k, 7).contiguous()  # (D, K, 7)
         self.weights = relative.exp().reshape(n_experts, d, k).transpose(0, 1).contiguous()  # (D, E, K)
         self.offset = offset.reshape(n_experts, d, 1).transpose(0, 1).contiguous()  # (D, E, 1)
-        self.mask = mask.reshape(n_experts, d, 1).transpose(0, 1).contiguous()
+        self.exponent = exponent.reshape(n_experts, d, 1).transpose(0, 1).contiguous()  # (D, E, 1), 0: left out
         self.delta_p, self.delta_q, _ = bandwidth.delta
 
     def log_prob(self, pose: Pose) -> Tensor:
-        """``Σ_e (log w^P_e + log P_e(pose))`` for poses ``(*B, M)`` → ``(*B, M)``; ``-inf`` where a counted
+        """``Σ_e (log w^P_e + γ_e log P_e(pose))`` for poses ``(*B, M)`` → ``(*B, M)``; ``-inf`` where a counted
         expert has no kernel within its cut-offs.
 
         Raises:
@@ -1784,7 +1807,7 @@ class SharedKernelProduct:
         """
         self._check_queries(pose)
         out = self._per_problem("shared_kernel_product", _shared_kernel_product, pose,
-                                self.table, self.weights, self.scale, self.offset, self.mask)
+                                self.table, self.weights, self.scale, self.offset, self.exponent)
         return out.reshape(*self.batch_shape, pose.p.shape[-2])
 
     def mean_shift(self, pose: Pose) -> Pose:
@@ -1792,7 +1815,7 @@ class SharedKernelProduct:
         :meth:`PoseKDE.mean_shift`; the experts' weights w^P do not move a mode): poses ``(*B, M)``."""
         self._check_queries(pose)
         out = self._per_problem("shared_kernel_shift", _shared_kernel_shift, pose,
-                                self.table, self.weights, self.scale, self.mask)
+                                self.table, self.weights, self.scale, self.exponent)
         out = out.transpose(1, 2).reshape(*self.batch_shape, pose.p.shape[-2], 7)
         return Pose(out[..., :3], out[..., 3:])
 

@@ -17,7 +17,7 @@ that is wrong but says it is unsure. Decisions (docs/method.md, "Likelihood scor
   large finite ``nll`` instead of +inf.
 * **Normalisation.** Each expert is a normalised mixture; the product of experts is normalised by importance
   sampling (:func:`log_normaliser`), proposals from the experts, from wider experts and from narrow kernels
-  at the prediction's annealed candidates. The product's constant ``w^P`` cancels.
+  at the prediction's annealed candidates; each expert enters raised to its exponent ``γ_e``.
 * **Displacement sense.** A prediction is a density over ``B̂1`` given the estimated start ``B̂0``; the
   truth enters as its displacement applied to that start, ``x* = B1 ∘ S ∘ B0⁻¹ ∘ B̂0`` for each symmetry
   ``S`` of the test object, and the nearest copy (largest density) is scored, as H_acc scores the nearest
@@ -97,28 +97,41 @@ def _log_kernel_normaliser(kde: PoseKDE) -> Tensor:
     return 1.5 * torch.log(2.0 * math.pi * std_p**2) + log_rotation_normaliser(kappa)
 
 
+def _exponents(kde: PoseKDE, exponent: Tensor | None) -> Tensor:
+    """``(E,)`` float64 exponents ``γ_e`` of the experts (1 each by default)."""
+    n_experts = int(kde.batch_shape[0])
+    if exponent is None:
+        return torch.ones(n_experts, dtype=torch.float64)
+    g = torch.as_tensor(exponent, dtype=torch.float64).reshape(-1)
+    if g.shape[0] != n_experts or not torch.isfinite(g).all() or (g < 0).any():
+        raise InvalidParameterError(f"expert exponents must be {n_experts} finite numbers >= 0, got {g.tolist()}")
+    return g
+
+
 def log_normaliser(kde: PoseKDE, generator: torch.Generator | None = None, samples: int = IMPORTANCE_SAMPLES,
-                   centres: se3.Pose | None = None) -> Tensor:
-    """``log ∫ Π_e p_e(x) dx`` of the experts ``kde`` (batch ``(E,)``, each normalised), estimated by
-    importance sampling; 0 for a single expert.
+                   centres: se3.Pose | None = None, exponent: Tensor | None = None) -> Tensor:
+    """``log ∫ Π_e p_e(x)^γ_e dx`` of the experts ``kde`` (batch ``(E,)``, each normalised; exponents
+    ``γ_e``, default 1), estimated by importance sampling; 0 for a single expert of exponent 1.
 
     The proposal is an equal mixture of three parts, ``samples`` draws per expert each: the experts at their
-    own bandwidth, the experts two trial rounds wider (the tails), and kernels ``√E`` times narrower — the
-    width of a product of E kernels — at ``centres`` (a prediction's annealed candidates, which sit at the
-    product's modes; by default points drawn from the experts). The deterministic-mixture estimator is
-    unbiased given the centres; on a cube prediction's six experts its log varies by about 0.01 nats
-    between seeds.
+    own bandwidth, the experts two trial rounds wider (the tails), and kernels ``√Σγ`` times narrower — the
+    width of the product of E kernels raised to ``γ_e`` — at ``centres`` (a prediction's annealed
+    candidates, which sit at the product's modes; by default points drawn from the experts). The
+    deterministic-mixture estimator is unbiased given the centres; on a cube prediction's six experts its
+    log varies by about 0.01 nats between seeds.
     """
     n_experts = int(kde.batch_shape[0])
-    if n_experts == 1:
+    gamma = _exponents(kde, exponent)
+    if n_experts == 1 and float(gamma[0]) == 1.0:
         return torch.zeros((), dtype=torch.float64)
+    sharpness = max(float(gamma.sum()), 1e-6)
     wide = kde.with_trial_rounds(kde.trial_rounds + torch.tensor([2, 2, 0], device=kde.device))
     if centres is None:
         centres = kde.sample(samples, generator)[0]
     beta = kde.beta.double()[0]
     narrow_bandwidth = KernelBandwidth(
-        p_std=kde.bandwidth.p_std / math.sqrt(float(beta[0]) * n_experts),
-        rot_std=kde.bandwidth.rot_std / math.sqrt(float(beta[1]) * n_experts), cutoff_std=_NO_CUTOFF)
+        p_std=kde.bandwidth.p_std / math.sqrt(float(beta[0]) * sharpness),
+        rot_std=kde.bandwidth.rot_std / math.sqrt(float(beta[1]) * sharpness), cutoff_std=_NO_CUTOFF)
     flat_centres = se3.Pose(centres.p.to(kde.dtype).reshape(1, -1, 3), _unit(centres.q.to(kde.dtype).reshape(1, -1, 4)))
     narrow = PoseKDE(flat_centres, narrow_bandwidth)
     draws = [kde.sample(samples, generator)[0], wide.sample(samples, generator)[0],
@@ -129,7 +142,7 @@ def log_normaliser(kde: PoseKDE, generator: torch.Generator | None = None, sampl
              torch.logsumexp(_expert_log_probs(wide, flat), 0) - math.log(n_experts),
              _expert_log_probs(narrow, flat)[0]]
     log_proposal = torch.logsumexp(torch.stack(parts), 0) - math.log(3.0)
-    return torch.logsumexp(own.sum(0) - log_proposal, 0) - math.log(flat.p.shape[0])
+    return torch.logsumexp((gamma.unsqueeze(-1) * own).sum(0) - log_proposal, 0) - math.log(flat.p.shape[0])
 
 
 def _unit(q: Tensor) -> Tensor:
@@ -150,14 +163,16 @@ class PoseDensity:
 
     Attributes:
         kde: the experts, batch ``(E,)``.
-        log_z: ``log ∫ Π_e p_e`` (:func:`log_normaliser`), ``()``.
+        log_z: ``log ∫ Π_e p_e^γ_e`` (:func:`log_normaliser`), ``()``.
         left, right: poses ``()``; the identity for a density over final poses itself.
+        exponent: ``(E,)`` the experts' exponents ``γ_e`` (None: 1 each, the paper's product).
     """
 
     kde: PoseKDE
     log_z: Tensor
     left: se3.Pose
     right: se3.Pose
+    exponent: Tensor | None = None
 
     def log_prob(self, pose: se3.Pose) -> Tensor:
         """Normalised log density at poses ``(...)`` → ``(...)`` (float64)."""
@@ -165,7 +180,10 @@ class PoseDensity:
         shape = pose.p.shape[:-1]
         x = se3.Pose(pose.p.reshape(-1, 3).double(), pose.q.reshape(-1, 4).double())
         y = se3.compose(se3.compose(se3.inverse(self.left), x), se3.inverse(self.right))
-        return (_expert_log_probs(self.kde, y).sum(0) - self.log_z).reshape(shape)
+        gamma = _exponents(self.kde, self.exponent).unsqueeze(-1)
+        per_expert = _expert_log_probs(self.kde, y)
+        weighted = torch.where(gamma > 0, gamma * per_expert, torch.zeros_like(per_expert))
+        return (weighted.sum(0) - self.log_z).reshape(shape)
 
 
 def _identity() -> se3.Pose:
@@ -184,8 +202,9 @@ def _experts(means: se3.Pose, log_weights: Tensor, p_std: float, rot_std: float,
 def product_density(means: se3.Pose, log_weights: Tensor, p_std: float, rot_std: float,
                     trial_rounds: Tensor | None = None, alpha_t: float = 2.0,
                     generator: torch.Generator | None = None, centres: se3.Pose | None = None,
-                    samples: int = IMPORTANCE_SAMPLES) -> PoseDensity:
-    """The normalised product of experts whose kernels sit at ``means`` (``(K,)``, or ``(E, K)``).
+                    samples: int = IMPORTANCE_SAMPLES, exponent: Tensor | None = None) -> PoseDensity:
+    """The normalised product of experts whose kernels sit at ``means`` (``(K,)``, or ``(E, K)``), each
+    expert raised to its ``exponent`` ``γ_e`` (``(E,)``, default 1).
 
     Args:
         log_weights: ``(E, K)`` each expert's kernel log-weights (normalised here; ``-inf``: not in it).
@@ -197,7 +216,8 @@ def product_density(means: se3.Pose, log_weights: Tensor, p_std: float, rot_std:
         InvalidParameterError: an expert without kernels, or malformed kernels (as :class:`PoseKDE`).
     """
     kde = _experts(means, log_weights, p_std, rot_std, trial_rounds, alpha_t)
-    return PoseDensity(kde, log_normaliser(kde, generator, samples, centres), _identity(), _identity())
+    return PoseDensity(kde, log_normaliser(kde, generator, samples, centres, exponent), _identity(), _identity(),
+                       exponent)
 
 
 def motion_product_density(density, generator: torch.Generator | None = None,
@@ -209,7 +229,7 @@ def motion_product_density(density, generator: torch.Generator | None = None,
     bandwidth = density.experts.bandwidth
     rounds = density.experts.trial_rounds[0]
     return product_density(means, log_weights, bandwidth.p_std, bandwidth.rot_std, rounds, bandwidth.alpha_t,
-                           generator, candidates)
+                           generator, candidates, exponent=density.expert_exponent)
 
 
 def point_density(pose: se3.Pose, p_std: float, rot_std: float) -> PoseDensity:

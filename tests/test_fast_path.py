@@ -157,6 +157,30 @@ def test_padding_and_extreme_weights_keep_the_dense_values():
     assert torch.equal(kde32.log_prob(q32), kde32.log_prob(q32, method="fast"))
 
 
+@pytest.mark.parametrize("exponents,mode", [((1.0, 1.0), 0.01), ((3.0, 1.0), 0.005), ((0.25, 0.75), 0.015)])
+def test_expert_exponents_move_the_mode_and_mean_shift_finds_it(exponents, mode):
+    """Two experts of one kernel each, 2 cm apart: the product of Gaussians raised to γ_A, γ_B peaks at
+    γ_B / (γ_A + γ_B) of the way (a log w^P added instead would move nothing)."""
+    bandwidth = KernelBandwidth(p_std=0.01, rot_std=0.05)
+    means = se3.Pose(torch.tensor([[0.0, 0, 0], [0.02, 0, 0]], dtype=torch.float64),
+                     torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=torch.float64))
+    log_w = torch.tensor([[0.0, -math.inf], [-math.inf, 0.0]], dtype=torch.float64)
+    product = SharedKernelProduct(means, log_w, bandwidth, expert_exponent=torch.tensor(exponents))
+    pose = se3.Pose(torch.tensor([[0.003, 0.001, 0.0]], dtype=torch.float64),
+                    torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64))
+    for _ in range(60):
+        pose = product.mean_shift(pose)
+    assert float(pose.p[0, 0]) == pytest.approx(mode, abs=2e-4)
+    along = torch.zeros(201, 3, dtype=torch.float64)
+    along[:, 0] = torch.linspace(0, 0.02, 201, dtype=torch.float64)
+    line = se3.Pose(along, torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64).expand(201, 4))
+    dense = ProductOfExperts(PoseKDE.stack([PoseKDE(means.take(torch.tensor([i])), bandwidth) for i in (0, 1)]),
+                             expert_exponent=torch.tensor(exponents, dtype=torch.float64))
+    assert float(line.p[int(dense.log_prob(line).argmax()), 0]) == pytest.approx(mode, abs=1e-4)
+    with pytest.raises(InvalidParameterError, match="expert_exponent"):
+        SharedKernelProduct(means, log_w, bandwidth, expert_exponent=torch.tensor([1.0, -1.0]))
+
+
 def test_product_of_experts_fast_equals_dense():
     experts = PoseKDE.stack([_random_kde(n, (2,), seed=n) for n in (20, 90, 400)])  # (E=3, B=2)
     poe = ProductOfExperts(experts, torch.tensor([0.5, 0.0, -1.0]), torch.tensor([True, True, False]))
@@ -167,8 +191,8 @@ def test_product_of_experts_fast_equals_dense():
     assert torch.allclose(fast[finite], dense[finite], atol=1e-9, rtol=0)
 
 
-@pytest.mark.parametrize("rounds", [0, 2])
-def test_shared_kernel_product_equals_the_product_of_its_experts(rounds):
+@pytest.mark.parametrize("rounds,exponent", [(0, None), (2, None), (0, (0.5, 2.0, 1.0, 0.3))])
+def test_shared_kernel_product_equals_the_product_of_its_experts(rounds, exponent):
     """Experts weighing one kernel set differently (as the motion model's environment experts do):
     one evaluation of the shared kernels gives the same product as each expert on its own."""
     shared = _random_kde(300, (2,), seed=21)  # B = 2 problems, K = 300 shared kernels
@@ -180,7 +204,8 @@ def test_shared_kernel_product_equals_the_product_of_its_experts(rounds):
     mask[3, 1] = False
     log_wp = torch.tensor([0.7, 0.0, 0.0, -0.4], dtype=torch.float64)
     trial = torch.tensor([rounds, rounds, 0])
-    product = SharedKernelProduct(shared.means, log_w, shared.bandwidth, trial, log_wp, mask)
+    gamma = None if exponent is None else torch.tensor(exponent, dtype=torch.float64)
+    product = SharedKernelProduct(shared.means, log_w, shared.bandwidth, trial, log_wp, mask, expert_exponent=gamma)
     keep = torch.isfinite(log_w)
     keep[3, 1, 0] = True  # the masked-out expert gets a dummy kernel: a PoseKDE needs one
     log_w_own = torch.where(keep, torch.nan_to_num(log_w, neginf=0.0), log_w)
@@ -189,7 +214,7 @@ def test_shared_kernel_product_equals_the_product_of_its_experts(rounds):
                                trial_rounds=trial) for b in range(2)])
         for e in range(4)
     ])  # (E=4, B=2), each expert on its own kernels
-    reference = ProductOfExperts(experts, log_wp, mask)
+    reference = ProductOfExperts(experts, log_wp, mask, expert_exponent=gamma)
     queries = _queries_near(shared, 120, seed=23, scale=0.3)  # (2, 120)
     want, got = reference.log_prob(queries), product.log_prob(queries)
     finite = torch.isfinite(want)
