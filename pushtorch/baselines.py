@@ -58,7 +58,7 @@ def mean_motion_prediction(motion: MotionModel, robot_start: se3.Pose, initial_e
 
 
 def nearest_push_prediction(motion: MotionModel, manipulator_frame, robot_start: se3.Pose,
-                            initial_estimate: se3.Pose, contact_bandwidth) -> se3.Pose:
+                            initial_estimate: se3.Pose, contact_bandwidth, contact_patch) -> se3.Pose:
     """The training push whose manipulator contact best matches this push's, replayed (module docstring).
 
     Args:
@@ -66,11 +66,13 @@ def nearest_push_prediction(motion: MotionModel, manipulator_frame, robot_start:
         manipulator_frame: the push condition's manipulator contact frame (world).
         robot_start, initial_estimate: the push condition's robot start and estimated object pose ``B0'``.
         contact_bandwidth: the model's contact-frame kernel (:func:`pushtorch.predict.contact_bandwidth`).
+        contact_patch: ``(3,)`` the push condition's contact patch on the bumper
+            (``PushCondition.contact_patch``).
 
     Returns:
         ``R0 ∘ m_j ∘ R0⁻¹ ∘ B0'`` for the kernel ``j`` of largest ``K^c`` (the first on ties).
     """
-    log_w = contact_log_weights(manipulator_frame, motion.manipulator, robot_start, contact_bandwidth)
+    log_w = contact_log_weights(manipulator_frame, motion.manipulator, robot_start, contact_bandwidth, contact_patch)
     best = int(log_w.reshape(-1, len(motion.manipulator)).amax(0).argmax())
     chosen = motion.manipulator.m.take(best)
     return _replay(se3.Pose(chosen.p.to(robot_start.p), chosen.q.to(robot_start.q)), robot_start, initial_estimate)

@@ -263,6 +263,9 @@ BAD = [
      RecordFormatError, "checksum"),
     ("model_old_version", lambda e: load_model(_resaved(e, lambda h, a: _set(h, "version", 2), sealed=False)),
      RecordFormatError, "version 2"),
+    # a model trained before issue 17 (no contact patches, paper bandwidths) is refused, sealed or not
+    ("model_before_contact_patches", lambda e: load_model(_resaved(e, lambda h, a: _set(h, "version", 3))),
+     RecordFormatError, "version 3, this pushtorch reads version 4: retrain"),
     ("model_array_edited", lambda e: load_model(_resaved(e, lambda h, a: a.update(
         {"contact.weight": a["contact.weight"] * 0.5}), sealed=False)), RecordFormatError, "checksum"),
     ("model_action_count_edited", lambda e: load_model(_resaved(e, lambda h, a: _set(h, "actions", 1),

@@ -72,17 +72,19 @@ def test_model_config_lists_every_model_setting_at_its_default():
     assert quick_settings.query_kernels < ModelSettings().query_kernels
 
 
-def test_training_placement_comes_from_the_model_config_and_keeps_its_own_caches(tmp_path):
+def test_training_placement_comes_from_the_protocol_and_keeps_its_own_caches(tmp_path):
     from pushtorch.experiments.common import context_from_config, training_records
     from pushtorch.sim.plan import Placement
 
-    paper = context_from_config(_compose(["experiment=quickstart"]), tmp_path)
+    default = context_from_config(_compose(["experiment=quickstart"]), tmp_path)
+    assert default.placement == Placement(lateral_jitter=0.1, yaw_jitter_deg=5.0)  # conf/protocol/spread.yaml
+    paper = context_from_config(_compose(["experiment=quickstart", "protocol=paper"]), tmp_path)
     assert paper.placement == Placement()  # the paper repeats one placement
-    spread_cfg = _compose(["experiment=quickstart", "model.placement.lateral_jitter=0.05",
+    spread_cfg = _compose(["experiment=quickstart", "protocol=paper", "model.placement.lateral_jitter=0.05",
                            "model.samples_per_action=2", "experiment.progress=false"])
     spread = context_from_config(spread_cfg, tmp_path)
-    assert spread.placement.lateral_jitter == 0.05
-    assert spread.with_model(OmegaConf.to_container(spread_cfg.model)).placement == spread.placement
+    assert spread.placement == Placement(lateral_jitter=0.05)
+    assert spread.with_model(OmegaConf.to_container(spread_cfg.model, resolve=True)).placement == spread.placement
     cube = load_object("cube")
     records = training_records(spread, cube, "paper_default", "paper_default")
     offsets = records.robot_start.p[:, 1]  # the robot approaches along +x: jitter moves it along y
@@ -190,7 +192,10 @@ def tiny_run(tmp_path_factory):
 def test_tiny_quickstart_writes_tidy_results(tiny_run):
     cfg, out, summary = tiny_run
     results = json.loads((out / "results.json").read_text())
-    assert set(results) == {"experiment", "config", "overrides", "wall_s", "records"}
+    assert set(results) == {"experiment", "config", "overrides", "wall_s", "records", "model_bandwidths"}
+    # every trained model chose its bandwidths from its training pushes, and the run says which
+    assert results["model_bandwidths"] and all(set(b["chosen"]) == set(b["start"])
+                                               for b in results["model_bandwidths"].values())
     assert results["experiment"] == "quickstart" and results["wall_s"] > 0
     assert results["config"]["experiment"]["parts"]["pose_estimation"]["runs"] == 2
     every = results["records"]
@@ -301,7 +306,7 @@ def test_train_and_predict_apps_on_the_runs_data(tiny_run, tmp_path):
     base = {"object": {"name": "cube", "path": None, "scale": 1.0},
             "model": {"settings": {"query_kernels": 200, "anneal_candidates": 40, "anneal_steps": 8,
                                    "environment_kernels": 200, "manipulator_kernels": 40}}}
-    data = out / "data" / "cube_low_paper_default"
+    data = out / "data" / "cube_low_paper_default_lateral_jitter0.1_yaw_jitter_deg5"  # conf/protocol/spread.yaml
     trained = train_from_config({**base, "data": str(data), "name": "tiny", "recording": False},
                                 tmp_path / "t")
     model = load_model(trained["model"])

@@ -170,7 +170,8 @@ def test_nearest_push_replays_one_training_motion(cube_prediction):
     condition = prediction.condition
     motion = model.motions[2]
     final = nearest_push_prediction(motion, condition.manipulator_frame, condition.robot_start,
-                                    condition.object_pose, contact_bandwidth(model.settings))
+                                    condition.object_pose, contact_bandwidth(model.settings),
+                                    condition.contact_patch)
     replayed = se3.compose(se3.compose(condition.robot_start, motion.manipulator.m),
                            se3.compose(se3.inverse(condition.robot_start), condition.object_pose))
     gaps = (replayed.p - final.p).norm(dim=-1)

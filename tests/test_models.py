@@ -16,7 +16,12 @@ from pushtorch import metrics, se3
 from pushtorch.baselines import mean_motion_prediction, no_motion_prediction
 from pushtorch.errors import InvalidParameterError, PushtorchError, RecordFormatError
 from pushtorch.features import compute_surface_features
-from pushtorch.models.contact import environment_feature_weights, floor_relations, sample_environment_contacts
+from pushtorch.models.contact import (
+    bumper_contact_patch,
+    environment_feature_weights,
+    floor_relations,
+    sample_environment_contacts,
+)
 from pushtorch.models.library import ModelLibrary, ModelSettings, load_model, train_push_model
 from pushtorch.models.motion import local_motions, motion_frames
 from pushtorch.models.position import (
@@ -29,9 +34,10 @@ from pushtorch.models.position import (
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_full_cloud, capture_partial_cloud
 from pushtorch.predict import estimate_pose, predict
+from pushtorch.robot import backed_off
 from pushtorch.sim.plan import Placement, plan_training_pushes
 from pushtorch.sim.priors import Normal
-from pushtorch.sim.push import make_actions
+from pushtorch.sim.push import make_actions, place_robot_against
 from pushtorch.sim.records import load_records
 from pushtorch.sim.runner import run_plan, simulate_pushes
 from pushtorch.sim.world import object_spec
@@ -119,6 +125,40 @@ def test_contact_model_frames_touch_the_bumper_and_face_it(cube_model):
     assert (frames.v.p[:, 0] < -0.09).all()
     robot = frames.entity  # v ∘ u, the robot pose each frame implies (object frame)
     assert (robot.p - robot.p[:1]).norm(dim=-1).max() < 1e-4  # all agree on one robot pose
+
+
+@pytest.mark.parametrize("lateral,skew", [(-0.06, 0.0), (0.0, 0.0), (0.08, 0.0), (0.02, 0.06), (0.0, -0.04)])
+def test_contact_patch_says_where_and_how_the_cube_sits_on_the_bumper(lateral, skew):
+    """From the single-shot cloud: the patch is the cube's 0.2 m face, centred where the cube sits (the
+    bumper passing ``lateral`` m to the cube's left puts the cube at −lateral in the robot frame), at the
+    heading of the face relative to the plate (turned ``skew`` rad from square, the robot sees the face's left
+    end ahead by tan(skew) per metre: heading +skew), and a
+    start backed off along the approach sees the same patch."""
+    cube = load_object("cube")
+    pose = cube.resting_pose(yaw=0.3)
+    cloud = compute_surface_features(capture_partial_cloud(cube, pose))
+    start = place_robot_against(cube.mesh, pose, 0.3 + skew, lateral)
+    patch = bumper_contact_patch(se3.apply(se3.inverse(start), cloud.p))
+    if skew == 0:  # a skewed plate meets a corner first: the patch is the part of the face within 1 cm
+        assert float(patch[1] - patch[0]) == pytest.approx(0.2, abs=0.012)
+        assert float(patch[:2].mean()) == pytest.approx(-lateral, abs=0.006)
+    assert float(patch[2]) == pytest.approx(skew, abs=0.01)
+    away = backed_off(start, torch.tensor(0.05))
+    torch.testing.assert_close(bumper_contact_patch(se3.apply(se3.inverse(away), cloud.p)), patch, atol=1e-5, rtol=0)
+
+
+def test_bandwidths_are_chosen_by_held_out_likelihood_and_kept_in_the_model_file(cube_model, tmp_path):
+    search = cube_model.meta["bandwidths"]
+    assert search["folds"] == 5 and search["held_out"] >= 100
+    assert search["score_chosen"] > search["score_start"]  # the search never keeps a worse set
+    for name, value in search["chosen"].items():
+        assert getattr(cube_model.settings, name) == pytest.approx(value)
+    # the configured motion stds are floors (the mode must not become one push); the contact kernel is free
+    assert cube_model.settings.motion_p_std >= ModelSettings().motion_p_std
+    assert cube_model.settings.motion_rot_std >= ModelSettings().motion_rot_std
+    assert search["chosen"] != search["start"]
+    loaded = load_model(cube_model.save(tmp_path / "cube.npz"))
+    assert loaded.settings == cube_model.settings and loaded.meta["bandwidths"] == search
 
 
 def test_model_settings_reject_bad_values():

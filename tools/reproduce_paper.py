@@ -2,11 +2,13 @@
 
 Paper, Experimental Results: model selection (50 conditions x 3 actions x 4 samples), pose estimation
 (100 runs per object), friction and mass biasing (4 models x 3 conditions x 6 objects, 100 conditions x
-3 actions x 3 samples, 24,000 training pushes over both). Each experiment runs as
+3 actions x 3 samples, 24,000 training pushes over both), trained with the default placements
+(``protocol=spread``) or the paper's single one (``--protocol paper``). Each experiment runs as
 ``python -m pushtorch experiment=<name> hydra.run.dir=<out>/<name> [overrides]``, so a killed run resumes
 when this script is started again with the same ``--out`` (every step is cached in its run directory).
 
     .venv/bin/python tools/reproduce_paper.py --out runs/paper
+    .venv/bin/python tools/reproduce_paper.py --out runs/paper_protocol --protocol paper
     .venv/bin/python tools/reproduce_paper.py --out runs/paper --only pose_estimation
     .venv/bin/python tools/reproduce_paper.py --out runs/scaled -- ++experiment.test_conditions=5
 
@@ -60,9 +62,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/paper"), help="base run directory")
     parser.add_argument("--only", default=",".join(EXPERIMENTS),
                         help=f"comma-separated subset of {','.join(EXPERIMENTS)}")
+    parser.add_argument("--protocol", choices=("spread", "paper"), default="spread",
+                        help="training placements (conf/protocol): spread (the default model) or paper (the "
+                             "paper's single placement)")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every experiment (after --)")
     args = parser.parse_args(argv)
-    timings = reproduce(args.out.resolve(), [s for s in args.only.split(",") if s], args.overrides)
+    timings = reproduce(args.out.resolve(), [s for s in args.only.split(",") if s],
+                        [f"protocol={args.protocol}", *args.overrides])
     print(json.dumps(timings, indent=1))
 
 

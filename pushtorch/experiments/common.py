@@ -321,7 +321,8 @@ def train_model(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: s
         except RecordFormatError as exc:
             log.warning("retraining %s: %s", key, exc)
         else:
-            if cached.settings == ctx.settings and cached.meta == meta:
+            trained_meta = {k: v for k, v in cached.meta.items() if k != "bandwidths"}
+            if cached.configured_settings == ctx.settings and trained_meta == meta:
                 model = cached
     if model is None:
         records = training_records(ctx, obj, friction, mass)
@@ -409,7 +410,7 @@ _POSE_FIELDS = ("truth_initial", "robot_start", "estimate", "final", "mean_motio
                 "cloud_start", "cloud_final")
 #: Bump when the predictions a cached set holds would come out differently for the same settings (collision-free
 #: starts, new baselines): cached sets of an older version are recomputed.
-PREDICTION_VERSION = 2
+PREDICTION_VERSION = 3
 
 
 @dataclass
@@ -623,7 +624,7 @@ def predict_set(
                 "robot_start": start, "estimate": estimate, "final": prediction.final_pose,
                 "mean_motion": mean_motion_prediction(motion, start, estimate),
                 "nearest": nearest_push_prediction(motion, condition.manipulator_frame, start, estimate,
-                                                   contact_bandwidth(model.settings)),
+                                                   contact_bandwidth(model.settings), condition.contact_patch),
                 "backoff": condition.backoff,
                 "densities": {
                     "pushtorch": motion_product_density(prediction.density, scoring, prediction.candidates),

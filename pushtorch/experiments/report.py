@@ -6,7 +6,8 @@ figures, per model and test condition; per object: Fig. object_results, matched 
 training pushes: the training-distribution figures) and puts the paper's own numbers beside ours where
 it gives them (its figures carry no values; its text gives the linear errors below).
 
-``results.json`` is ``{"experiment", "config", "overrides", "wall_s", "records"}``; one record per group with the keys
+``results.json`` is ``{"experiment", "config", "overrides", "wall_s", "records", "model_bandwidths"}`` (the last:
+per trained model, the bandwidths it chose from its training pushes); one record per group with the keys
 ``task, object, method, model, condition, n, hacc_mean, hacc_std, linear_cm, angular_deg`` (and
 ``selection_rate`` for the selection task), so ``pandas.DataFrame(json.load(f)["records"])`` is a tidy
 table. ``hacc_std`` is the population standard deviation over the group's ``n`` comparisons.
@@ -172,15 +173,18 @@ def acceptance_checks(records: Sequence[Mapping[str, Any]],
 
 
 def write_results(out_dir: Path, experiment: str, config: Mapping[str, Any], wall_s: float,
-                  records: Sequence[Mapping[str, Any]], overrides: Sequence[str] = ()) -> Path:
+                  records: Sequence[Mapping[str, Any]], overrides: Sequence[str] = (),
+                  model_bandwidths: Mapping[str, Any] | None = None) -> Path:
     """``results.json`` in the run directory (the layout in the module docstring).
 
     ``overrides`` are the run's command-line overrides (Hydra's task overrides), so a sweep's jobs can be
-    told apart and tabulated by what was swept (``python -m pushtorch.collect``).
+    told apart and tabulated by what was swept (``python -m pushtorch.collect``). ``model_bandwidths``: per
+    trained model, the bandwidths its search chose (``PushModel.meta["bandwidths"]``).
     """
     path = Path(out_dir) / "results.json"
     payload = {"experiment": experiment, "config": dict(config), "overrides": list(overrides),
-               "wall_s": float(wall_s), "records": list(records)}
+               "wall_s": float(wall_s), "records": list(records),
+               "model_bandwidths": dict(model_bandwidths or {})}
     path.write_text(json.dumps(payload, indent=1, allow_nan=True))
     return path
 
@@ -913,6 +917,21 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
                           f"{c['invalid_starts']} / {c['starts']}" if c["starts"] else "—")
                          for (part, method), c in counts.items()])
 
+    bandwidths = extras.get("model_bandwidths") or {}
+    if bandwidths:
+        lines += ["## Kernel bandwidths chosen from data", "",
+                  "Each model chooses its motion and contact-kernel stds by 5-fold held-out likelihood on its own "
+                  "training pushes, from the configured values (docs/method.md, \"Bandwidths from data\"). The "
+                  "score is the held-out pool's log-likelihood in nats per push (higher is better).", ""]
+        names = ("motion_p_std", "motion_rot_std", "contact_p_std", "contact_rot_std", "contact_robot_std",
+                 "contact_patch_std", "contact_patch_yaw_std")
+        lines += _table(["model", "motion p (m)", "motion rot (rad)", "u p (m)", "u rot (rad)", "g (m)",
+                         "patch (m)", "patch heading (rad)", "held-out score: configured → chosen"],
+                        [(name, *(f"{b['chosen'].get(k, float('nan')):.3g}" for k in names),
+                          f"{b['score_start']:.1f} → {b['score_chosen']:.1f}")
+                         for name, b in sorted(bandwidths.items())])
+        lines.append("")
+
     scatter = extras.get("training_scatter") or {}
     if scatter:
         lines += ["## Training pushes (paper: the training-distribution figures)", "",
@@ -930,7 +949,8 @@ def write_outputs(out_dir: Path, experiment: str, config: Mapping[str, Any], wal
                   records: Sequence[Mapping[str, Any]], extras: Mapping[str, Any],
                   overrides: Sequence[str] = ()) -> dict[str, Any]:
     """results.json, figures, report.md; returns their paths and the acceptance checks."""
-    results = write_results(out_dir, experiment, config, wall_s, records, overrides)
+    results = write_results(out_dir, experiment, config, wall_s, records, overrides,
+                            extras.get("model_bandwidths"))
     figures = make_figures(out_dir, primary(records), extras)
     figure_data = write_figure_data(out_dir, extras)  # what tools/redraw_figures.py redraws them from
     checks = acceptance_checks(primary(records), extras.get("thrown") or ())

@@ -117,6 +117,8 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]]) -
         # the layout of whatever was logged, even if a part failed: saved in the file with the data
         ctx.recording.send_blueprint(experiment_blueprint(tabs))
         ctx.recording.disconnect()  # completes the file (flush alone leaves it without its footer)
+    extras["model_bandwidths"] = {m.name: m.meta["bandwidths"] for m in ctx._models.values()
+                                  if "bandwidths" in m.meta}
     wall = time.perf_counter() - start
     outputs = write_outputs(out_dir, name, plain(cfg), wall, records, extras, overrides=current_overrides())
     passed = sum(c["passed"] for c in outputs["checks"])

@@ -14,6 +14,7 @@ contact_frame_probability and the best is kept (:func:`place_environment_contact
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +30,7 @@ Tensor = torch.Tensor
 
 __all__ = [
     "ManipulatorContactModel",
+    "bumper_contact_patch",
     "closest_points_on_mesh",
     "environment_feature_weights",
     "feature_frames",
@@ -118,6 +120,46 @@ def fit_manipulator_contact_model(
     weight = torch.exp(-drop_off * dist[keep] ** 2)
     v_object = se3.compose(se3.inverse(object_pose), v_world)
     return ManipulatorContactModel(ContactFrames(v_object, features.r[keep], u, weight), cutoff, drop_off)
+
+
+def bumper_contact_patch(points_robot: Tensor, depth: float = 0.01) -> Tensor:
+    """Where and how the object sits on the bumper, ``(..., N, 3)`` points in the robot's base frame →
+    ``(..., 3)``: the lateral extent ``(y_min, y_max)`` (m) of the surface the bumper meets first and its
+    heading (rad): the angle of the least-squares line ``x = a + b y`` through it (0: square to the plate;
+    positive: the object's left side is further ahead).
+
+    The points within the plate's width and height band whose distance along the approach (base x) is within
+    ``depth`` of the foremost one are the contact patch. Measured along the approach rather than from the
+    plate, so a start backed off from the object (:func:`pushtorch.predict.clear_robot_start`) and the
+    training placement's 2 mm gap give the same patch. A cloud with no point in the band (a bumper that
+    would miss it) falls back to the height band alone: the patch of the surface nearest the plate's line.
+
+    Decision (docs/method.md, "Where the object sits on the bumper"): the paper's manipulator kernel holds
+    one contact feature per push; the patch says where the object is along the 0.4 m plate, how wide it meets
+    it and how square, which decide how a turning push slides it along the plate.
+    """
+    from pushtorch.robot import bumper_geometry
+
+    geometry = bumper_geometry()
+    centre_y = float(geometry.mount.p[1]) + float(geometry.box_centre[1])
+    half_width = float(geometry.size[1]) / 2
+    z_low, z_high = geometry.z_range
+    x, y, z = points_robot.unbind(-1)
+    in_height = (z >= z_low) & (z <= z_high)
+    band = in_height & ((y - centre_y).abs() <= half_width)
+    band = torch.where(band.any(-1, keepdim=True), band, in_height)
+    band = torch.where(band.any(-1, keepdim=True), band, torch.ones_like(band))
+    inf = torch.full_like(x, math.inf)
+    front = torch.where(band, x, inf).amin(-1, keepdim=True)
+    patch = band & (x <= front + depth)
+    weight = patch.to(x.dtype)
+    count = weight.sum(-1, keepdim=True)
+    mean_x = (weight * x).sum(-1, keepdim=True) / count
+    mean_y = (weight * y).sum(-1, keepdim=True) / count
+    dx, dy = (x - mean_x) * weight, (y - mean_y) * weight
+    # a patch of one point (or a line along x) has no heading: atan2(0, 0) = 0, square
+    heading = torch.atan2((dx * dy).sum(-1), (dy * dy).sum(-1))
+    return torch.stack([torch.where(patch, y, inf).amin(-1), torch.where(patch, y, -inf).amax(-1), heading], -1)
 
 
 def floor_relations(v: se3.Pose) -> se3.Pose:

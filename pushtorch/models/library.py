@@ -21,7 +21,7 @@ import hashlib
 import io
 import json
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -50,9 +50,11 @@ __all__ = [
 ]
 
 FORMAT = "pushtorch.push_model"
-# 3: the whole file sealed by one SHA-256 and a partial_data header field (2: only the arrays were
-# checksummed; motion kernels in the robot's start frame since 2, at the contact point in 1)
-VERSION = 3
+# 4: motion kernels carry their push's contact patch on the bumper, and the settings the expert exponents
+# and the bandwidths chosen from data (issue 17); 3: the whole file sealed by one SHA-256 and a
+# partial_data header field (2: only the arrays were checksummed; motion kernels in the robot's start
+# frame since 2, at the contact point in 1)
+VERSION = 4
 _SEAL_BYTES = 64  # hex SHA-256 of the archive before it, stored as the zip comment
 
 
@@ -96,8 +98,15 @@ class ModelSettings:
     contact_p_std: float = 0.02
     contact_rot_std: float = 0.3
     contact_robot_std: float = 0.05  # m, frame position in the robot's start frame (motion model)
+    contact_patch_std: float = 0.02  # m, the push's contact patch on the bumper: its lateral extent
+    contact_patch_yaw_std: float = 0.05  # rad, ... and its heading (motion model)
     motion_p_std: float = 0.01
     motion_rot_std: float = 0.05
+    # Σ of the experts' exponents (w^P normalised; 1: a logarithmic opinion pool, docs/method.md)
+    pool_sharpness: float = 1.0
+    # k of the k-fold search that chooses the motion and contact bandwidths from the training pushes
+    # (pushtorch.models.bandwidth); 0 keeps the values above
+    bandwidth_folds: int = 5
     cutoff_std: float = 3.0
     alpha_t: float = 2.0
 
@@ -105,7 +114,7 @@ class ModelSettings:
         for f in fields(self):
             value = getattr(self, f.name)
             numeric = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
-            zero_ok = f.name == "polish_steps"
+            zero_ok = f.name in ("polish_steps", "bandwidth_folds")
             if not (numeric and (value >= 0 if zero_ok else value > 0)):
                 kind = "a number >= 0" if zero_ok else "a positive number"
                 raise InvalidParameterError(f"model setting {f.name} must be {kind}, got {value!r}")
@@ -150,6 +159,13 @@ class PushModel:
     meta: dict = field(default_factory=dict)
     #: None when trained on every push its runs promised; else what was missing (``train(allow_partial)``)
     partial_data: dict | None = None
+
+    @property
+    def configured_settings(self) -> ModelSettings:
+        """The settings this model was trained with, before the bandwidth search replaced the values it
+        chose (``meta["bandwidths"]``; :mod:`pushtorch.models.bandwidth`)."""
+        search = self.meta.get("bandwidths")
+        return replace(self.settings, **search["start"]) if search else self.settings
 
     @property
     def actions(self) -> torch.Tensor:
@@ -450,6 +466,7 @@ def train_push_model(
     Raises:
         InvalidParameterError: no valid record.
     """
+    from pushtorch.models.bandwidth import select_bandwidths
     from pushtorch.robot import bumper_mesh
     from pushtorch.sim.push import place_robot_against
 
@@ -480,7 +497,11 @@ def train_push_model(
                 settings.contact_cutoff, settings.contact_drop_off, generator,
             )
         )
-    return PushModel(name or obj.name, obj.name, settings, contact, position, motions, meta or {}, partial_data)
+    meta = dict(meta or {})
+    if settings.bandwidth_folds >= 2:
+        settings, search = select_bandwidths(settings, motions, settings.bandwidth_folds, generator)
+        meta["bandwidths"] = search.as_meta()
+    return PushModel(name or obj.name, obj.name, settings, contact, position, motions, meta, partial_data)
 
 
 class ModelLibrary:

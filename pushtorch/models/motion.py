@@ -12,7 +12,8 @@ object and the estimated object pose ``B0'`` (``h_e = w_e⁻¹ ∘ B0'``), the t
 same kind becomes a kernel over the object's final pose ``w_e ∘ m_j ∘ h_e`` ("shifted by h into the
 same motion space") with weight ``K^c(c_e | c_j) / P(c_e)`` (Eq. pdf_motion, the contact-frame kernel
 compares ``r`` and ``u``, Eq. contact_frame_probability). The experts' product (Eq. poe) with
-``w^P = N_K^{c^e} / N_K^{c^m}`` for the manipulator expert is optimised by simulated annealing.
+``w^P = N_K^{c^e} / N_K^{c^m}`` for the manipulator expert (as an exponent, below) is optimised by
+simulated annealing.
 
 Decision (docs/method.md): motions are expressed in the robot's start frame (:func:`motion_frames`):
 every contact frame's motion is tracked in the frame of the pusher that causes it, ``w = R0``, not in
@@ -34,6 +35,11 @@ truth without ``g`` and the product was pulled off the manipulator expert's (0.9
 ``g`` is observable at prediction (the robot start pose is chosen first) and transfers across objects
 as "where the contact is relative to the pusher".
 
+Decisions of issue 17 (docs/method.md): every kernel also carries its push's contact patch on the bumper
+(:func:`~pushtorch.models.contact.bumper_contact_patch`), compared by ``K^c`` beside ``(u, r, g)``, so
+the experts weigh the training pushes whose object sat where this one sits; and ``w^P`` weighs the experts
+as exponents (:func:`expert_exponents`) rather than as a constant added to the log product.
+
 Fast path: :func:`anneal_motion_densities` anneals the products of experts of many push conditions in
 one batch; each kind's kernels, shared by all of its experts, are evaluated once per query
 (:class:`pushtorch.kde.SharedKernelProduct`), and the candidates are polished by mean shift.
@@ -52,17 +58,24 @@ from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal, polish_candid
 from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.features import SurfaceFeatures
 from pushtorch.kde import KernelBandwidth, PoseKDE, ProductOfExperts, SharedKernelProduct
-from pushtorch.models.contact import closest_points_on_mesh, floor_relations, sample_environment_contacts
+from pushtorch.models.contact import (
+    bumper_contact_patch,
+    closest_points_on_mesh,
+    floor_relations,
+    sample_environment_contacts,
+)
 from pushtorch.models.frames import ContactFrames, embed_descriptors
 
 Tensor = torch.Tensor
 
 __all__ = [
+    "CONTACT_DESCRIPTOR_DIM",
     "MotionDensity",
     "MotionKernels",
     "MotionModel",
     "anneal_motion_densities",
     "contact_log_weights",
+    "expert_exponents",
     "fit_motion_model",
     "local_motions",
     "motion_frames",
@@ -78,23 +91,32 @@ class MotionKernels:
         u: relations ``(N,)`` (to the robot for manipulator frames, to the floor for environment frames).
         m: local motions ``v0⁻¹ ∘ v1`` ``(N,)``.
         g: positions ``(N, 3)`` of the frames in the robot's start frame (see :class:`MotionDensity`).
+        patch: ``(N, 3)`` where and how the object sat on the bumper in the kernel's push: the lateral extent
+            and heading of its contact patch in the robot's start frame
+            (:func:`~pushtorch.models.contact.bumper_contact_patch`).
     """
 
     r: Tensor
     u: se3.Pose
     m: se3.Pose
     g: Tensor
+    patch: Tensor
+    #: ``(N,)`` int64 the index (within its action) of each kernel's push, where known: set by
+    #: :func:`fit_motion_model` for the bandwidth search, not kept in model files
+    push: Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.r.shape[0])
 
     def take(self, index: Tensor) -> MotionKernels:
-        return MotionKernels(self.r[index], self.u.take(index), self.m.take(index), self.g[index])
+        return MotionKernels(self.r[index], self.u.take(index), self.m.take(index), self.g[index], self.patch[index],
+                             None if self.push is None else self.push[index])
 
     def arrays(self, prefix: str) -> dict[str, Tensor]:
         return {
             f"{prefix}.r": self.r, f"{prefix}.u_p": self.u.p, f"{prefix}.u_q": self.u.q,
             f"{prefix}.m_p": self.m.p, f"{prefix}.m_q": self.m.q, f"{prefix}.g": self.g,
+            f"{prefix}.patch": self.patch,
         }
 
     @staticmethod
@@ -104,6 +126,7 @@ class MotionKernels:
             se3.Pose(arrays[f"{prefix}.u_p"], arrays[f"{prefix}.u_q"]),
             se3.Pose(arrays[f"{prefix}.m_p"], arrays[f"{prefix}.m_q"]),
             arrays[f"{prefix}.g"],
+            arrays[f"{prefix}.patch"],
         )
 
 
@@ -182,6 +205,7 @@ def fit_motion_model(
         raise ModelError(
             f"no push record has a training feature within {contact_cutoff} m of the bumper at its start pose"
         )
+    patches = bumper_contact_patch(points_robot, contact_cutoff)  # (P, 3)
     rows = touched.nonzero().squeeze(-1)
     pick = torch.multinomial(weight[rows], manipulator_kernels_per_push, replacement=True, generator=generator)
     rows = rows.unsqueeze(-1).expand_as(pick).reshape(-1)
@@ -194,6 +218,8 @@ def fit_motion_model(
             motion_frames(se3.apply(initial.take(rows), xm.p), robot_start.take(rows)), world_motion.take(rows)
         ),
         points_robot[rows, pick],
+        patches[rows],
+        rows,
     )
 
     # Environment frames: drawn per push at the push's initial pose (z above the floor matters).
@@ -207,26 +233,58 @@ def fit_motion_model(
         floor_relations(v_world),
         local_motions(motion_frames(v_world.p, robot_start.take(env_rows)), world_motion.take(env_rows)),
         se3.apply(se3.inverse(robot_start.take(env_rows)), v_world.p),
+        patches[env_rows],
+        env_rows,
     )
     in_robot = se3.compose(se3.inverse(robot_start), se3.compose(world_motion, robot_start))
     return MotionModel(torch.as_tensor(action, dtype=x.p.dtype), manipulator, environment, se3.mean_pose(in_robot))
 
 
+def expert_exponents(n_manipulator_kernels: int, n_environment_kernels: int, n_environment_experts: int,
+                     pool_sharpness: float = 1.0, dtype: torch.dtype = torch.float32) -> Tensor:
+    """``(1 + E,)`` exponents ``γ_e`` of the product's experts, manipulator first: the paper's weights
+    ``w^P = N_K^{c^e} / N_K^{c^m}`` for the manipulator expert and 1 for each environment expert, scaled to
+    sum to ``pool_sharpness``.
+
+    Decision (docs/method.md, "Expert weights"): the paper adds ``log w^P`` to the product, a constant that
+    moves no mode and cancels in every normalised density. As exponents they weigh the experts' evidence:
+    with ``Σγ = 1`` the product is a logarithmic opinion pool, as wide as one expert, where the paper's
+    product of ``1 + E`` experts (each exponent 1) is ``√(1 + E)`` times narrower than any of them although
+    its experts re-use the same training pushes.
+    """
+    if pool_sharpness <= 0 or not math.isfinite(pool_sharpness):
+        raise InvalidParameterError(f"pool_sharpness must be a positive number, got {pool_sharpness!r}")
+    w = torch.ones(1 + n_environment_experts, dtype=torch.float64)
+    w[0] = n_environment_kernels / max(n_manipulator_kernels, 1)
+    return (pool_sharpness * w / w.sum()).to(dtype)
+
+
+#: Descriptor dims of the contact-frame kernel ``K^c`` of the motion model: embedded curvatures (2), the
+#: frame's position in the robot's start frame ``g`` (3) and the push's contact patch on the bumper: its
+#: lateral extent (2) and heading (1).
+CONTACT_DESCRIPTOR_DIM = 8
+
+
 def contact_log_weights(frames: ContactFrames, kernels: MotionKernels, robot_start: se3.Pose,
-                        contact_bandwidth: KernelBandwidth) -> Tensor:
+                        contact_bandwidth: KernelBandwidth, patch: Tensor) -> Tensor:
     """``(F, N)`` log ``K^c(c_e | c_j)``: how much each of the frames ``c_e`` (world) resembles each training
-    kernel ``c_j`` of one contact kind, over ``(u, r, g)`` (Eq. contact_frame_probability and the ``g`` term
-    of the module docstring), each frame's contact density widened by its own trial rounds until some kernel
-    reaches it."""
+    kernel ``c_j`` of one contact kind, over ``(u, r, g, patch)`` (Eq. contact_frame_probability and the
+    ``g`` and patch terms of the module docstring), each frame's contact density widened by its own trial
+    rounds until some kernel reaches it. ``patch``: ``(3,)`` this push's contact patch on the bumper
+    (:func:`~pushtorch.models.contact.bumper_contact_patch`)."""
     n_frames, n_kernels = frames.r.reshape(-1, 2).shape[0], len(kernels)
+    dim = CONTACT_DESCRIPTOR_DIM
     contact_kde = PoseKDE(
         se3.Pose(kernels.u.p.expand(n_frames, n_kernels, 3), kernels.u.q.expand(n_frames, n_kernels, 4)),
         contact_bandwidth,
-        descriptors=torch.cat([embed_descriptors(kernels.r), kernels.g], -1).expand(n_frames, n_kernels, 5),
+        descriptors=torch.cat([embed_descriptors(kernels.r), kernels.g, kernels.patch], -1).expand(
+            n_frames, n_kernels, dim),
     )
     query_u = se3.Pose(frames.u.p.reshape(-1, 1, 3), frames.u.q.reshape(-1, 1, 4))
     frame_g = se3.apply(se3.inverse(robot_start), frames.v.p.reshape(-1, 3))
-    query_r = torch.cat([embed_descriptors(frames.r.reshape(-1, 2)), frame_g], -1).unsqueeze(-2)
+    frame_patch = torch.as_tensor(patch, dtype=frame_g.dtype, device=frame_g.device).reshape(1, 3)
+    query_r = torch.cat([embed_descriptors(frames.r.reshape(-1, 2)), frame_g, frame_patch.expand(len(frame_g), 3)],
+                        -1).unsqueeze(-2)
     _, log_w = contact_kde.fitted_log_kernels(query_u, query_r)
     return log_w.squeeze(-2)
 
@@ -260,13 +318,17 @@ class MotionDensity:
         environment_frames: environment contact frames ``(E,)`` on the new object (world).
         object_pose: the estimated initial object pose ``B0'``.
         robot_start: the robot's start pose for this push.
-        contact_bandwidth: bandwidth of the contact-frame kernel ``K^c`` over ``(u, r, g)``: ``r`` compared
-            after :func:`~pushtorch.models.frames.embed_descriptors` (2 stds) and ``g``, the frame's position
-            in the robot's start frame (3 stds, m) — see the module docstring.
+        contact_patch: ``(3,)`` where and how the object sits on the bumper at ``robot_start``
+            (:func:`~pushtorch.models.contact.bumper_contact_patch` of the observed cloud).
+        contact_bandwidth: bandwidth of the contact-frame kernel ``K^c`` over ``(u, r, g, patch)``: ``r``
+            compared after :func:`~pushtorch.models.frames.embed_descriptors` (2 stds), ``g``, the frame's
+            position in the robot's start frame (3 stds, m), and the contact patch (2 stds, m, and 1, rad) — see the
+            module docstring.
         motion_bandwidth: bandwidth of the motion kernels over the final pose.
         drop_cut_kernels: leave out the kernels whose contact weight ``K^c`` is zero (cut off) before
             anything is evaluated (default; the fast path). False keeps every kernel, with weight 0: the
             same density, evaluated the straightforward way (the dense reference, ``method="dense"``).
+        pool_sharpness: ``Σ_e γ_e`` of the experts' exponents (:func:`expert_exponents`).
     """
 
     def __init__(
@@ -276,14 +338,17 @@ class MotionDensity:
         environment_frames: ContactFrames,
         object_pose: se3.Pose,
         robot_start: se3.Pose,
+        contact_patch: Tensor,
         contact_bandwidth: KernelBandwidth,
         motion_bandwidth: KernelBandwidth,
         drop_cut_kernels: bool = True,
+        pool_sharpness: float = 1.0,
     ) -> None:
-        if contact_bandwidth.descriptor_dim != 5:
+        if contact_bandwidth.descriptor_dim != CONTACT_DESCRIPTOR_DIM:
             raise InvalidParameterError(
-                "the contact bandwidth needs 5 descriptor stds: 2 for the embedded curvatures and 3 (m) "
-                f"for the frame's position in the robot frame; got {contact_bandwidth.descriptor_dim}"
+                f"the contact bandwidth needs {CONTACT_DESCRIPTOR_DIM} descriptor stds: 2 for the embedded "
+                "curvatures, 3 (m) for the frame's position in the robot frame and 3 for the contact patch "
+                f"on the bumper; got {contact_bandwidth.descriptor_dim}"
             )
         frames = [(manipulator_frame, model.manipulator), (environment_frames, model.environment)]
         # Motions are expressed in the robot's start frame (motion_frames), the same for every contact
@@ -293,7 +358,7 @@ class MotionDensity:
         experts, shared_means, shared_weights = [], [], []
         for frame, kernels in frames:
             n_frames = frame.r.reshape(-1, 2).shape[0]
-            log_w = contact_log_weights(frame, kernels, robot_start, contact_bandwidth)  # (F, N)
+            log_w = contact_log_weights(frame, kernels, robot_start, contact_bandwidth, contact_patch)  # (F, N)
             finals = se3.compose(se3.compose(robot_start, kernels.m), to_final)  # (N,)
             # kernels the contact kernel cut off carry no weight
             keep = torch.isfinite(log_w) | (not drop_cut_kernels)  # (F, N)
@@ -306,10 +371,9 @@ class MotionDensity:
         self._shared_means = se3.Pose(torch.cat([m.p for m in shared_means]), torch.cat([m.q for m in shared_means]))
         self._shared_log_weights = _block_diagonal(shared_weights, -math.inf)  # (1 + E, K)
         self._shared_product: SharedKernelProduct | None = None
-        n_env, n_man = len(model.environment), len(model.manipulator)
-        log_wp = torch.zeros(len(experts), dtype=object_pose.p.dtype)
-        log_wp[0] = math.log(n_env / n_man)  # w^P of the manipulator expert; environment experts 1
-        self.expert_log_weight = log_wp
+        self.expert_exponent = expert_exponents(len(model.manipulator), len(model.environment), len(experts) - 1,
+                                                pool_sharpness, object_pose.p.dtype)
+        self.expert_log_weight = torch.zeros(len(experts), dtype=object_pose.p.dtype)
         self.object_pose = object_pose
 
     @property
@@ -329,7 +393,8 @@ class MotionDensity:
             if not bool((rounds == rounds[0]).all()):
                 raise ModelError("the experts of one product must share their trial rounds")
             self._shared_product = SharedKernelProduct(self._shared_means, self._shared_log_weights,
-                                                       self.experts.bandwidth, rounds[0], self.expert_log_weight)
+                                                       self.experts.bandwidth, rounds[0], self.expert_log_weight,
+                                                       expert_exponent=self.expert_exponent)
         return self._shared_product
 
     def log_prob(self, final_pose: se3.Pose, method: str = "dense") -> Tensor:
@@ -348,7 +413,8 @@ class MotionDensity:
         if method == "fast":
             flat = se3.Pose(final_pose.p.reshape(-1, 3), final_pose.q.reshape(-1, 4))
             return self.shared_product().log_prob(flat).reshape(final_pose.p.shape[:-1])
-        return ProductOfExperts(self.experts, self.expert_log_weight).log_prob(final_pose, method=method)
+        return ProductOfExperts(self.experts, self.expert_log_weight,
+                                expert_exponent=self.expert_exponent).log_prob(final_pose, method=method)
 
     def proposal(self, n: int, generator: torch.Generator | None = None) -> se3.Pose:
         """``n`` poses drawn from the experts' mixture (equal shares): annealing's starting candidates."""
@@ -457,7 +523,7 @@ def anneal_motion_densities(
     log_w = torch.full((n_experts, len(densities), n_kernels), -math.inf, dtype=dtype, device=device)
     rounds = torch.zeros(len(densities), 3, dtype=torch.int64, device=device)
     log_wp = torch.zeros(n_experts, len(densities), dtype=dtype, device=device)
-    mask = torch.zeros(n_experts, len(densities), dtype=torch.bool, device=device)
+    exponent = torch.zeros(n_experts, len(densities), dtype=dtype, device=device)  # 0: a padding expert
     for b, (density, (means, weights)) in enumerate(zip(densities, layouts, strict=True)):
         experts = density.experts
         if experts.bandwidth != first.bandwidth or experts.dtype != dtype:
@@ -467,9 +533,10 @@ def anneal_motion_densities(
         log_w[:e, b, :n] = weights
         rounds[b] = density.shared_product().rounds
         log_wp[:e, b] = density.expert_log_weight.to(dtype)
-        mask[:e, b] = True
+        exponent[:e, b] = density.expert_exponent.to(dtype)
     # its only queries are the annealing's own (finite, normalised) candidates: no per-step checks
-    product = SharedKernelProduct(se3.Pose(p, q), log_w, first.bandwidth, rounds, log_wp, mask, validate_args=False)
+    product = SharedKernelProduct(se3.Pose(p, q), log_w, first.bandwidth, rounds, log_wp, validate_args=False,
+                                  expert_exponent=exponent)
     init = se3.Pose(torch.stack([s.p for s in starts]), torch.stack([s.q for s in starts]))  # (B, C)
     result = anneal(product.log_prob, init, schedule, generator, record_history=record_history, method="fast")
     result = polish_candidates(result, product.mean_shift, product.log_prob, polish_steps)
