@@ -150,7 +150,9 @@ def test_contact_patch_says_where_and_how_the_cube_sits_on_the_bumper(lateral, s
 def test_bandwidths_are_chosen_by_held_out_likelihood_and_kept_in_the_model_file(cube_model, tmp_path):
     search = cube_model.meta["bandwidths"]
     assert search["folds"] == 5 and search["held_out"] >= 100
-    assert search["score_chosen"] > search["score_start"]  # the search never keeps a worse set
+    # the search never keeps a worse set (the configured stds may leave too few pushes: no score, None)
+    assert search["score_chosen"] is not None
+    assert search["score_start"] is None or search["score_chosen"] > search["score_start"]
     for name, value in search["chosen"].items():
         assert getattr(cube_model.settings, name) == pytest.approx(value)
     # the configured motion stds are floors (the mode must not become one push); the contact kernel is free

@@ -778,6 +778,11 @@ def _table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]:
     return lines + [""]
 
 
+def _score_text(score: float | None) -> str:
+    """A bandwidth search's held-out score; None: stds leaving the manipulator expert too few pushes."""
+    return "too few pushes" if score is None else f"{score:.1f}"
+
+
 def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequence[Mapping[str, Any]],
                  extras: Mapping[str, Any], figures: Sequence[Path],
                  checks: Sequence[Mapping[str, Any]]) -> Path:
@@ -928,7 +933,7 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
         lines += _table(["model", "motion p (m)", "motion rot (rad)", "u p (m)", "u rot (rad)", "g (m)",
                          "patch (m)", "patch heading (rad)", "held-out score: configured → chosen"],
                         [(name, *(f"{b['chosen'].get(k, float('nan')):.3g}" for k in names),
-                          f"{b['score_start']:.1f} → {b['score_chosen']:.1f}")
+                          f"{_score_text(b['score_start'])} → {_score_text(b['score_chosen'])}")
                          for name, b in sorted(bandwidths.items())])
         lines.append("")
 
