@@ -4,6 +4,9 @@ of the paper objects' size, with their own symmetries, and pushable in pybullet.
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +18,8 @@ from pushtorch.errors import InvalidParameterError
 from pushtorch.shapes import SHAPE_KINDS, held_out_shapes, random_shape
 from pushtorch.sim import place_robot_against
 from pushtorch.sim.runner import simulate_pushes
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @settings(max_examples=12)  # detect_symmetry takes 0.2-1 s a shape
@@ -59,3 +64,15 @@ def test_the_held_out_set_cycles_through_the_kinds_and_pushes_in_pybullet():
         records = simulate_pushes(shape, start, pose, torch.tensor([0.1, math.radians(10.0)]), 0.5, 0.3)
         moved = float((records.object_final.p[0, :2] - pose.p[:2].double()).norm())
         assert bool(records.touched[0]) and not bool(records.tipped[0]) and moved > 0.2, (shape.name, moved)
+
+
+@pytest.mark.slow
+def test_pushtorch_beats_the_mean_motion_on_most_held_out_shapes(tmp_path):
+    """Issue 17's acceptance on shapes nobody tuned on: tools/held_out.py (8 shapes, the quickstart's models,
+    4 conditions each) must find pushtorch below the mean motion's displacement H_acc on at least 75 %."""
+    result = subprocess.run([sys.executable, str(ROOT / "tools" / "held_out.py"), "--count", "8", "--out",
+                             str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=3600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    last = dict(item.split("=") for item in result.stdout.strip().splitlines()[-1].split())
+    assert int(last["shapes"]) == 8
+    assert float(last["beats_mean_motion"]) >= 0.75, result.stdout
