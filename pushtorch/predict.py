@@ -41,6 +41,8 @@ from __future__ import annotations
 
 import logging
 import math
+import sys
+import types
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
@@ -566,7 +568,7 @@ def predict_many(
         raise InvalidParameterError(f"batch_size must be an integer >= 1, got {batch_size!r}")
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise InvalidParameterError(f"seed must be an integer, got {seed!r}")
-    generator = as_generator(generator)
+    generator = None if generator is None else as_generator(generator)  # None: one seeded stream per batch
     if isinstance(clouds, PointCloud | SurfaceFeatures | torch.Tensor):
         raise InvalidParameterError("clouds must be a list of clouds (use predict for one cloud)")
     clouds = list(clouds)
@@ -622,6 +624,21 @@ def _predict_batch(
                                 density, result.anneal.candidates, result.anneal.log_prob, result.anneal)
     return out  # type: ignore[return-value]
 
+
+class _CallableModule(types.ModuleType):
+    """This module, callable as :func:`predict`.
+
+    ``pushtorch.predict`` names both this module and, in the package's public face, the function: once the
+    module is imported, Python binds the package attribute to the module, whatever the package bound first.
+    Calling the module calls the function, so ``pushtorch.predict(model, cloud, action)`` works in any
+    import order, and ``from pushtorch.predict import predict_many`` keeps working.
+    """
+
+    def __call__(self, *args, **kwargs) -> Prediction:
+        return predict(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule
 
 if __name__ == "__main__":  # `python -m pushtorch.predict`: the prediction stage app
     from pushtorch.predict_cli import main

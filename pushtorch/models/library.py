@@ -38,6 +38,7 @@ from pushtorch.objects import ObjectModel
 from pushtorch.perception import capture_full_cloud
 
 __all__ = [
+    "DEFAULT_SEED",
     "FORMAT",
     "VERSION",
     "ModelLibrary",
@@ -275,13 +276,21 @@ def _unsealed(path: Path, data: bytes) -> None:
         )
 
 
-def as_generator(generator: torch.Generator | int | None) -> torch.Generator | None:
-    """A ``torch.Generator`` as given, a new one seeded with an int, or None (torch's global stream).
+#: The seed of the generator a function that draws random numbers uses when given none: results never depend
+#: on torch's global random state (issue 23, "reproducible by default").
+DEFAULT_SEED = 0
+
+
+def as_generator(generator: torch.Generator | int | None) -> torch.Generator:
+    """A ``torch.Generator`` as given, a new one seeded with an int, or (None) a new one seeded with
+    :data:`DEFAULT_SEED`: never torch's global stream, so a call without a generator is reproducible.
 
     Raises:
         InvalidParameterError: anything else (a float, a string, a negative or too large seed).
     """
-    if generator is None or isinstance(generator, torch.Generator):
+    if generator is None:
+        return torch.Generator().manual_seed(DEFAULT_SEED)
+    if isinstance(generator, torch.Generator):
         return generator
     if isinstance(generator, int | np.integer) and not isinstance(generator, bool):
         if not 0 <= int(generator) < 2**64:
@@ -461,7 +470,8 @@ def train_push_model(
         obj: the training object.
         records: :class:`pushtorch.sim.records.PushRecords` of this object (invalid pushes are skipped).
         settings: model settings (default: the paper's).
-        generator: a seeded ``torch.Generator`` or an int seed.
+        generator: a seeded ``torch.Generator`` or an int seed (None: seeded with :data:`DEFAULT_SEED`, so
+            training is reproducible).
         partial_data: set when the records are only part of their runs (kept in the model file).
     Raises:
         InvalidParameterError: no valid record.
