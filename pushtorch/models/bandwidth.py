@@ -241,6 +241,7 @@ def select_bandwidths(settings, motions: list, folds: int = 5,
                 score = total(trial)
                 if score > best + 1e-6:
                     values, best = trial, score
+
     def reported(score: float) -> float | None:  # an inadmissible set has no likelihood to report
         return None if score < _INADMISSIBLE / 2 else score
 
