@@ -72,7 +72,6 @@ _POSITIVE = 1e-12  # "> 0" as a closed bound
 # Keys by pattern: "*" is one level, "**" any number (also none). The first matching rule applies.
 _RULES: list[tuple[str, Rule]] = [
     ("seed", _int(0, _MAX_SEED)),
-    ("device", Rule("str")),
     ("object.name", Rule("name")),
     ("object.path", Rule("str", nullable=True)),
     ("object.scale", _float(1e-6, 1e3)),

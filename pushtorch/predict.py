@@ -221,19 +221,22 @@ def _polish_steps(settings: ModelSettings, method: str) -> int:
 
 
 def _as_features(cloud: PointCloud | SurfaceFeatures, settings: ModelSettings,
-                 dtype: torch.dtype = torch.float32) -> SurfaceFeatures:
-    """The cloud's surface features in the model's ``dtype`` (a float64 cloud is cast before its features
-    are computed, so it predicts exactly as the same cloud in float32)."""
+                 dtype: torch.dtype = torch.float32, device: torch.device | None = None) -> SurfaceFeatures:
+    """The cloud's surface features in the model's ``dtype`` on its ``device`` (a float64 cloud is cast
+    before its features are computed, so it predicts exactly as the same cloud in float32). Features are
+    computed on the CPU (open3d's neighbourhoods and normals) and then moved."""
     if isinstance(cloud, SurfaceFeatures):
-        return cloud if cloud.p.dtype == dtype else cloud.to(dtype)
-    if isinstance(cloud, PointCloud):
-        if cloud.points.dtype != dtype:
-            origins = None if cloud.view_origins is None else cloud.view_origins.to(dtype)
-            cloud = PointCloud(cloud.points.to(dtype), origins)
+        features = cloud if cloud.p.dtype == dtype else cloud.to(dtype)
     else:
-        cloud = PointCloud(cloud)  # validates an array or tensor (shape, NaN, empty)
-        cloud = PointCloud(cloud.points.to(dtype))
-    return compute_surface_features(cloud, radius=settings.feature_radius)
+        if isinstance(cloud, PointCloud):
+            if cloud.points.dtype != dtype or cloud.points.device.type != "cpu":
+                origins = None if cloud.view_origins is None else cloud.view_origins.to("cpu", dtype)
+                cloud = PointCloud(cloud.points.to("cpu", dtype), origins)
+        else:
+            cloud = PointCloud(cloud)  # validates an array or tensor (shape, NaN, empty)
+            cloud = PointCloud(cloud.points.to("cpu", dtype))
+        features = compute_surface_features(cloud, radius=settings.feature_radius)
+    return features if device is None or features.p.device == device else features.to(device)
 
 
 def _dtype_of(model: PushModel | ModelLibrary | PositionModel) -> torch.dtype:
@@ -243,6 +246,15 @@ def _dtype_of(model: PushModel | ModelLibrary | PositionModel) -> torch.dtype:
     if isinstance(model, PushModel):
         model = model.position
     return model.frames.r.dtype
+
+
+def _device_of(model: PushModel | ModelLibrary | PositionModel) -> torch.device:
+    """The device a model's tensors are on (clouds' features are moved there)."""
+    if isinstance(model, ModelLibrary):
+        model = model.models[0]
+    if isinstance(model, PushModel):
+        model = model.position
+    return model.frames.r.device
 
 
 def _check_actions(actions, count: int) -> torch.Tensor:
@@ -290,7 +302,7 @@ def estimate_pose(
     _check_method(method)
     settings = settings or ModelSettings()
     generator = as_generator(generator)
-    features = _as_features(cloud, settings, _dtype_of(position))
+    features = _as_features(cloud, settings, _dtype_of(position), _device_of(position))
     density = _pose_density(position, features, settings, generator, method)
     result = optimise_query_density(
         density, settings.anneal_candidates, _schedule(settings, False, method), generator, record_history,
@@ -414,7 +426,7 @@ def generate_push_condition(
     """
     _check_method(method)
     generator = as_generator(generator)
-    features = _as_features(cloud, model.settings, _dtype_of(model))
+    features = _as_features(cloud, model.settings, _dtype_of(model), _device_of(model))
     if not (isinstance(action_index, int) and 0 <= action_index < len(model.motions)):
         raise InvalidParameterError(
             f"action_index must be an int in [0, {len(model.motions)}) for model {model.name!r}, got {action_index!r}"
@@ -593,7 +605,7 @@ def _predict_batch(
     """One batch of :func:`predict_many`: a library selects per cloud, then each model's share runs
     together."""
     first = model.models[0] if isinstance(model, ModelLibrary) else model
-    features = [_as_features(c, first.settings, _dtype_of(first)) for c in clouds]
+    features = [_as_features(c, first.settings, _dtype_of(first), _device_of(first)) for c in clouds]
     chosen = [model.select(f)[0] if isinstance(model, ModelLibrary) else model for f in features]
     out: list[Prediction | None] = [None] * len(clouds)
     distinct = [m for i, m in enumerate(chosen) if all(m is not c for c in chosen[:i])]  # first-use order

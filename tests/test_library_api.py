@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from pushtorch.errors import PushtorchError
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -59,3 +61,42 @@ def test_the_readme_example_prints_the_same_numbers_in_two_processes(tmp_path):
         assert result.returncode == 0, result.stderr[-2000:]
         outputs.append(result.stdout)
     assert "Pose" in outputs[0] and outputs[0] == outputs[1]
+
+
+def test_a_model_moves_to_float64_and_a_float64_cloud_predicts_as_a_float32_one(small_model, tmp_path):
+    """``PushModel.to`` and ``load_model(dtype=, map_location=)``. A float64 cloud is cast to the model's dtype
+    before its features are computed, so it predicts exactly as the float32 cloud. (A float64 model's
+    annealing draws other random numbers than a float32 one — torch's samplers' streams depend on the dtype
+    — so their predictions differ as two seeds do: 1.9 cm here.)"""
+    import torch
+
+    from pushtorch import capture_partial_cloud, load_model, load_object, predict
+
+    model = small_model("cube")
+    prism = load_object("prism_thin")
+    cloud = capture_partial_cloud(prism, prism.resting_pose(yaw=0.3))
+    base = predict(model, cloud, model.actions[1], generator=3)
+    wide = model.to(dtype=torch.float64)
+    assert wide.dtype == torch.float64 and model.dtype == torch.float32 and wide.device == model.device
+    moved = predict(wide, cloud.to(torch.float64), model.actions[1], generator=3)
+    assert moved.final_pose.p.dtype == torch.float64 and torch.isfinite(moved.final_pose.p).all()
+    assert torch.equal(predict(wide, cloud, model.actions[1], generator=3).final_pose.p, moved.final_pose.p)
+    assert torch.equal(predict(model, cloud.to(torch.float64), model.actions[1], generator=3).final_pose.p,
+                       base.final_pose.p)
+    loaded = load_model(model.save(tmp_path / "m.npz"), dtype=torch.float64, map_location="cpu")
+    assert loaded.dtype == torch.float64 and loaded.device == torch.device("cpu")
+    with pytest.raises(PushtorchError, match="floating"):
+        model.to(dtype=torch.int32)
+
+
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="needs a CUDA device")
+def test_a_model_on_the_gpu_predicts_there(small_model):
+    import torch
+
+    from pushtorch import capture_partial_cloud, load_object, predict
+
+    prism = load_object("prism_thin")
+    cloud = capture_partial_cloud(prism, prism.resting_pose(yaw=0.3))
+    model = small_model("cube")
+    prediction = predict(model.to(device="cuda"), cloud, model.actions[1])
+    assert prediction.final_pose.p.device.type == "cuda" and torch.isfinite(prediction.final_pose.p).all()

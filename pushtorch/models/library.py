@@ -162,6 +162,31 @@ class PushModel:
     partial_data: dict | None = None
 
     @property
+    def device(self) -> torch.device:
+        """Where the model's tensors are (prediction runs there; open3d's steps stay on the CPU)."""
+        return self.position.frames.r.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The floating dtype of the model's tensors (clouds are cast to it)."""
+        return self.position.frames.r.dtype
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> PushModel:
+        """A copy of the model on ``device`` and in the floating ``dtype`` (``Module.to``'s arguments by name).
+
+        Raises:
+            InvalidParameterError: a dtype that is not floating.
+        """
+        if dtype is not None and not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+            raise InvalidParameterError(f"a model's dtype must be a floating torch dtype, got {dtype!r}")
+        contact = ManipulatorContactModel(self.contact.frames.to(device, dtype), self.contact.cutoff,
+                                          self.contact.drop_off)
+        position = PositionModel(self.position.frames.to(device, dtype),
+                                 self.position.descriptor_std.to(device, dtype))
+        return replace(self, contact=contact, position=position,
+                       motions=[m.to(device, dtype) for m in self.motions], meta=dict(self.meta))
+
+    @property
     def configured_settings(self) -> ModelSettings:
         """The settings this model was trained with, before the bandwidth search replaced the values it
         chose (``meta["bandwidths"]``; :mod:`pushtorch.models.bandwidth`)."""
@@ -308,8 +333,10 @@ def _digest(array: np.ndarray) -> str:
     return h.hexdigest()
 
 
-def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> PushModel:
-    """Read a model file written by :meth:`PushModel.save` (no code runs on load).
+def load_model(path: str | Path, dtype: torch.dtype = torch.float32,
+               map_location: torch.device | str | None = None) -> PushModel:
+    """Read a model file written by :meth:`PushModel.save` (no code runs on load), in ``dtype`` on
+    ``map_location`` (default the CPU).
 
     Raises:
         RecordFormatError: missing, unreadable, of another format or version, a broken seal or array
@@ -352,7 +379,8 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> PushMode
         if _digest(array) != expected[name]:
             raise RecordFormatError(f"{path}: array {name!r} fails its checksum (corrupt or edited file)")
     try:
-        return _model_from(header, arrays, dtype)
+        model = _model_from(header, arrays, dtype)
+        return model if map_location is None else model.to(device=map_location)
     except InvalidParameterError as exc:
         raise RecordFormatError(f"{path} holds settings this pushtorch refuses: {exc}") from exc
     except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError) as exc:

@@ -112,6 +112,12 @@ class MotionKernels:
         return MotionKernels(self.r[index], self.u.take(index), self.m.take(index), self.g[index], self.patch[index],
                              None if self.push is None else self.push[index])
 
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> MotionKernels:
+        """The kernels on ``device`` and in the floating ``dtype`` (``push`` keeps its integer dtype)."""
+        return MotionKernels(self.r.to(device, dtype), self.u.to(device, dtype), self.m.to(device, dtype),
+                             self.g.to(device, dtype), self.patch.to(device, dtype),
+                             None if self.push is None else self.push.to(device))
+
     def arrays(self, prefix: str) -> dict[str, Tensor]:
         return {
             f"{prefix}.r": self.r, f"{prefix}.u_p": self.u.p, f"{prefix}.u_q": self.u.q,
@@ -142,6 +148,11 @@ class MotionModel:
     manipulator: MotionKernels
     environment: MotionKernels
     mean_motion: se3.Pose
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> MotionModel:
+        """The model on ``device`` and in ``dtype``."""
+        return MotionModel(self.action.to(device, dtype), self.manipulator.to(device, dtype),
+                           self.environment.to(device, dtype), self.mean_motion.to(device, dtype))
 
 
 def local_motions(frames: se3.Pose, world_motion: se3.Pose) -> se3.Pose:
