@@ -285,8 +285,8 @@ def descriptor_distance_unscaled(r1: Tensor, r2: Tensor) -> Tensor:
 
 
 def _gamma_1p5_cdf(x: Tensor) -> Tensor:
-    """Regularised lower incomplete gamma P(3/2, x) = erf(√x) − 2 √(x/π) e^(−x)."""
-    return torch.erf(torch.sqrt(x)) - 2.0 * torch.sqrt(x / math.pi) * torch.exp(-x)
+    """Regularised lower incomplete gamma P(3/2, x) (``torch.special.gammainc``)."""
+    return torch.special.gammainc(torch.full_like(x, 1.5), x)
 
 
 def _sample_truncated_gamma_1p5(upper: Tensor, generator: torch.Generator | None) -> Tensor:
