@@ -32,7 +32,7 @@ from pytorch_kinematics import transforms as pkt
 
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.kde import PoseKDE, fused_function
-from pushtorch.se3 import Pose, check_unit_quaternion, perturb
+from pushtorch.se3 import Pose, check_unit_quaternion, perturb, yaw_quaternion
 
 Tensor = torch.Tensor
 
@@ -124,12 +124,6 @@ def initial_candidates(kde: PoseKDE, n: int, generator: torch.Generator | None =
     return kde.kernel_means(kde.sample_kernels(n, generator))
 
 
-def _yaw_quaternion(angle: Tensor) -> Tensor:
-    half = 0.5 * angle
-    zeros = torch.zeros_like(half)
-    return torch.stack([torch.cos(half), zeros, zeros, torch.sin(half)], -1)
-
-
 def _propose(pose: Pose, temperature: float, schedule: AnnealSchedule, generator) -> Pose:
     p_std = schedule.step_p_std * temperature
     rot_std = schedule.step_rot_std * temperature
@@ -143,7 +137,7 @@ def _propose(pose: Pose, temperature: float, schedule: AnnealSchedule, generator
             pose.q.shape[:-1], generator=generator, dtype=pose.q.dtype, device=pose.q.device
         )
         # A world-frame rotation about z (left product) changes the heading only: roll and pitch are kept.
-        q = pkt.quaternion_raw_multiply(_yaw_quaternion(yaw), pose.q)
+        q = pkt.quaternion_raw_multiply(yaw_quaternion(yaw), pose.q)
     else:
         # vMF on S^3 has per-axis rotation-vector std 2/√κ for large κ; rot_std = 0 means no rotation.
         kappa = 4.0 / rot_std**2 if rot_std > 0 else 1e12
@@ -209,7 +203,7 @@ def _draw_fast_proposals(
         right = _vmf_offsets(4.0 / rot_std**2, full, generator, dtype, device)
         if planar is not None:
             yaw = rot_std * torch.randn(full, generator=generator, dtype=dtype, device=device)
-            left = torch.where(planar.unsqueeze(-1), _yaw_quaternion(yaw), identity)
+            left = torch.where(planar.unsqueeze(-1), yaw_quaternion(yaw), identity)
             right = torch.where(planar.unsqueeze(-1), identity, right)
     accept_u = torch.rand(full, generator=generator, dtype=dtype, device=device)
     return step_p, left.contiguous(), right.contiguous(), accept_u

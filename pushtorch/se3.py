@@ -54,6 +54,7 @@ __all__ = [
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
     "yaw_of",
+    "yaw_quaternion",
 ]
 
 
@@ -345,12 +346,17 @@ def from_pybullet(position, orientation_xyzw, dtype: torch.dtype = torch.float32
     return Pose(p, q)
 
 
-def from_xy_yaw(x: Tensor | float, y: Tensor | float, yaw: Tensor | float, z: Tensor | float = 0.0) -> Pose:
-    """Planar poses: position (x, y, z) and a rotation of ``yaw`` rad about the world z axis."""
-    x, y, z, yaw = torch.broadcast_tensors(*(torch.as_tensor(v, dtype=torch.float32) for v in (x, y, z, yaw)))
-    half = yaw / 2
+def yaw_quaternion(yaw: Tensor) -> Tensor:
+    """Quaternions ``(..., 4)`` of turns by ``yaw (...)`` rad about the world z axis, in ``yaw``'s dtype."""
+    half = 0.5 * yaw
     zeros = torch.zeros_like(half)
-    return Pose(torch.stack([x, y, z], -1), torch.stack([torch.cos(half), zeros, zeros, torch.sin(half)], -1))
+    return torch.stack([torch.cos(half), zeros, zeros, torch.sin(half)], -1)
+
+
+def from_xy_yaw(x: Tensor | float, y: Tensor | float, yaw: Tensor | float, z: Tensor | float = 0.0) -> Pose:
+    """Planar poses: position (x, y, z) and a rotation of ``yaw`` rad about the world z axis (float32)."""
+    x, y, z, yaw = torch.broadcast_tensors(*(torch.as_tensor(v, dtype=torch.float32) for v in (x, y, z, yaw)))
+    return Pose(torch.stack([x, y, z], -1), yaw_quaternion(yaw))
 
 
 def yaw_of(q: Tensor) -> Tensor:
