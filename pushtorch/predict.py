@@ -239,22 +239,14 @@ def _as_features(cloud: PointCloud | SurfaceFeatures, settings: ModelSettings,
     return features if device is None or features.p.device == device else features.to(device)
 
 
-def _dtype_of(model: PushModel | ModelLibrary | PositionModel) -> torch.dtype:
-    """The floating dtype a model's tensors are in (clouds are cast to it)."""
+def _model_tensor(model: PushModel | ModelLibrary | PositionModel) -> torch.Tensor:
+    """One of the model's tensors: its floating dtype (clouds are cast to it) and device (their features are
+    moved there) are the model's."""
     if isinstance(model, ModelLibrary):
         model = model.models[0]
     if isinstance(model, PushModel):
         model = model.position
-    return model.frames.r.dtype
-
-
-def _device_of(model: PushModel | ModelLibrary | PositionModel) -> torch.device:
-    """The device a model's tensors are on (clouds' features are moved there)."""
-    if isinstance(model, ModelLibrary):
-        model = model.models[0]
-    if isinstance(model, PushModel):
-        model = model.position
-    return model.frames.r.device
+    return model.frames.r
 
 
 def _check_actions(actions, count: int) -> torch.Tensor:
@@ -302,7 +294,7 @@ def estimate_pose(
     _check_method(method)
     settings = settings or ModelSettings()
     generator = as_generator(generator)
-    features = _as_features(cloud, settings, _dtype_of(position), _device_of(position))
+    features = _as_features(cloud, settings, _model_tensor(position).dtype, _model_tensor(position).device)
     density = _pose_density(position, features, settings, generator, method)
     result = optimise_query_density(
         density, settings.anneal_candidates, _schedule(settings, False, method), generator, record_history,
@@ -426,7 +418,7 @@ def generate_push_condition(
     """
     _check_method(method)
     generator = as_generator(generator)
-    features = _as_features(cloud, model.settings, _dtype_of(model), _device_of(model))
+    features = _as_features(cloud, model.settings, _model_tensor(model).dtype, _model_tensor(model).device)
     if not (isinstance(action_index, int) and 0 <= action_index < len(model.motions)):
         raise InvalidParameterError(
             f"action_index must be an int in [0, {len(model.motions)}) for model {model.name!r}, got {action_index!r}"
@@ -605,7 +597,8 @@ def _predict_batch(
     """One batch of :func:`predict_many`: a library selects per cloud, then each model's share runs
     together."""
     first = model.models[0] if isinstance(model, ModelLibrary) else model
-    features = [_as_features(c, first.settings, _dtype_of(first), _device_of(first)) for c in clouds]
+    features = [_as_features(c, first.settings, _model_tensor(first).dtype, _model_tensor(first).device)
+                for c in clouds]
     chosen = [model.select(f)[0] if isinstance(model, ModelLibrary) else model for f in features]
     out: list[Prediction | None] = [None] * len(clouds)
     distinct = [m for i, m in enumerate(chosen) if all(m is not c for c in chosen[:i])]  # first-use order
