@@ -384,7 +384,6 @@ class MotionDensity:
         self._shared_product: SharedKernelProduct | None = None
         self.expert_exponent = expert_exponents(len(model.manipulator), len(model.environment), len(experts) - 1,
                                                 pool_sharpness, object_pose.p.dtype)
-        self.expert_log_weight = torch.zeros(len(experts), dtype=object_pose.p.dtype)
         self.object_pose = object_pose
 
     @property
@@ -404,7 +403,7 @@ class MotionDensity:
             if not bool((rounds == rounds[0]).all()):
                 raise ModelError("the experts of one product must share their trial rounds")
             self._shared_product = SharedKernelProduct(self._shared_means, self._shared_log_weights,
-                                                       self.experts.bandwidth, rounds[0], self.expert_log_weight,
+                                                       self.experts.bandwidth, rounds[0],
                                                        expert_exponent=self.expert_exponent)
         return self._shared_product
 
@@ -424,8 +423,8 @@ class MotionDensity:
         if method == "fast":
             flat = se3.Pose(final_pose.p.reshape(-1, 3), final_pose.q.reshape(-1, 4))
             return self.shared_product().log_prob(flat).reshape(final_pose.p.shape[:-1])
-        return ProductOfExperts(self.experts, self.expert_log_weight,
-                                expert_exponent=self.expert_exponent).log_prob(final_pose, method=method)
+        return ProductOfExperts(self.experts, expert_exponent=self.expert_exponent).log_prob(final_pose,
+                                                                                             method=method)
 
     def proposal(self, n: int, generator: torch.Generator | None = None) -> se3.Pose:
         """``n`` poses drawn from the experts' mixture (equal shares): annealing's starting candidates."""
@@ -533,7 +532,6 @@ def anneal_motion_densities(
     q[..., 0] = 1.0
     log_w = torch.full((n_experts, len(densities), n_kernels), -math.inf, dtype=dtype, device=device)
     rounds = torch.zeros(len(densities), 3, dtype=torch.int64, device=device)
-    log_wp = torch.zeros(n_experts, len(densities), dtype=dtype, device=device)
     exponent = torch.zeros(n_experts, len(densities), dtype=dtype, device=device)  # 0: a padding expert
     for b, (density, (means, weights)) in enumerate(zip(densities, layouts, strict=True)):
         experts = density.experts
@@ -543,10 +541,9 @@ def anneal_motion_densities(
         p[b, :n], q[b, :n] = means.p, means.q
         log_w[:e, b, :n] = weights
         rounds[b] = density.shared_product().rounds
-        log_wp[:e, b] = density.expert_log_weight.to(dtype)
         exponent[:e, b] = density.expert_exponent.to(dtype)
     # its only queries are the annealing's own (finite, normalised) candidates: no per-step checks
-    product = SharedKernelProduct(se3.Pose(p, q), log_w, first.bandwidth, rounds, log_wp, validate_args=False,
+    product = SharedKernelProduct(se3.Pose(p, q), log_w, first.bandwidth, rounds, validate_args=False,
                                   expert_exponent=exponent)
     init = se3.Pose(torch.stack([s.p for s in starts]), torch.stack([s.q for s in starts]))  # (B, C)
     result = anneal(product.log_prob, init, schedule, generator, record_history=record_history, method="fast")
