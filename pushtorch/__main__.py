@@ -17,6 +17,7 @@ from omegaconf import DictConfig
 
 from pushtorch.cli import CONFIG_PATH, compose_or_exit, run_stage
 from pushtorch.errors import PushtorchError
+from pushtorch.kde import declare_long_run
 
 log = logging.getLogger("pushtorch")
 
@@ -39,6 +40,7 @@ def _app(cfg: DictConfig) -> dict:
 def main() -> None:
     """Console-script entry point (``pushtorch ...``); a user error exits with status 2 and one line."""
     compose_or_exit("pushtorch", "config")
+    declare_long_run()  # an experiment predicts many times: compiling the fast path pays
     _app()
 
 

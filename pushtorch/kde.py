@@ -62,6 +62,7 @@ __all__ = [
     "TrialRounds",
     "descriptor_distance",
     "descriptor_distance_unscaled",
+    "declare_long_run",
     "fast_path_compiled",
     "fused_function",
     "product_log_prob",
@@ -1151,8 +1152,8 @@ def _amin_to_size(x: Tensor, size: torch.Size) -> Tensor:
 # Sums run in the linear domain relative to each density's largest weight: a surviving kernel factor is
 # at least e^(−δ_p−δ_q), so nothing underflows unless weights span ~e^60 (then the dense reference
 # path is used). With a C++ compiler (CPU) or Triton (CUDA) the fused functions are compiled by
-# torch.compile (``PUSHTORCH_COMPILE``: ``auto`` default, ``1`` insist, ``0`` never); without, the same
-# functions run eagerly, in chunks.
+# torch.compile in processes that declared a long run (``PUSHTORCH_COMPILE``: ``auto`` default, ``1``
+# insist, ``0`` never); otherwise the same functions run eagerly, in chunks.
 
 FAST_LEAF_SIZE = 16  # kernels per leaf block: prunes best on the paper-scale query densities (measured)
 # Densities with at most this many kernels skip the blocks: pruning cannot pay for its bookkeeping.
@@ -1163,6 +1164,7 @@ _COMPILE_ENV = "PUSHTORCH_COMPILE"
 _compiled_functions: dict[str, Callable] = {}
 _compile_failed: set[str] = set()
 _compiler_found: list[bool] = []  # cached shutil.which answer
+_long_run = [False]  # declare_long_run: compiling pays in this process
 # Inductor stores an intermediate that is read twice (the distance d in `where(d < δ, exp(w − d), 0)`)
 # as a full (queries × kernels) buffer and reduces it in a second loop; recomputing it in the one fused
 # loop is ~7× faster on CPU (measured on the query density's group sums: 12.3 → 1.6 ms).
@@ -1176,17 +1178,34 @@ def _compile_mode() -> str:
     return mode
 
 
+def declare_long_run(enabled: bool = True) -> None:
+    """Tell the fast path that this process makes many predictions, so compiling pays (``auto`` mode).
+
+    torch.compile traces and generates code on a function's first calls: 5-9 s on a 2-core CPU before the
+    first prediction, against ~0.2 s of eager evaluation saved per prediction at the quickstart's sizes
+    (``tools/bench_cold.py``). A library user's single ``predict`` therefore runs eagerly; the experiment
+    app (``python -m pushtorch``), the paper reproduction and the prediction benchmark declare a long run.
+    """
+    _long_run[0] = bool(enabled)
+
+
 def fast_path_compiled(device: torch.device | str = "cpu") -> bool:
     """Whether the fast path's fused functions are compiled with torch.compile on ``device``.
 
-    ``PUSHTORCH_COMPILE=0`` never compiles; ``1`` always tries; ``auto`` (default) compiles on CUDA
-    and on CPU when a C++ compiler is on the PATH (Inductor needs one). A compilation that fails at run
-    time falls back to eager evaluation with a warning, once.
+    ``PUSHTORCH_COMPILE=0`` never compiles; ``1`` always tries; ``auto`` (default) compiles in a process
+    that declared a long run (:func:`declare_long_run`), on CUDA and on CPU when a C++ compiler is on the
+    PATH (Inductor needs one), and otherwise runs eagerly, so a first prediction is never slower than
+    eager evaluation. A compilation that fails at run time falls back to eager evaluation with a warning,
+    once.
     """
     mode = _compile_mode()
     if mode == "0":
         return False
-    if mode == "1" or torch.device(device).type == "cuda":
+    if mode == "1":
+        return True
+    if not _long_run[0]:
+        return False
+    if torch.device(device).type == "cuda":
         return True
     if not _compiler_found:
         _compiler_found.append(any(shutil.which(cc) is not None for cc in ("g++", "c++", "clang++", "cl")))

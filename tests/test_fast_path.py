@@ -397,11 +397,11 @@ def test_predict_many_batches_conditions_and_keeps_single_seeds(small_cube_model
 def test_compiled_fast_path_equals_dense(monkeypatch):
     """The torch.compile'd functions (first call compiles: tens of seconds on a cold cache): block and
     dense layouts, their mean shift, the shared-kernel product and its mean shift."""
-    monkeypatch.setenv("PUSHTORCH_COMPILE", "auto")
-    from pushtorch.kde import fast_path_compiled
+    import shutil
 
-    if not fast_path_compiled():
+    if not any(shutil.which(cc) for cc in ("g++", "c++", "clang++")):
         pytest.skip("no C++ compiler for torch.compile")
+    monkeypatch.setenv("PUSHTORCH_COMPILE", "1")
     for n in (300, FAST_DENSE_KERNELS + 700):
         kde = _random_kde(n, (3,), seed=n, dtype=torch.float32)
         queries = _queries_near(kde, 200, seed=2)
