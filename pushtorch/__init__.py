@@ -27,12 +27,14 @@ _LAZY = {
     "load_model": "pushtorch.models.library",
     "predict": "pushtorch.predict",
     "predict_many": "pushtorch.predict",
+    "FinalPoseDistribution": "pushtorch.distribution",
 }
 
-__all__ = ["Pose", "PushtorchError", "__version__", "capture_partial_cloud", "load_model", "load_object", "predict",
+__all__ = ["FinalPoseDistribution", "Pose", "PushtorchError", "__version__", "capture_partial_cloud", "load_model", "load_object", "predict",
            "predict_many", "train_push_model"]
 
 if TYPE_CHECKING:  # what type checkers and IDEs see (py.typed ships with the package)
+    from pushtorch.distribution import FinalPoseDistribution
     from pushtorch.models.library import load_model, train_push_model
     from pushtorch.objects import load_object
     from pushtorch.perception import capture_partial_cloud

@@ -843,12 +843,34 @@ class PoseKDE:
         out = [
             _logsumexp_last(self._chunk_log_kernels(p, q, r, with_weights=True))
             for p, q, r in self._iter_chunks(pose, descriptors, chunk_size)
-        ]
+        ] if not _needs_grad(pose, descriptors) else self._differentiable_log_prob(pose, descriptors, chunk_size)
         if not out:  # M = 0
             p, _, _ = self._prepare_queries(pose, descriptors)
             shape = torch.broadcast_shapes(p.shape[:-2], self.batch_shape) + (0,)
             return torch.empty(shape, dtype=self.dtype, device=self.device)
         return torch.cat(out, -1)
+
+    def _differentiable_log_prob(self, pose: Pose, descriptors: Tensor | None, chunk_size: int | None
+                                 ) -> list[Tensor]:
+        """The dense path's chunks with out-of-place operations, so gradients flow to the queries (the
+        in-place passes of :meth:`_chunk_log_kernels` overwrite what autograd needs): the same values."""
+        out = []
+        for p, q, r in self._iter_chunks(pose, descriptors, chunk_size):
+            neg_p = torch.matmul(_augment_query(p - self._p_centre), self._p_aug_t).clamp_max(0.0)
+            neg_q = (torch.matmul(q, self._q_kappa_t).abs() - self._kappa).clamp_max(0.0)
+            terms = [neg_p, neg_q]
+            if r is not None:
+                x = (r - self._r_centre) * self._r_inv_sqrt_sigma
+                terms.append(torch.matmul(_augment_query(x), self._r_aug_t).clamp_max(0.0))
+            total = self._log_w.unsqueeze(-2)
+            for neg, delta in zip(terms, self.bandwidth.delta, strict=False):
+                total = total + torch.where(neg > -delta, neg, torch.full_like(neg, -math.inf))
+            # a query no kernel reaches is -inf; its logsumexp is taken of zeros and masked, so the
+            # gradient there is 0 instead of exp(−inf + inf) = NaN
+            reached = torch.isfinite(total).any(-1, keepdim=True)
+            safe = torch.logsumexp(torch.where(reached, total, torch.zeros_like(total)), -1)
+            out.append(torch.where(reached.squeeze(-1), safe, torch.full_like(safe, -math.inf)))
+        return out
 
     def _straightforward_log_prob(self, p: Tensor, q: Tensor, r: Tensor | None) -> Tensor:
         """log_prob the textbook way (see :func:`straightforward_evaluation`): ``(*BB, M)``."""
@@ -1119,6 +1141,12 @@ class PoseKDE:
         q = pkt.quaternion_raw_multiply(mean.q.double(), around_identity)
         q = q / q.norm(dim=-1, keepdim=True)
         return Pose(p, q.to(self.dtype)), index
+
+
+def _needs_grad(pose: Pose, descriptors: Tensor | None) -> bool:
+    """Whether autograd records a density evaluation of these queries."""
+    tensors = [pose.p, pose.q] + ([] if descriptors is None else [descriptors])
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
 
 
 def _logsumexp_last(x: Tensor) -> Tensor:
@@ -1717,7 +1745,11 @@ def _shared_kernel_product(x: Tensor, table: Tensor, weights: Tensor, scale: Ten
     laid out ``(E, K) @ (K, M)`` (with few experts ~4× faster than ``(M, K) @ (K, E)``, measured).
     """
     kernels, _ = _shared_kernels(x, table, scale, delta_p, delta_q)
-    per_expert = exponent * torch.log(torch.bmm(weights, kernels)) + offset  # (B, E, M)
+    sums = torch.bmm(weights, kernels)  # (B, E, M)
+    # log of a zero sum is -inf; taken of 1 instead and masked, so its gradient is 0, not 0 · inf = NaN
+    reached = sums > 0
+    log_sums = torch.where(reached, torch.log(torch.where(reached, sums, torch.ones_like(sums))), -math.inf)
+    per_expert = exponent * log_sums + offset
     return torch.where(exponent > 0, per_expert, torch.zeros_like(per_expert)).sum(1)
 
 

@@ -48,6 +48,7 @@ __all__ = [
     "MIN_P_STD",
     "MIN_ROT_STD",
     "PoseDensity",
+    "log_kernel_normaliser",
     "log_normaliser",
     "log_rotation_normaliser",
     "mean_motion_density",
@@ -71,15 +72,17 @@ _CONTINUOUS_STEPS = 120  # a 3° grid about a continuous symmetry axis
 _REFINE = torch.linspace(-1.5, 1.5, 37, dtype=torch.float64)  # ±1.5 grid steps (±4.5°) in 0.25° steps
 
 
-def log_rotation_normaliser(kappa: Tensor) -> Tensor:
-    """``log ∫ exp(−κ (1 − |<q, μ>|)) dq`` over SO(3) with its uniform probability measure, ``(...)``.
+def log_rotation_normaliser(kappa: Tensor, delta_q: float = math.inf) -> Tensor:
+    """``log ∫ exp(−κ (1 − |<q, μ>|)) dq`` over SO(3) with its uniform probability measure, ``(...)``, over the
+    rotations where ``κ (1 − |<q, μ>|) < delta_q`` (a kernel's cut-off; inf: everywhere).
 
     With ``s = 1 − |<q, μ>|`` the integral is ``(4/π) ∫_0^1 √(s (2 − s)) e^(−κ s) ds`` (1 at κ = 0); with
-    ``κ s = v²`` it is ``(4/π) κ^(−3/2) ∫ 2 v² √(2 − v²/κ) e^(−v²) dv`` over ``v < √κ``, integrated by Simpson's
-    rule on 2,001 points up to ``min(√κ, 9)`` (beyond, e^(−81) is nothing in float64).
+    ``κ s = v²`` it is ``(4/π) κ^(−3/2) ∫ 2 v² √(2 − v²/κ) e^(−v²) dv`` over ``v < min(√κ, √delta_q)``,
+    integrated by Simpson's rule on 2,001 points up to that bound or 9 (beyond, e^(−81) is nothing in
+    float64).
     """
     kappa = torch.as_tensor(kappa, dtype=torch.float64).clamp_min(1e-6)
-    upper = torch.sqrt(kappa).clamp(max=9.0)
+    upper = torch.sqrt(kappa).clamp(max=min(9.0, math.sqrt(delta_q)))
     u = torch.linspace(0.0, 1.0, 2001, dtype=torch.float64, device=kappa.device)
     v = upper.unsqueeze(-1) * u
     f = 2.0 * v * v * torch.sqrt((2.0 - v * v / kappa.unsqueeze(-1)).clamp_min(0.0)) * torch.exp(-v * v)
@@ -89,12 +92,18 @@ def log_rotation_normaliser(kappa: Tensor) -> Tensor:
     return math.log(4.0 / math.pi) - 1.5 * torch.log(kappa) + torch.log(integral)
 
 
-def _log_kernel_normaliser(kde: PoseKDE) -> Tensor:
-    """``(*B,)`` log of the integral of one uncut kernel (all kernels of an expert share it)."""
+def log_kernel_normaliser(kde: PoseKDE) -> Tensor:
+    """``(*B,)`` log of the integral of one kernel of ``kde`` (all kernels of a batch element share it),
+    cut off as the kde's bandwidth says: the Gaussian's mass inside ``β d_p < δ_p`` is the regularised
+    incomplete gamma ``P(3/2, δ_p)`` (``β d_p`` of a 3-D Gaussian is Gamma(3/2)), the rotation's is
+    integrated by :func:`log_rotation_normaliser`."""
     beta = kde.beta.double()
     std_p = kde.bandwidth.p_std / torch.sqrt(beta[..., 0])
     kappa = beta[..., 1] / kde.bandwidth.sigma_q
-    return 1.5 * torch.log(2.0 * math.pi * std_p**2) + log_rotation_normaliser(kappa)
+    delta_p, delta_q, _ = kde.bandwidth.delta
+    inside_p = 0.0 if math.isinf(delta_p) else math.log(torch.special.gammainc(
+        torch.tensor(1.5, dtype=torch.float64), torch.tensor(delta_p, dtype=torch.float64)).item())
+    return 1.5 * torch.log(2.0 * math.pi * std_p**2) + inside_p + log_rotation_normaliser(kappa, delta_q)
 
 
 def _exponents(kde: PoseKDE, exponent: Tensor | None) -> Tensor:
@@ -153,7 +162,7 @@ def _expert_log_probs(kde: PoseKDE, pose: se3.Pose) -> Tensor:
     """``(E, M)`` normalised log densities (float64) of every expert at poses ``(M,)``."""
     query = se3.Pose(pose.p.to(kde.dtype).unsqueeze(0), _unit(pose.q.to(kde.dtype)).unsqueeze(0))
     unnormalised = kde.log_prob(query)
-    return unnormalised.double() - _log_kernel_normaliser(kde).unsqueeze(-1)
+    return unnormalised.double() - log_kernel_normaliser(kde).unsqueeze(-1)
 
 
 @dataclass

@@ -50,6 +50,7 @@ import torch
 
 from pushtorch import se3
 from pushtorch.anneal import AnnealResult, AnnealSchedule
+from pushtorch.distribution import FinalPoseDistribution
 from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.features import SurfaceFeatures, compute_surface_features
 from pushtorch.kde import KernelBandwidth
@@ -168,11 +169,14 @@ class Prediction:
     action: torch.Tensor  # (2,)
     condition: PushCondition
     final_pose: se3.Pose  # ()
-    log_prob: torch.Tensor  # ()
-    density: MotionDensity
+    log_prob: torch.Tensor  # () the product of experts at final_pose, up to its constant (as annealed)
+    #: the predicted density over final poses as a torch distribution (normalised; ``mode`` = final_pose)
+    density: FinalPoseDistribution
     candidates: se3.Pose  # (C,) annealed candidates
     candidate_log_prob: torch.Tensor  # (C,)
     anneal: AnnealResult | None = None  # the motion annealing (with per-step history if recorded)
+    #: the product of experts as the method builds it (kernels, experts, mean shift; unnormalised)
+    motion_density: MotionDensity | None = field(default=None, repr=False)
 
 
 def query_bandwidth(settings: ModelSettings) -> KernelBandwidth:
@@ -625,8 +629,11 @@ def _predict_batch(
                     density.predict(settings.anneal_candidates, schedule, generator, record_history)
                 )
         for i, a, condition, density, result in zip(rows, a_idx, conditions, densities, results, strict=True):
+            distribution = FinalPoseDistribution.from_motion_densities(
+                density, result.final_pose, [result.anneal.candidates], method)
             out[i] = Prediction(m.name, m.motions[a].action, condition, result.final_pose, result.log_prob,
-                                density, result.anneal.candidates, result.anneal.log_prob, result.anneal)
+                                distribution, result.anneal.candidates, result.anneal.log_prob, result.anneal,
+                                density)
     return out  # type: ignore[return-value]
 
 

@@ -101,6 +101,18 @@ class Pose(NamedTuple):
         d = dim if dim >= 0 else dim - 1
         return Pose(self.p.unsqueeze(d), self.q.unsqueeze(d))
 
+    def vector(self) -> Tensor:
+        """``(..., 7)`` as ``[p, q_wxyz]``: the event layout of a prediction's distribution."""
+        shape = self.batch_shape
+        return torch.cat([self.p.expand(*shape, 3), self.q.expand(*shape, 4)], -1)
+
+    @staticmethod
+    def from_vector(x: Tensor) -> Pose:
+        """The pose ``(...)`` of ``[p, q_wxyz]`` vectors ``(..., 7)`` (views, no copy)."""
+        if x.shape[-1:] != (7,):
+            raise InvalidPoseError(f"pose vectors must have shape (..., 7) as [p, q_wxyz], got {tuple(x.shape)}")
+        return Pose(x[..., :3], x[..., 3:])
+
     @staticmethod
     def cat(poses: list[Pose], dim: int = 0) -> Pose:
         d = dim if dim >= 0 else dim - 1

@@ -510,7 +510,7 @@ def densities(shared):
     kde = PoseKDE(means, bandwidth)
     product = ProductOfExperts(kde)
     shared_product = SharedKernelProduct(se3.Pose(means.p[0], means.q[0]), torch.zeros(2, 30), bandwidth)
-    motion = predict(model, cloud, model.actions[0], 0).density
+    motion = predict(model, cloud, model.actions[0], 0).motion_density
     return {
         "PoseKDE.dense": lambda pose: kde.log_prob(pose, method="dense"),
         "PoseKDE.fast": lambda pose: kde.log_prob(pose, method="fast"),

@@ -353,7 +353,7 @@ def small_cube_model(small_model):
 def _check_own_density(prediction):
     """The annealed candidates' log-likelihoods are those of the prediction's own density (dense
     reference), and the final pose is the best of them."""
-    reference = prediction.density.log_prob(prediction.candidates)
+    reference = prediction.motion_density.log_prob(prediction.candidates)
     finite = torch.isfinite(reference)
     assert finite.any() and torch.equal(finite, torch.isfinite(prediction.candidate_log_prob))
     assert torch.allclose(prediction.candidate_log_prob[finite], reference[finite], atol=1e-3)
@@ -365,7 +365,7 @@ def test_fast_prediction_optimises_its_own_density(small_cube_model):
     cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=0.2))
     fast = predict(model, cloud, model.actions[1], torch.Generator().manual_seed(0))
     _check_own_density(fast)
-    value_fast = fast.density.log_prob(fast.candidates, method="fast")
+    value_fast = fast.motion_density.log_prob(fast.candidates, method="fast")
     finite = torch.isfinite(value_fast)
     assert torch.allclose(value_fast[finite], fast.candidate_log_prob[finite], atol=1e-3)
     robot = fast.condition.robot_start  # planar annealing of the robot's query density

@@ -101,8 +101,8 @@ def cube_prediction(small_model):
 
 def test_nll_at_the_densitys_own_samples_is_lower_than_at_far_poses(cube_prediction):
     cube, _, pose, _, prediction = cube_prediction
-    density = motion_product_density(prediction.density, torch.Generator().manual_seed(0))
-    samples = prediction.density.sample(64, torch.Generator().manual_seed(1))
+    density = motion_product_density(prediction.motion_density, torch.Generator().manual_seed(0))
+    samples = se3.Pose.from_vector(prediction.density.sample((64,), torch.Generator().manual_seed(1)))
     start = prediction.condition.object_pose
     # samples of B̂1, read as truths moving from the estimated start itself
     near = nll(density, samples, start, start, cube.symmetry)
@@ -115,7 +115,7 @@ def test_nll_at_the_densitys_own_samples_is_lower_than_at_far_poses(cube_predict
 
 def test_nll_does_not_depend_on_the_truths_symmetric_copy(cube_prediction):
     cube, _, pose, _, prediction = cube_prediction
-    density = motion_product_density(prediction.density, torch.Generator().manual_seed(0))
+    density = motion_product_density(prediction.motion_density, torch.Generator().manual_seed(0))
     truth_final = se3.Pose(prediction.final_pose.p.reshape(1, 3) + torch.tensor([0.01, 0.0, 0.0]),
                            prediction.final_pose.q.reshape(1, 4))
     start = prediction.condition.object_pose
@@ -135,9 +135,9 @@ def test_nll_does_not_depend_on_the_frame_the_estimate_is_expressed_in(cube_pred
     start = prediction.condition.object_pose
     truths = se3.Pose(prediction.final_pose.p.reshape(1, 3) + torch.tensor([[0.01, 0.0, 0.0], [0.0, -0.02, 0.0]]),
                       prediction.final_pose.q.reshape(1, 4).expand(2, 4))
-    means, log_weights = prediction.density.shared_kernels()
-    bandwidth = prediction.density.experts.bandwidth
-    rounds = prediction.density.experts.trial_rounds[0]
+    means, log_weights = prediction.motion_density.shared_kernels()
+    bandwidth = prediction.motion_density.experts.bandwidth
+    rounds = prediction.motion_density.experts.trial_rounds[0]
     scores = []
     for s in cube.symmetry.discrete[:4]:
         turn = se3.Pose(torch.zeros(3), s)

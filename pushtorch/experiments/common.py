@@ -627,7 +627,7 @@ def predict_set(
                                                    contact_bandwidth(model.settings), condition.contact_patch),
                 "backoff": condition.backoff,
                 "densities": {
-                    "pushtorch": motion_product_density(prediction.density, scoring, prediction.candidates),
+                    "pushtorch": motion_product_density(prediction.motion_density, scoring, prediction.candidates),
                     "mean_motion": mean_motion_density(motion.manipulator.m, motion.mean_motion, start, estimate),
                 },
             }

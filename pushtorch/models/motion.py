@@ -480,17 +480,6 @@ class MotionDensity:
         result = polish_candidates(result, self.mean_shift, self.log_prob, polish_steps)
         return MotionPrediction(result.best, result.best_log_prob, result)
 
-    def sample(self, n: int, generator: torch.Generator | None = None, oversample: int = 8) -> se3.Pose:
-        """``n`` final poses from the product density, by importance resampling of mixture proposals."""
-        proposals = self.proposal(n * oversample, generator)
-        log_target = self.log_prob(proposals)
-        mixture = torch.logsumexp(self.experts.log_prob(proposals), 0)
-        log_w = log_target - mixture
-        if not torch.isfinite(log_w).any():
-            raise ModelError("no proposal has non-zero density under the product of experts")
-        idx = torch.multinomial(torch.softmax(log_w, -1), n, replacement=True, generator=generator)
-        return proposals.take(idx)
-
 
 def anneal_motion_densities(
     densities: list[MotionDensity],

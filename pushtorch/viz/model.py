@@ -462,7 +462,7 @@ def log_prediction(
 
     _log_posed_mesh(rec, f"{root}/initial_estimate", condition.object_pose, mesh, _ESTIMATE_COLOUR)
 
-    experts = prediction.density.experts
+    experts = prediction.motion_density.experts
     means = experts.means.p.reshape(-1, 3)
     expert_index = torch.arange(experts.batch_shape.numel(), device=means.device).repeat_interleave(
         experts.num_kernels

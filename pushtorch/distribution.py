@@ -1,0 +1,305 @@
+"""A prediction as a ``torch.distributions.Distribution`` over final poses (issue 23, item 1).
+
+Paper, §Motion Model, Eq. poe: the prediction is the product of experts ``P(B1 | a) ∝ Π_e P_e(B1)^γ_e``
+(:class:`pushtorch.models.motion.MotionDensity`; ``γ_e`` the experts' exponents). Here it is a torch
+distribution with ``event_shape (7,)``, the pose as ``[p, q_wxyz]``, and ``batch_shape (B,)`` for a batch of
+clouds (``()`` for one). Decisions (docs/method.md, "The prediction as a distribution"):
+
+* **Normalised.** ``log_prob`` is a log density with respect to Lebesgue measure on positions (m³) times
+  the uniform *probability* measure on unit quaternions with q ≡ −q (so in nats, like
+  :func:`pushtorch.likelihood.nll`). Each expert is its normalised mixture of the model's *cut-off*
+  kernels — each kernel's integral inside its cut-off (:func:`pushtorch.likelihood.log_kernel_normaliser`)
+  included — and the product's normaliser ``Z = ∫ Π_e p_e^γ_e`` is estimated once, on first use, by
+  importance sampling (:func:`pushtorch.likelihood.log_normaliser`, seeded: the same value every time).
+  Outside every kernel's cut-off the density is 0 and ``log_prob`` −inf.
+* **Evaluation methods.** ``method="fast"`` (default) evaluates the shared-kernel product
+  (:class:`pushtorch.kde.SharedKernelProduct`), ``"dense"`` every expert's kernels densely
+  (:class:`pushtorch.kde.PoseKDE`); both give the same values (float rounding), broadcast alike, and let
+  gradients flow to the query poses.
+* **Sampling** is importance resampling: a pool drawn from the experts' equal mixture (exact draws of the
+  cut-off kernels) is resampled by the weights ``Π_e p_e^γ_e / mixture``. With ``Σ γ_e = 1`` (the default
+  ``pool_sharpness``) the weights are bounded (a weighted geometric mean is at most the arithmetic mean),
+  so the pool of ``max(4 n, 512 E)`` draws represents the product well; duplicates among ``n`` samples are
+  possible, as with any resampling.
+* ``mode`` is the annealed prediction (``Prediction.final_pose``); ``mean`` is not defined (a mean of
+  rotations needs a choice of metric the method does not make).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch.distributions import Distribution, constraints
+
+from pushtorch import se3
+from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
+from pushtorch.kde import KernelBandwidth, PoseKDE, SharedKernelProduct
+from pushtorch.likelihood import log_kernel_normaliser, log_normaliser
+from pushtorch.models.library import DEFAULT_SEED
+
+Tensor = torch.Tensor
+
+__all__ = ["FinalPoseDistribution"]
+
+#: Proposals per expert and part of the normaliser's importance sampler (``likelihood.log_normaliser``): on
+#: the quickstart's cube predictions (6 experts, ~450 kernels) log Z varies by ~0.005 nats between seeds
+#: and costs ~0.1 s, once per distribution (the scoring's 64 vary by ~0.02).
+NORMALISER_SAMPLES = 1024
+#: Proposal draws per expert of the resampling pool, at least (``sample``).
+MIN_POOL_PER_EXPERT = 512
+#: How far from unit length a query quaternion may be (the kernels' own tolerance).
+UNIT_TOLERANCE = 1e-3
+
+
+class FinalPoseDistribution(Distribution):
+    """The product of experts of one prediction (or a batch of them) over the object's final pose.
+
+    Build it with :meth:`from_motion_densities`; ``predict`` returns it as ``Prediction.density``.
+
+    Args:
+        means: the experts' shared kernel means ``(*B, K)`` (padding: any unit pose).
+        log_weights: ``(E, *B, K)`` each expert's kernel log weights (``-inf``: not in that expert).
+        bandwidth: the motion kernels' bandwidth and cut-offs; trial_rounds: ``(*B, 3)``.
+        exponent: ``(E, *B)`` the experts' exponents ``γ_e`` (0: a padding expert).
+        mode: ``(*B, 7)`` the annealed final pose of each prediction.
+        method: ``"fast"`` or ``"dense"`` (module docstring).
+        normaliser_centres: ``(*B, C)`` poses where the product's modes are (the annealed candidates);
+            they guide the importance sampler of the normaliser.
+        validate_args: torch's convention (default: ``torch.distributions.Distribution``'s global setting);
+            an invalid query raises :class:`~pushtorch.errors.InvalidPoseError` (a ValueError).
+    """
+
+    arg_constraints: dict = {}
+    support = constraints.independent(constraints.real, 1)
+    has_rsample = False
+
+    def __init__(self, means: se3.Pose, log_weights: Tensor, bandwidth: KernelBandwidth, trial_rounds: Tensor,
+                 exponent: Tensor, mode: Tensor, method: str = "fast", normaliser_centres: se3.Pose | None = None,
+                 validate_args: bool | None = None) -> None:
+        if method not in ("dense", "fast"):
+            raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
+        batch = means.batch_shape[:-1]
+        if log_weights.shape[1:] != means.batch_shape or exponent.shape != log_weights.shape[:-1]:
+            raise InvalidParameterError(
+                f"log_weights (E, *B, K) and exponent (E, *B) must match means {tuple(means.batch_shape)}; got "
+                f"{tuple(log_weights.shape)} and {tuple(exponent.shape)}")
+        self.means, self.log_weights, self.bandwidth = means, log_weights, bandwidth
+        self.trial_rounds = trial_rounds.expand(*batch, 3)
+        self.exponent, self.method = exponent, method
+        self._mode = mode
+        self.normaliser_centres = normaliser_centres
+        self._log_z: Tensor | None = None
+        self._experts: PoseKDE | None = None
+        self._product: SharedKernelProduct | None = None
+        super().__init__(batch_shape=batch, event_shape=torch.Size([7]), validate_args=validate_args)
+
+    @staticmethod
+    def from_motion_densities(densities, modes: se3.Pose, centres: list[se3.Pose] | None = None,
+                              method: str = "fast", validate_args: bool | None = None) -> FinalPoseDistribution:
+        """One distribution over the predictions of ``densities`` (a :class:`MotionDensity`, or a list of
+        them: ``batch_shape (B,)``, kernels and experts padded and masked inside).
+
+        Args:
+            modes: the predictions' annealed final poses, ``()`` for one density or ``(B,)``.
+            centres: each prediction's annealed candidates (the normaliser's proposal centres).
+        """
+        single = not isinstance(densities, list | tuple)
+        densities = [densities] if single else list(densities)
+        if not densities:
+            raise InvalidParameterError("a distribution needs at least one prediction")
+        shared = [d.shared_kernels() for d in densities]
+        dtype, device = shared[0][0].p.dtype, shared[0][0].p.device
+        n_kernels = max(m.p.shape[0] for m, _ in shared)
+        n_experts = max(w.shape[0] for _, w in shared)
+        p = torch.zeros(len(densities), n_kernels, 3, dtype=dtype, device=device)
+        q = torch.zeros(len(densities), n_kernels, 4, dtype=dtype, device=device)
+        q[..., 0] = 1.0
+        log_w = torch.full((n_experts, len(densities), n_kernels), -math.inf, dtype=dtype, device=device)
+        exponent = torch.zeros(n_experts, len(densities), dtype=dtype, device=device)
+        for b, ((means, weights), density) in enumerate(zip(shared, densities, strict=True)):
+            e, k = weights.shape
+            p[b, :k], q[b, :k] = means.p, means.q
+            log_w[:e, b, :k] = weights
+            log_w[e:, b, :k] = weights[0]  # padding experts copy the first one and count nothing (γ = 0)
+            exponent[:e, b] = density.expert_exponent.to(dtype)
+        rounds = torch.stack([d.experts.trial_rounds[0] for d in densities])
+        bandwidth = densities[0].experts.bandwidth
+        if any(d.experts.bandwidth != bandwidth for d in densities):
+            raise InvalidParameterError("a batch of predictions must share the motion bandwidth")
+        mode = modes.vector().to(dtype).reshape(len(densities), 7)
+        if centres is not None:
+            counts = {c.p.shape[0] for c in centres}
+            centres = se3.Pose.stack(centres) if len(counts) == 1 else None  # ragged: default centres
+        dist = FinalPoseDistribution(se3.Pose(p, q), log_w, bandwidth, rounds, exponent, mode, method, centres,
+                                     validate_args)
+        return dist[0] if single else dist
+
+    @staticmethod
+    def from_predictions(predictions, method: str | None = None,
+                         validate_args: bool | None = None) -> FinalPoseDistribution:
+        """One distribution of ``batch_shape (B,)`` over a batch of predictions (``predict_many``'s list);
+        ``method``: default the first prediction's."""
+        predictions = list(predictions)
+        return FinalPoseDistribution.from_motion_densities(
+            [p.motion_density for p in predictions], se3.Pose.stack([p.final_pose for p in predictions]),
+            [p.candidates for p in predictions], method or predictions[0].density.method, validate_args)
+
+    def __getitem__(self, index: int) -> FinalPoseDistribution:
+        """The distribution of one prediction of a batch (``batch_shape (B,)`` → ``()``)."""
+        if len(self.batch_shape) != 1:
+            raise InvalidParameterError("only a distribution with batch_shape (B,) is indexed")
+        centres = None if self.normaliser_centres is None else self.normaliser_centres.take(index)
+        out = FinalPoseDistribution(self.means.take(index), self.log_weights[:, index], self.bandwidth,
+                                    self.trial_rounds[index], self.exponent[:, index], self._mode[index],
+                                    self.method, centres, self._validate_args)
+        if self._log_z is not None:
+            out._log_z = self._log_z[index]
+        return out
+
+    # ------------------------------------------------------------------------------------------ properties
+
+    @property
+    def mode(self) -> Tensor:
+        """``(*B, 7)`` the annealed prediction (``Prediction.final_pose`` as ``[p, q_wxyz]``)."""
+        return self._mode
+
+    @property
+    def num_experts(self) -> int:
+        return int(self.log_weights.shape[0])
+
+    def experts(self) -> PoseKDE:
+        """The experts as one :class:`PoseKDE` of batch ``(E, *B)`` (the dense method; built once)."""
+        if self._experts is None:
+            e, shape = self.num_experts, self.means.batch_shape
+            means = se3.Pose(self.means.p.expand(e, *shape, 3), self.means.q.expand(e, *shape, 4))
+            self._experts = PoseKDE(means, self.bandwidth, self.log_weights,
+                                    trial_rounds=self.trial_rounds.expand(e, *self.batch_shape, 3))
+        return self._experts
+
+    def log_normaliser(self) -> Tensor:
+        """``(*B,)`` float64 ``log Z``: each expert normalised with its cut-off kernels' integrals, the
+        product by importance sampling (seeded with DEFAULT_SEED; computed on first use)."""
+        if self._log_z is None:
+            flat_batch = max(1, self.batch_shape.numel())
+            log_w = self.log_weights.reshape(self.num_experts, flat_batch, -1)
+            exponent = self.exponent.reshape(self.num_experts, flat_batch)
+            means = self.means.reshape(flat_batch, -1)
+            rounds = self.trial_rounds.reshape(flat_batch, 3)
+            values = []
+            for b in range(flat_batch):  # once per prediction: the estimator draws per expert
+                counted = exponent[:, b] > 0
+                kept = torch.isfinite(log_w[counted, b]).any(0)
+                e = int(counted.sum())
+                kde = PoseKDE(se3.Pose(means.p[b, kept].expand(e, -1, 3), means.q[b, kept].expand(e, -1, 4)),
+                              self.bandwidth, log_w[counted, b][:, kept], trial_rounds=rounds[b].expand(e, 3))
+                centres = None if self.normaliser_centres is None else \
+                    self.normaliser_centres.reshape(flat_batch, -1).take(b)
+                # seeded per prediction: its normaliser is the same alone and in any batch
+                generator = torch.Generator(device=self.means.p.device).manual_seed(DEFAULT_SEED)
+                values.append(log_normaliser(kde, generator, NORMALISER_SAMPLES, centres, exponent[counted, b]))
+            self._log_z = torch.stack(values).reshape(self.batch_shape)
+        return self._log_z
+
+    # ------------------------------------------------------------------------------------------ evaluation
+
+    def _validate_sample(self, value: Tensor) -> None:
+        if not isinstance(value, Tensor) or value.shape[-1:] != (7,):
+            raise InvalidPoseError(f"values must be tensors (..., 7) as [p, q_wxyz], got "
+                                   f"{tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__}")
+        try:
+            torch.broadcast_shapes(value.shape[:-1], self.batch_shape)
+        except RuntimeError as exc:
+            raise InvalidPoseError(f"values {tuple(value.shape)} do not broadcast with the batch shape "
+                                   f"{tuple(self.batch_shape)} (values are (..., *batch_shape, 7))") from exc
+        if not torch.isfinite(value).all():
+            raise InvalidPoseError("values hold NaN or infinite entries")
+        norm = value[..., 3:].norm(dim=-1)
+        if ((norm - 1.0).abs() > UNIT_TOLERANCE).any():
+            raise InvalidPoseError(f"value quaternions must be unit length (within {UNIT_TOLERANCE}); the "
+                                   f"furthest has norm {float(norm[(norm - 1).abs().argmax()]):.4f}")
+
+    def _as_queries(self, value: Tensor) -> tuple[Tensor, torch.Size]:
+        """Values ``(..., *B, 7)`` as queries ``(*B, M, 7)`` and the sample shape ``(...)``."""
+        nb = len(self.batch_shape)
+        value = value.to(self.means.p.dtype)
+        shape = torch.broadcast_shapes(value.shape[:-1], self.batch_shape)
+        sample_shape = shape[: len(shape) - nb]
+        flat = value.expand(*shape, 7).reshape(-1, *self.batch_shape, 7)
+        return flat.movedim(0, nb), sample_shape
+
+    def _unnormalised(self, queries: Tensor) -> Tensor:
+        """``Σ_e γ_e log P_e`` (normalised weights, kernels 1 at their means) at ``(*B, M, 7)`` → ``(*B, M)``."""
+        pose = se3.Pose.from_vector(queries)
+        if self.method == "fast":
+            if self._product is None:
+                self._product = SharedKernelProduct(self.means, self.log_weights, self.bandwidth, self.trial_rounds,
+                                                    expert_exponent=self.exponent, validate_args=False)
+            return self._product.log_prob(pose)
+        per_expert = self.experts().log_prob(pose)  # (E, *B, M)
+        gamma = self.exponent.unsqueeze(-1)
+        return torch.where(gamma > 0, gamma * per_expert, torch.zeros_like(per_expert)).sum(0)
+
+    def log_prob(self, value: Tensor) -> Tensor:
+        """Normalised log density (nats; module docstring) at poses ``(..., *B, 7)`` → ``(..., *B)``;
+        −inf outside the kernels' cut-offs. Differentiable with respect to ``value``."""
+        if self._validate_args:
+            self._validate_sample(value)
+        queries, sample_shape = self._as_queries(value)
+        kernels = log_kernel_normaliser(self.experts())[0]  # (*B,): one bandwidth per problem
+        constant = (self.exponent.double().sum(0) * kernels + self.log_normaliser()).to(queries.dtype)
+        out = self._unnormalised(queries) - constant.unsqueeze(-1)  # (*B, M)
+        return out.movedim(-1, 0).reshape(torch.Size([*sample_shape, *self.batch_shape]))
+
+    def sample(self, sample_shape: torch.Size | tuple = (), generator: torch.Generator | None = None) -> Tensor:
+        """Poses ``(*sample_shape, *B, 7)`` drawn by importance resampling (module docstring); without a
+        ``generator`` one seeded with DEFAULT_SEED (the same draws every call)."""
+        sample_shape = torch.Size(sample_shape)
+        n = max(1, sample_shape.numel())
+        if generator is None:
+            generator = torch.Generator(device=self.means.p.device).manual_seed(DEFAULT_SEED)
+        with torch.no_grad():
+            experts = self.experts()
+            per_expert_draws = max(MIN_POOL_PER_EXPERT, math.ceil(4 * n / self.num_experts))
+            pool, _ = experts.sample(per_expert_draws, generator)  # (E, *B, m)
+            nb = len(self.batch_shape)
+            pool = se3.Pose(pool.p.movedim(0, nb).reshape(*self.batch_shape, -1, 3),
+                            pool.q.movedim(0, nb).reshape(*self.batch_shape, -1, 4))  # (*B, E·m)
+            log_p = experts.log_prob(pool).double() - log_kernel_normaliser(experts).unsqueeze(-1)  # (E, *B, M)
+            gamma = self.exponent.double().unsqueeze(-1)
+            target = torch.where(gamma > 0, gamma * log_p, torch.zeros_like(log_p)).sum(0)
+            mixture = torch.logsumexp(log_p, 0)
+            if not torch.isfinite(target).any(-1).all():
+                raise ModelError("no proposal has non-zero density under the product of experts")
+            # a draw on a cut-off's boundary may round outside every kernel: it weighs nothing
+            log_ratio = torch.where(torch.isfinite(mixture), target - mixture, torch.full_like(mixture, -math.inf))
+            weights = torch.softmax(log_ratio.reshape(-1, pool.p.shape[-2]), -1)  # (prod B, M)
+            index = torch.multinomial(weights, n, replacement=True, generator=generator)
+            flat = pool.vector().reshape(-1, pool.p.shape[-2], 7)
+            drawn = torch.gather(flat, 1, index.unsqueeze(-1).expand(-1, n, 7))  # (prod B, n, 7)
+        drawn = drawn.reshape(*self.batch_shape, n, 7).movedim(nb, 0)
+        return drawn.reshape(*sample_shape, *self.batch_shape, 7)
+
+    def to(self, device=None, dtype=None) -> FinalPoseDistribution:
+        """This distribution on another device and/or floating dtype (the normaliser is kept)."""
+        def move(t: Tensor) -> Tensor:
+            return t.to(device=device, dtype=dtype if t.is_floating_point() else None)
+
+        centres = None if self.normaliser_centres is None else self.normaliser_centres.to(device=device, dtype=dtype)
+        out = FinalPoseDistribution(self.means.to(device=device, dtype=dtype), move(self.log_weights), self.bandwidth,
+                                    self.trial_rounds.to(device), move(self.exponent), move(self._mode), self.method,
+                                    centres, self._validate_args)
+        if self._log_z is not None:
+            out._log_z = self._log_z.to(device)
+        return out
+
+    def with_method(self, method: str) -> FinalPoseDistribution:
+        """The same distribution evaluated by ``method`` (``"fast"`` or ``"dense"``)."""
+        out = FinalPoseDistribution(self.means, self.log_weights, self.bandwidth, self.trial_rounds, self.exponent,
+                                    self._mode, method, self.normaliser_centres, self._validate_args)
+        out._log_z = self._log_z
+        return out
+
+    def __repr__(self) -> str:
+        return (f"FinalPoseDistribution(batch_shape={tuple(self.batch_shape)}, experts={self.num_experts}, "
+                f"kernels={self.means.p.shape[-2]}, method={self.method!r})")
