@@ -30,8 +30,8 @@ _LAZY = {
     "FinalPoseDistribution": "pushtorch.distribution",
 }
 
-__all__ = ["FinalPoseDistribution", "Pose", "PushtorchError", "__version__", "capture_partial_cloud", "load_model", "load_object", "predict",
-           "predict_many", "train_push_model"]
+__all__ = ["FinalPoseDistribution", "Pose", "PushtorchError", "__version__", "capture_partial_cloud", "load_model",
+           "load_object", "predict", "predict_many", "train_push_model"]
 
 if TYPE_CHECKING:  # what type checkers and IDEs see (py.typed ships with the package)
     from pushtorch.distribution import FinalPoseDistribution

@@ -32,7 +32,7 @@ from pytorch_kinematics import transforms as pkt
 
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.kde import PoseKDE, fused_function
-from pushtorch.se3 import Pose, check_unit_quaternion, perturb, yaw_quaternion
+from pushtorch.se3 import Pose, check_unit_quaternion, perturb, random_normal, random_uniform, yaw_quaternion
 
 Tensor = torch.Tensor
 
@@ -128,14 +128,10 @@ def _propose(pose: Pose, temperature: float, schedule: AnnealSchedule, generator
     p_std = schedule.step_p_std * temperature
     rot_std = schedule.step_rot_std * temperature
     if schedule.planar:
-        noise = torch.randn(
-            pose.p.shape[:-1] + (2,), generator=generator, dtype=pose.p.dtype, device=pose.p.device
-        )
+        noise = random_normal(pose.p.shape[:-1] + (2,), generator, pose.p.dtype, pose.p.device)
         p = pose.p.clone()
         p[..., :2] += p_std * noise
-        yaw = rot_std * torch.randn(
-            pose.q.shape[:-1], generator=generator, dtype=pose.q.dtype, device=pose.q.device
-        )
+        yaw = rot_std * random_normal(pose.q.shape[:-1], generator, pose.q.dtype, pose.q.device)
         # A world-frame rotation about z (left product) changes the heading only: roll and pitch are kept.
         q = pkt.quaternion_raw_multiply(yaw_quaternion(yaw), pose.q)
     else:
@@ -155,15 +151,15 @@ def _vmf_offsets(kappa: float | Tensor, shape: torch.Size, generator, dtype, dev
     ``kappa`` may be a tensor broadcastable to ``shape`` (one concentration per row, e.g. per step).
     """
     kappa = torch.as_tensor(kappa, dtype=dtype, device=device).expand(shape)
-    n = torch.randn(*shape, 3, generator=generator, dtype=dtype, device=device)
+    n = random_normal((*shape, 3), generator, dtype, device)
     s = (n * n).sum(-1) / (2.0 * kappa)
-    u = torch.rand(shape, generator=generator, dtype=dtype, device=device)
+    u = random_uniform(shape, generator, dtype, device)
     rejected = u * u * 2.0 >= 2.0 - s
     while bool(rejected.any()):
         count = int(rejected.sum())
-        n_new = torch.randn(count, 3, generator=generator, dtype=dtype, device=device)
+        n_new = random_normal((count, 3), generator, dtype, device)
         s_new = (n_new * n_new).sum(-1) / (2.0 * kappa[rejected])
-        u_new = torch.rand(count, generator=generator, dtype=dtype, device=device)
+        u_new = random_uniform((count,), generator, dtype, device)
         n[rejected], s[rejected] = n_new, s_new
         rejected[rejected.clone()] = u_new * u_new * 2.0 >= 2.0 - s_new
     sin_half = torch.sqrt((s * (2.0 - s)).clamp_min(0.0))  # √(1 − w²)
@@ -192,7 +188,7 @@ def _draw_fast_proposals(
     t = torch.tensor(temperatures, dtype=dtype, device=device).reshape(steps, *([1] * len(shape)))
     if planar is None and schedule.planar:
         planar = torch.ones((), dtype=torch.bool, device=device)
-    noise = torch.randn(*full, 3, generator=generator, dtype=dtype, device=device)
+    noise = random_normal((*full, 3), generator, dtype, device)
     if planar is not None:
         noise = torch.where(planar.unsqueeze(-1) & _Z_AXIS.to(device), torch.zeros_like(noise), noise)
     step_p = noise * (schedule.step_p_std * t).unsqueeze(-1)
@@ -202,10 +198,10 @@ def _draw_fast_proposals(
         rot_std = schedule.step_rot_std * t
         right = _vmf_offsets(4.0 / rot_std**2, full, generator, dtype, device)
         if planar is not None:
-            yaw = rot_std * torch.randn(full, generator=generator, dtype=dtype, device=device)
+            yaw = rot_std * random_normal(full, generator, dtype, device)
             left = torch.where(planar.unsqueeze(-1), yaw_quaternion(yaw), identity)
             right = torch.where(planar.unsqueeze(-1), identity, right)
-    accept_u = torch.rand(full, generator=generator, dtype=dtype, device=device)
+    accept_u = random_uniform(full, generator, dtype, device)
     return step_p, left.contiguous(), right.contiguous(), accept_u
 
 
@@ -360,7 +356,7 @@ def anneal(
         for temperature in schedule.temperatures():
             proposal = _propose(current, temperature, schedule, generator)
             proposal_lp = _evaluate(log_prob_fn, proposal, shape)
-            u = torch.rand(shape, generator=generator, dtype=dtype, device=device)
+            u = random_uniform(shape, generator, dtype, device)
             # -inf - -inf is NaN: such a candidate compares False everywhere and keeps its pose.
             delta = proposal_lp - current_lp
             accept = (proposal_lp > current_lp) | (torch.exp(delta / (schedule.energy_scale * temperature)) > u)

@@ -48,6 +48,8 @@ __all__ = [
     "quat_normalize",
     "random_quaternion",
     "relative",
+    "random_normal",
+    "random_uniform",
     "sample_vmf_quaternion",
     "to_matrix",
     "to_pybullet",
@@ -218,6 +220,25 @@ def angle_between(q1: Tensor, q2: Tensor) -> Tensor:
     return 2.0 * torch.atan2(relative[..., 1:].norm(dim=-1), relative[..., 0].abs())
 
 
+#: dtype of every normal and uniform draw (cast to the caller's dtype afterwards): torch's samplers draw a
+#: different stream per dtype, and a float64 copy of a model must predict what the float32 one does.
+DRAW_DTYPE = torch.float32
+
+
+def random_normal(shape, generator: torch.Generator | None = None, dtype: torch.dtype = torch.float32,
+                  device=None) -> Tensor:
+    """Standard normal draws of ``shape``, the same numbers for every floating ``dtype``
+    (:data:`DRAW_DTYPE`)."""
+    return torch.randn(shape, generator=generator, dtype=DRAW_DTYPE, device=device).to(dtype)
+
+
+def random_uniform(shape, generator: torch.Generator | None = None, dtype: torch.dtype = torch.float32,
+                   device=None) -> Tensor:
+    """Uniform draws on [0, 1) of ``shape``, the same numbers for every floating ``dtype``
+    (:data:`DRAW_DTYPE`)."""
+    return torch.rand(shape, generator=generator, dtype=DRAW_DTYPE, device=device).to(dtype)
+
+
 def random_quaternion(
     shape: tuple[int, ...] | torch.Size,
     generator: torch.Generator | None = None,
@@ -225,7 +246,7 @@ def random_quaternion(
     device=None,
 ) -> Tensor:
     """Rotations uniform on SO(3) (normalised 4-D Gaussians), shape ``(*shape, 4)``, w >= 0."""
-    g = torch.randn(*shape, 4, generator=generator, dtype=dtype, device=device)
+    g = random_normal((*shape, 4), generator, dtype, device)
     g = g / g.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     return torch.where(g[..., :1] < 0, -g, g)
 
@@ -293,7 +314,7 @@ def perturb(
     rotation of concentration ``kappa`` applied in the body frame (``q ⊗ δq``)."""
     shape = pose.batch_shape
     p = pose.p.expand(*shape, 3)
-    noise = torch.randn(p.shape, generator=generator, dtype=p.dtype, device=p.device)
+    noise = random_normal(p.shape, generator, p.dtype, p.device)
     sigma = torch.as_tensor(sigma_p, dtype=p.dtype, device=p.device)
     if sigma.dim() > 0:
         sigma = sigma.unsqueeze(-1)

@@ -216,7 +216,7 @@ def _fast_kernel_draws(
         return None
     cumulative = sums.cumsum(-1)
     kernel_log_w = torch.log(cumulative[:, -1]) + top
-    u = 1.0 - torch.rand(2, n_kernels, generator=generator, dtype=dtype).to(device)  # (0, 1]
+    u = 1.0 - se3.random_uniform((2, n_kernels), generator, dtype).to(device)  # (0, 1]
     group = _categorical_first_reaching(cumulative, u[0])
     d = ((e_features[pick].unsqueeze(1) - grouped[group]) ** 2 * scale).sum(-1)  # (K, S)
     inner = torch.where(d < delta, torch.exp(grouped_w[group] - d), torch.zeros_like(d))
