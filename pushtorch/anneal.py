@@ -32,7 +32,15 @@ from pytorch_kinematics import transforms as pkt
 
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.kde import PoseKDE, fused_function
-from pushtorch.se3 import Pose, check_unit_quaternion, perturb, random_normal, random_uniform, yaw_quaternion
+from pushtorch.se3 import (
+    Pose,
+    check_unit_quaternion,
+    perturb,
+    random_normal,
+    random_uniform,
+    vmf_offsets,
+    yaw_quaternion,
+)
 
 Tensor = torch.Tensor
 
@@ -141,32 +149,6 @@ def _propose(pose: Pose, temperature: float, schedule: AnnealSchedule, generator
     return Pose(p, q / q.norm(dim=-1, keepdim=True))
 
 
-def _vmf_offsets(kappa: float | Tensor, shape: torch.Size, generator, dtype, device) -> Tensor:
-    """Unit quaternions ``(*shape, 4)`` around identity from the vMF on S^3 of concentration ``kappa``.
-
-    Exact and cheap for the annealing's large κ: s = 1 − w has density ∝ e^(−κ s) √(s (2 − s)) on
-    [0, 2]; a Gamma(3/2, κ) proposal is |n|²/(2κ) for a 3-D standard normal n, whose direction n/|n| is
-    independent of it and uniform, so one draw gives both the angle and the axis. The proposal is
-    accepted with probability √((2 − s)/2) (≥ 1/√2, ≈ 1 − 1/(4κ)); rejected rows draw again.
-    ``kappa`` may be a tensor broadcastable to ``shape`` (one concentration per row, e.g. per step).
-    """
-    kappa = torch.as_tensor(kappa, dtype=dtype, device=device).expand(shape)
-    n = random_normal((*shape, 3), generator, dtype, device)
-    s = (n * n).sum(-1) / (2.0 * kappa)
-    u = random_uniform(shape, generator, dtype, device)
-    rejected = u * u * 2.0 >= 2.0 - s
-    while bool(rejected.any()):
-        count = int(rejected.sum())
-        n_new = random_normal((count, 3), generator, dtype, device)
-        s_new = (n_new * n_new).sum(-1) / (2.0 * kappa[rejected])
-        u_new = random_uniform((count,), generator, dtype, device)
-        n[rejected], s[rejected] = n_new, s_new
-        rejected[rejected.clone()] = u_new * u_new * 2.0 >= 2.0 - s_new
-    sin_half = torch.sqrt((s * (2.0 - s)).clamp_min(0.0))  # √(1 − w²)
-    axis = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-30)
-    return torch.cat([(1.0 - s).unsqueeze(-1), sin_half.unsqueeze(-1) * axis], -1)
-
-
 # Steps whose proposals the fast path draws at once: few generator calls, bounded memory
 # (20 steps × 32 conditions × 1,000 chains × 12 floats ≈ 31 MB).
 _DRAW_STEPS = 20
@@ -196,7 +178,7 @@ def _draw_fast_proposals(
     left = right = identity
     if schedule.step_rot_std > 0:
         rot_std = schedule.step_rot_std * t
-        right = _vmf_offsets(4.0 / rot_std**2, full, generator, dtype, device)
+        right = vmf_offsets(4.0 / rot_std**2, full, generator, dtype, device)
         if planar is not None:
             yaw = rot_std * random_normal(full, generator, dtype, device)
             left = torch.where(planar.unsqueeze(-1), yaw_quaternion(yaw), identity)
@@ -309,7 +291,7 @@ def anneal(
             ``schedule.planar`` for all. Needs ``method="fast"``.
         method: ``"dense"``, the reference proposals (vMF by Wood's rejection sampler in float64), or
             ``"fast"``: the same proposal distributions drawn with fewer, cheaper operations
-            (:func:`_vmf_offsets`). The seed's random stream differs between the two.
+            (:func:`pushtorch.se3.vmf_offsets`). The seed's random stream differs between the two.
 
     Returns:
         :class:`AnnealResult`. A candidate at ``-inf`` accepts any finite proposal; if its proposal is

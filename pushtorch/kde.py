@@ -50,7 +50,7 @@ import torch
 from pytorch_kinematics import transforms as pkt
 
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
-from pushtorch.se3 import Pose, check_unit_quaternion
+from pushtorch.se3 import Pose, check_unit_quaternion, truncated_gamma_1p5, vmf_offsets
 
 Tensor = torch.Tensor
 
@@ -76,9 +76,6 @@ COMPONENTS = ("p", "q", "r")
 # per float32 temporary, so the few temporaries of a chunk stay in a CPU's last-level cache (faster
 # here than one 500 x 25,500 block) while the matmuls stay efficient.
 _DEFAULT_BLOCK_ELEMENTS = 1 << 21
-# Safeguarded Newton steps of the truncated Gamma(3/2) inverse CDF: 16 reach float64 round-off of the CDF
-# for every truncation from 1e-3 to none (measured); 20 leave a margin.
-_NEWTON_STEPS = 20
 
 
 # --------------------------------------------------------------------------------------------------
@@ -285,36 +282,6 @@ def descriptor_distance_unscaled(r1: Tensor, r2: Tensor) -> Tensor:
 # --------------------------------------------------------------------------------------------------
 
 
-def _gamma_1p5_cdf(x: Tensor) -> Tensor:
-    """Regularised lower incomplete gamma P(3/2, x) (``torch.special.gammainc``)."""
-    return torch.special.gammainc(torch.full_like(x, 1.5), x)
-
-
-def _sample_truncated_gamma_1p5(upper: Tensor, generator: torch.Generator | None) -> Tensor:
-    """Gamma(3/2, 1) samples conditioned on ``x < upper`` (float64, any shape), by inverse CDF.
-
-    Both kernel factors reduce to this law: β d_p of a 3-D Gaussian sample is χ²_3/2 ~ Gamma(3/2), and
-    κ(1 − w) of the vMF on S^3 has density ∝ s^(1/2) e^(−s) √(2 − s/κ), i.e. Gamma(3/2) times a bounded
-    factor. Inverting the CDF needs no rejection however tight the cut-off: Newton steps on
-    F(x) = u, safeguarded by a shrinking bracket (a step that leaves it bisects instead).
-    """
-    upper = upper.clamp(max=80.0)  # P(3/2, 80) = 1 in float64: beyond is the untruncated law
-    u = torch.rand(upper.shape, generator=generator, dtype=torch.float64, device=upper.device)
-    target = u * _gamma_1p5_cdf(upper)
-    lo = torch.zeros_like(upper)
-    hi = upper.clone()
-    x = torch.minimum(torch.full_like(upper, 1.2), 0.5 * upper)  # near the median of Gamma(3/2)
-    for _ in range(_NEWTON_STEPS):
-        error = _gamma_1p5_cdf(x) - target
-        lo = torch.where(error < 0, x, lo)
-        hi = torch.where(error < 0, hi, x)
-        density = 2.0 * torch.sqrt(x / math.pi) * torch.exp(-x)
-        step = x - error / density.clamp_min(1e-300)
-        inside = (step >= lo) & (step <= hi)
-        x = torch.where(inside, step, 0.5 * (lo + hi))
-    return x
-
-
 def _unit_vectors(shape: tuple[int, ...], generator, device) -> Tensor:
     v = torch.randn(*shape, 3, generator=generator, dtype=torch.float64, device=device)
     return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-300)
@@ -324,40 +291,15 @@ def _sample_translation_offsets(
     std: Tensor, delta_p: float, generator: torch.Generator | None
 ) -> Tensor:
     """Offsets ``(..., 3)`` (float64): isotropic Gaussian of per-axis ``std (...)``, cut at β d_p < δ_p."""
-    x = _sample_truncated_gamma_1p5(torch.full_like(std, delta_p), generator)
+    x = truncated_gamma_1p5(torch.full_like(std, delta_p), generator)
     radius = torch.sqrt(2.0 * x) * std  # β d_p = |Δ|² / (2 std²) = x
     return radius.unsqueeze(-1) * _unit_vectors(tuple(std.shape), generator, std.device)
 
 
-def _sample_rotation_offsets(
-    kappa: Tensor, delta_q: float, generator: torch.Generator | None, max_rounds: int = 64
-) -> Tensor:
-    """Unit quaternions ``(..., 4)`` (float64) around identity, density ∝ exp(κ|w|), cut at κ(1−|w|) < δ_q.
-
-    Returned with w ≥ 0 (the hemisphere of the identity; the antipodal half is the same rotations).
-    s = 1 − w has density ∝ e^(−κ s) √(s (2 − s)) on [0, min(1, δ_q/κ)]: propose κ s from the truncated
-    Gamma(3/2) and accept with √(2 − s)/√2 ≥ 1/√2, so a handful of rounds always suffice.
-    """
-    shape = tuple(kappa.shape)
-    upper = torch.minimum(torch.full_like(kappa, delta_q), kappa)
-    s = torch.zeros_like(kappa)
-    pending = torch.ones(shape, dtype=torch.bool, device=kappa.device)
-    for _ in range(max_rounds):
-        if not pending.any():
-            break
-        kk, up = kappa[pending], upper[pending]
-        s_try = _sample_truncated_gamma_1p5(up, generator) / kk
-        u = torch.rand(s_try.shape, generator=generator, dtype=torch.float64, device=kappa.device)
-        ok = u * math.sqrt(2.0) < torch.sqrt(2.0 - s_try)
-        idx = pending.nonzero(as_tuple=True)
-        chosen = tuple(i[ok] for i in idx)
-        s[chosen] = s_try[ok]
-        pending[chosen] = False
-    # Acceptance is >= 71 % per round: rows still pending after 64 rounds mean a broken generator; they
-    # keep s = 0 (the kernel mean) rather than loop forever.
-    w = 1.0 - s
-    axis = _unit_vectors(shape, generator, kappa.device)
-    return torch.cat([w.unsqueeze(-1), torch.sqrt((1.0 - w * w).clamp_min(0.0)).unsqueeze(-1) * axis], -1)
+def _sample_rotation_offsets(kappa: Tensor, delta_q: float, generator: torch.Generator | None) -> Tensor:
+    """Unit quaternions ``(..., 4)`` (float64) around identity, density ∝ exp(κ|w|), cut at κ(1−|w|) < δ_q
+    (:func:`pushtorch.se3.vmf_offsets`, the library's one vMF sampler)."""
+    return vmf_offsets(kappa, kappa.shape, generator, torch.float64, kappa.device, delta_q)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from scipy import stats
 
 from pushtorch import se3
-from pushtorch.anneal import AnnealSchedule, _vmf_offsets, anneal, initial_candidates
+from pushtorch.anneal import AnnealSchedule, anneal, initial_candidates
 from pushtorch.errors import InvalidParameterError
 from pushtorch.kde import (
     FAST_DENSE_KERNELS,
@@ -257,18 +257,6 @@ def test_unknown_method_is_refused():
 
 
 # -- annealing ---------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("kappa", [3.0, 60.0, 1111.0])
-def test_fast_vmf_offsets_follow_the_reference_sampler(kappa):
-    n = 20_000
-    fast = _vmf_offsets(kappa, torch.Size([n]), torch.Generator().manual_seed(0), torch.float64, "cpu")
-    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64).expand(n, 4)
-    reference = se3.sample_vmf_quaternion(identity, kappa, torch.Generator().manual_seed(1))
-    assert torch.allclose(fast.norm(dim=-1), torch.ones(n, dtype=torch.float64), atol=1e-12)
-    assert stats.ks_2samp(fast[:, 0].numpy(), reference[:, 0].numpy()).pvalue > 1e-3  # the angle law
-    axis = torch.nn.functional.normalize(fast[:, 1:], dim=-1)
-    assert axis.mean(0).abs().max() < 0.03  # isotropic axes
 
 
 def _two_mode_kde(dtype=torch.float64):

@@ -115,7 +115,8 @@ def test_uniform_rotation_sampler_matches_haar_angle_distribution():
 
 @pytest.mark.parametrize("kappa", [0.0, 10.0, 400.0, 1e5])
 def test_vmf_sampler_matches_expected_concentration(kappa):
-    # For a vMF on S^3, E[w] = I_2(κ)/I_1(κ) (w = <q, mean>, sign kept) — compared through scipy.
+    # For a vMF on S^3, E[w] = I_2(κ)/I_1(κ) (w = <q, mean>; the antipodal fold adds e^(−2κ), nothing at
+    # κ >= 10); uniform rotations on the mean's hemisphere have E[w] = 4/(3π). Compared through scipy.
     from scipy.special import ive
 
     g = torch.Generator().manual_seed(2)
@@ -123,8 +124,33 @@ def test_vmf_sampler_matches_expected_concentration(kappa):
     q = se3.sample_vmf_quaternion(mean, kappa, g)
     torch.testing.assert_close(q.norm(dim=-1), torch.ones(40000, dtype=torch.float64))
     w = (q * mean).sum(-1)
-    expected = 0.0 if kappa == 0 else ive(2, kappa) / ive(1, kappa)
+    expected = 4.0 / (3.0 * math.pi) if kappa == 0 else ive(2, kappa) / ive(1, kappa)
     assert abs(w.mean().item() - expected) < 4 * w.std().item() / math.sqrt(len(w)) + 1e-6
+
+
+@pytest.mark.parametrize("kappa", [20.0, 60.0, 1111.0, 1e5])
+def test_vmf_offsets_follow_scipys_von_mises_fisher(kappa):
+    """The one sampler against scipy.stats.vonmises_fisher on S^3 (its fold is e^(−2κ): nothing here): the
+    law of the angle by a two-sample KS test, and isotropic axes."""
+    from scipy import stats
+
+    n = 20_000
+    ours = se3.vmf_offsets(kappa, (n,), torch.Generator().manual_seed(0), torch.float64)
+    assert torch.allclose(ours.norm(dim=-1), torch.ones(n, dtype=torch.float64), atol=1e-12)
+    theirs = stats.vonmises_fisher([1.0, 0.0, 0.0, 0.0], kappa).rvs(n, random_state=1)
+    assert stats.ks_2samp(ours[:, 0].numpy(), abs(theirs[:, 0])).pvalue > 1e-3
+    axis = torch.nn.functional.normalize(ours[:, 1:], dim=-1)
+    assert axis.mean(0).abs().max() < 0.03
+
+
+def test_vmf_offsets_respect_a_cut_off_and_draw_the_same_for_every_dtype():
+    kappa = torch.tensor([5.0, 400.0])
+    drawn = se3.vmf_offsets(kappa, (3000, 2), torch.Generator().manual_seed(3), torch.float64, delta=2.0)
+    assert (kappa * (1.0 - drawn[..., 0].abs()) < 2.0).all()
+    narrow = se3.vmf_offsets(kappa, (3000, 2), torch.Generator().manual_seed(3), torch.float32, delta=2.0)
+    torch.testing.assert_close(narrow, drawn.float())
+    with pytest.raises(InvalidPoseError, match="kappa"):
+        se3.vmf_offsets(-1.0, (3,))
 
 
 def test_perturb_spreads_translation_with_requested_std():
@@ -162,3 +188,17 @@ def test_angle_between_is_the_geodesic_angle_and_stable_near_zero(seed, angle):
     moved = turned.clone().requires_grad_(True)
     se3.angle_between(q, moved).backward()
     assert torch.isfinite(moved.grad).all() and float(moved.grad.norm()) < 10.0
+
+
+def test_mean_pose_rotation_is_scipys_rotation_mean():
+    """Markley's eigenvector mean (sign-invariant) against scipy's ``Rotation.mean``, on a spread cluster with
+    random signs."""
+    from scipy.spatial.transform import Rotation
+
+    g = torch.Generator().manual_seed(21)
+    centre = se3.random_quaternion((), g, dtype=torch.float64)
+    q = se3.sample_vmf_quaternion(centre.expand(200, 4), 30.0, g)
+    q = q * torch.where(torch.rand(200, 1, generator=g, dtype=torch.float64) < 0.5, -1.0, 1.0)
+    ours = se3.mean_pose(se3.Pose(torch.zeros(200, 3, dtype=torch.float64), q), dim=0).q
+    theirs = torch.from_numpy(Rotation.from_quat(se3.wxyz_to_xyzw(q).numpy()).mean().as_quat())
+    assert float(se3.angle_between(ours, se3.xyzw_to_wxyz(theirs))) < 1e-9
