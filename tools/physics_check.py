@@ -4,6 +4,8 @@ Prints, for the chosen ``sim.robot`` drive (default: the library's default):
 
 * the mass effect: final displacement of a 0.1 kg cube minus that of a 5 kg cube, ground friction 0.4, under
   the straight 4 s push (the issue's X) and under the paper's turning actions (±10 °/s);
+* the friction effect (what online inference of the physics, issue 19, has to work with): final
+  displacement of a 0.5 kg cube at ground friction 0.1 minus that at 0.9, straight and turning;
 * the mirror asymmetry: for the cube, cylinder, thin prism and hybrid, centred and pushed with −10 and +10 °/s
   (mass 0.5 kg, friction 0.3), the distance between one final position and the mirror image of the other
   (and the yaw mismatch), each push in a fresh world;
@@ -52,6 +54,13 @@ def mass_effect_cm(settings: SimSettings, yaw_rate_deg: float) -> float:
     return 100.0 * float((light.p[:2] - start[:2]).norm() - (heavy.p[:2] - start[:2]).norm())
 
 
+def friction_effect_cm(settings: SimSettings, yaw_rate_deg: float) -> float:
+    """How much farther (cm) a 0.5 kg cube travels at ground friction 0.1 than at 0.9."""
+    slick, rough = (_push("cube", settings, yaw_rate_deg, 0.5, mu) for mu in (0.1, 0.9))
+    start = load_object("cube").resting_pose().p.double()
+    return 100.0 * float((slick.p[:2] - start[:2]).norm() - (rough.p[:2] - start[:2]).norm())
+
+
 def mirror_gap(name: str, settings: SimSettings) -> tuple[float, float]:
     """(mm, deg) between the final pose of the −10 °/s push and the mirror image of the +10 °/s push."""
     right, left = (_push(name, settings, rate, 0.5, 0.3) for rate in (-10.0, 10.0))
@@ -76,6 +85,9 @@ def main() -> None:
     turning = [mass_effect_cm(settings, rate) for rate in (-10.0, 10.0)]
     print(f"mass effect, 0.1 kg vs 5 kg cube at friction 0.4: straight {straight:.2f} cm; "
           f"turning -10/+10 deg/s {turning[0]:.2f} / {turning[1]:.2f} cm")
+    friction = [friction_effect_cm(settings, rate) for rate in (0.0, 10.0)]
+    print(f"friction effect, 0.5 kg cube at friction 0.1 vs 0.9: straight {friction[0]:.2f} cm; "
+          f"turning +10 deg/s {friction[1]:.2f} cm")
     gaps = {}
     for name in MIRROR_OBJECTS:
         gaps[name] = mirror_gap(name, settings)
