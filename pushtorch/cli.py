@@ -143,6 +143,7 @@ def run_stage(name: str, cfg: DictConfig, run: Callable[[DictConfig, Path], dict
 
     hydra_cfg = hydra.core.hydra_config.HydraConfig.get()
     out_dir = Path(hydra_cfg.runtime.output_dir)
+    _share_cores(hydra_cfg)
     try:
         if hydra_cfg.job.config_name in APPS:  # again here: a launcher or callback list of the user's own
             check_config(cfg, hydra_cfg.job.config_name)
@@ -161,6 +162,16 @@ def run_stage(name: str, cfg: DictConfig, run: Callable[[DictConfig, Path], dict
     for key, value in summary.items():
         print(f"{key}: {value}")
     return summary
+
+
+def _share_cores(hydra_cfg) -> None:
+    """The thread and process policy (:mod:`pushtorch.parallel`): a joblib sweep's jobs share the cores."""
+    from pushtorch.parallel import declare_parallel_jobs, share_cores
+
+    launcher = hydra_cfg.get("launcher") or {}
+    if "Joblib" in str(launcher.get("_target_", "")):
+        declare_parallel_jobs(int(launcher.get("n_jobs", -1)))
+    share_cores()
 
 
 def _one_line(message: str) -> str:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
-import os
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -30,6 +29,7 @@ import torch
 
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, RecordFormatError
+from pushtorch.parallel import core_share
 from pushtorch.sim.plan import PushPlan
 from pushtorch.sim.push import execute_push
 from pushtorch.sim.records import (
@@ -64,11 +64,9 @@ _DERIVED_KEYS = ("index_first", "index_sha256", "action_sha256", "action_runs", 
 
 
 def default_workers() -> int:
-    """The number of CPU cores this process may use."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
+    """Simulation workers when none are asked for: this job's share of the cores
+    (:func:`pushtorch.parallel.core_share`)."""
+    return core_share()
 
 
 def simulate_arrays(world: PushWorld, plan_arrays: dict[str, np.ndarray], object_name: str, seed: int,

@@ -1,0 +1,73 @@
+"""Thread and process policy (issue 18; no paper section): how many torch threads and simulation workers a
+pushtorch process uses, decided here and nowhere else, so that threads × processes never exceed the cores.
+
+* **Cores** are the CPUs this process may run on (``sched_getaffinity``: a Slurm allocation or a ``taskset``
+  is respected).
+* **Jobs.** A Hydra sweep with the joblib launcher runs ``n_jobs`` jobs at once (its default -1: one per
+  core); each job's share is ``cores // n_jobs``, at least 1. The experiment app declares it
+  (:func:`declare_parallel_jobs`, inherited by child processes through ``PUSHTORCH_PARALLEL_JOBS``).
+* **Within a job** simulation and prediction take turns: an experiment predicts, then simulates the ground
+  truth with its worker pool while it waits. The pool has one single-threaded worker (pybullet and numpy,
+  no torch) per core of the share, and prediction uses the share's cores as torch threads.
+* **Beside other work** (:func:`share_cores` with ``busy`` CPU-bound processes next to this one) prediction
+  uses ``max(1, share // (busy + 1))`` threads.
+* **OpenMP waits passively.** Importing pushtorch before torch sets ``OMP_WAIT_POLICY=PASSIVE`` unless the
+  user set it (it only takes effect before torch's OpenMP runtime starts). Measured on a 2-core host with
+  another process busy, a quickstart-size prediction took 1.48 s with two threads spinning in OpenMP's
+  active wait, 0.28 s with them waiting passively and 0.23–0.25 s on one thread (README, "Prediction
+  speed").
+"""
+
+from __future__ import annotations
+
+import os
+
+from pushtorch.errors import InvalidParameterError
+
+__all__ = ["available_cores", "core_share", "declare_parallel_jobs", "parallel_jobs", "share_cores"]
+
+_JOBS_ENV = "PUSHTORCH_PARALLEL_JOBS"
+
+
+def available_cores() -> int:
+    """The number of CPU cores this process may use."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def parallel_jobs() -> int:
+    """How many jobs of a sweep run at once on this machine (1 unless declared)."""
+    raw = os.environ.get(_JOBS_ENV, "1")
+    try:
+        jobs = int(raw)
+    except ValueError:
+        raise InvalidParameterError(f"{_JOBS_ENV} must be an integer >= 1, got {raw!r}") from None
+    if jobs < 1:
+        raise InvalidParameterError(f"{_JOBS_ENV} must be an integer >= 1, got {raw!r}")
+    return jobs
+
+
+def declare_parallel_jobs(jobs: int) -> None:
+    """Declare that ``jobs`` jobs share this machine (``-1`` or more than the cores: one per core)."""
+    cores = available_cores()
+    jobs = cores if jobs < 1 or jobs > cores else int(jobs)
+    os.environ[_JOBS_ENV] = str(jobs)
+
+
+def core_share() -> int:
+    """The cores of this job: ``cores // parallel_jobs()``, at least 1 (simulation workers by default)."""
+    return max(1, available_cores() // parallel_jobs())
+
+
+def share_cores(busy: int = 0) -> int:
+    """Set torch's intra-op threads for prediction beside ``busy`` other CPU-bound processes of this job:
+    ``max(1, core_share() // (busy + 1))``; returns the count."""
+    import torch
+
+    if isinstance(busy, bool) or int(busy) != busy or busy < 0:
+        raise InvalidParameterError(f"busy must be an integer >= 0, got {busy!r}")
+    threads = max(1, core_share() // (int(busy) + 1))
+    torch.set_num_threads(threads)
+    return threads
