@@ -21,11 +21,22 @@ and the quaternion dot of every candidate against every kernel of each density, 
 at each of the 100 steps; nothing chunked, pruned or fused). It evaluates the same densities with the same
 annealing and seed as the dense reference, so their predictions agree up to float rounding (printed).
 
-The last line is exactly ``p50_s=<fast> ratio=<dense/fast> hacc_fast=<..> hacc_dense=<..>``: the median
-latency of one fast prediction from surface features, the ratio of the dense reference's median to it,
-and the mean H_acc of each path; the line before it gives the ratios to the straightforward evaluation.
+Under load: the fast path is timed again on every condition while the benchmark keeps two busy background
+processes simulating pushes in pybullet (as an experiment's simulation workers would), with the thread
+policy of :mod:`pushtorch.parallel` (``share_cores(busy=2)``). Dynamo's graph count is read after the
+warm-up and at the end: the difference is the recompiles a run triggered.
 
-    .venv/bin/python tools/bench_predict.py [--conditions 160] [--straightforward-every 10] [--batch-size 32]
+The last line is exactly ``p50_s=<..> p95_s=<..> loaded_p50_s=<..> batched_s=<..> peak_mb=<..>
+recompiles=<..> ratio=<..> hacc_fast=<..> hacc_dense=<..>``: the median and 95th-percentile latency of one
+fast prediction from surface features, the median under load, the batched time per condition, the peak
+resident memory of the process (before any straightforward evaluation), the recompiles after warm-up, the
+ratio of the dense reference's median to the fast median, and the mean H_acc of each path; with
+straightforward evaluations the line before it gives their ratios.
+
+    .venv/bin/python tools/bench_predict.py [--quick] [--conditions 160] [--straightforward-every 10]
+        [--batch-size 32]
+
+``--quick`` (under 15 minutes on 2 cores) predicts 48 conditions and skips the straightforward evaluation.
 
 20–35 minutes with the defaults on 2 cores (the dense reference takes 5.5–11.5 s per condition: latencies
 depend on the CPU, which is printed); single predictions' H_acc spreads ~0.1 from the annealing's
@@ -37,12 +48,18 @@ measure it uncompiled.
 
 from __future__ import annotations
 
-import argparse
-import math
 import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads OpenMP (pushtorch.parallel)
+
+import argparse
+import json
+import math
 import platform
 import resource
 import statistics
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -54,6 +71,7 @@ from pushtorch.features import compute_surface_features
 from pushtorch.kde import declare_long_run, fast_path_compiled, straightforward_evaluation
 from pushtorch.models.library import PushModel, load_model, train_push_model
 from pushtorch.objects import load_object
+from pushtorch.parallel import share_cores
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.predict import predict, predict_many
 from pushtorch.sim.plan import plan_training_pushes
@@ -96,11 +114,103 @@ def cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+# A simulation worker's load: pybullet pushes of the cube, one after another, until killed.
+_BUSY_SIMULATION = """
+import math, torch
+from pushtorch.objects import load_object
+from pushtorch.sim.push import place_robot_against
+from pushtorch.sim.runner import simulate_pushes
+cube = load_object("cube")
+pose = cube.resting_pose()
+start = place_robot_against(cube.mesh, pose, gap=0.002)
+while True:
+    simulate_pushes(cube, start, pose, torch.tensor([0.1, math.radians(10.0)]), 0.5, 0.3)
+"""
+
+
+def start_busy_simulations(count: int) -> list[subprocess.Popen]:
+    """``count`` background processes simulating pushes (the loaded measurement), running once this returns."""
+    processes = [subprocess.Popen([sys.executable, "-c", _BUSY_SIMULATION], stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL) for _ in range(count)]
+    time.sleep(3.0)  # imports done, simulating
+    if any(p.poll() is not None for p in processes):
+        raise SystemExit("a background simulation process died: cannot measure under load")
+    return processes
+
+
+def graphs_compiled() -> int:
+    """Dynamo's count of graphs compiled in this process so far."""
+    from torch._dynamo.utils import counters
+
+    return int(counters["stats"]["unique_graphs"])
+
+
 def hacc(obj, prediction, truth0: se3.Pose, action: torch.Tensor) -> float:
     """H_acc of a prediction against pybullet pushed from the prediction's own robot start pose."""
     outcome = simulate_pushes(obj, prediction.condition.robot_start, truth0, action, MASS, FRICTION)
     truth1 = se3.Pose(outcome.object_final.p[0].float(), outcome.object_final.q[0].float())
     return float(metrics.accuracy(prediction.final_pose, truth1, obj).hacc)
+
+
+def test_conditions(model: PushModel, obj, count: int, seed: int) -> tuple[list, list[float]]:
+    """``count + 1`` conditions (true start, surface features, action): the cube at the origin, random yaw."""
+    g = torch.Generator().manual_seed(seed)
+    conditions, feature_seconds = [], []
+    for i in range(count + 1):
+        yaw = (float(torch.rand(1, generator=g)) - 0.5) * math.pi / 2
+        truth0 = obj.resting_pose(x=0.0, y=0.0, yaw=yaw)
+        cloud = capture_partial_cloud(obj, truth0)
+        started = time.perf_counter()
+        features = compute_surface_features(cloud, radius=model.settings.feature_radius)
+        feature_seconds.append(time.perf_counter() - started)
+        conditions.append((truth0, features, model.actions[i % len(model.actions)]))
+    return conditions, feature_seconds
+
+
+def warm_up(model: PushModel, condition: tuple, batch: int) -> float:
+    """Compile the fast path on one extra condition, single and batched; seconds taken."""
+    features, action = condition
+    started = time.perf_counter()
+    predict(model, features, action, torch.Generator().manual_seed(10_000), method="fast")
+    predict(model, features, action, torch.Generator().manual_seed(10_001), method="fast")
+    predict_many(model, [features] * batch, action, seed=10_002, method="fast", batch_size=batch)
+    return time.perf_counter() - started
+
+
+def measure_loaded(args) -> dict:
+    """The fast path under load, in a fresh process (``--loaded``): a process that runs beside simulation
+    workers sets its torch threads once, before anything compiles (a later change of the thread count
+    invalidates every compiled graph)."""
+    command = [sys.executable, __file__, "--loaded", "--conditions", str(args.conditions), "--seed", str(args.seed),
+               "--cache", args.cache, "--object", args.object, "--pushes", str(args.pushes),
+               "--batch-size", str(args.batch_size)]
+    result = subprocess.run(command, capture_output=True, text=True, check=False)
+    if result.returncode != 0:
+        raise SystemExit(f"the loaded measurement failed:\n{result.stderr[-3000:]}")
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def loaded_child(args, model: PushModel, obj) -> None:
+    """``--loaded``: this process's share of the cores beside two busy simulation processes, warm-up, then
+    every condition timed while they run; prints one JSON line."""
+    threads = share_cores(busy=2)
+    conditions, _ = test_conditions(model, obj, args.conditions, args.seed)
+    warm_up(model, conditions.pop()[1:], min(args.batch_size, len(conditions)))
+    graphs = graphs_compiled()
+    busy = start_busy_simulations(2)
+    try:
+        seconds = []
+        for i, (_, features, action) in enumerate(conditions):
+            started = time.perf_counter()
+            predict(model, features, action, torch.Generator().manual_seed(i), method="fast")
+            seconds.append(time.perf_counter() - started)
+        load = os.getloadavg()[0]
+    finally:
+        for process in busy:
+            process.kill()
+            process.wait()
+    print(json.dumps({"seconds": seconds, "threads": threads, "load_average": load,
+                      "recompiles": graphs_compiled() - graphs}))
 
 
 def main() -> None:
@@ -116,7 +226,12 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     parser.add_argument("--seed", type=int, default=1, help="seed of the test conditions (default 1)")
     parser.add_argument("--cache", default="runs/bench_predict", help="model cache folder")
+    parser.add_argument("--quick", action="store_true",
+                        help="48 conditions, no straightforward evaluation (under 15 min on 2 cores)")
+    parser.add_argument("--loaded", action="store_true", help=argparse.SUPPRESS)  # measure_loaded's process
     args = parser.parse_args()
+    if args.quick:
+        args.conditions, args.straightforward_every = 48, 0
     declare_long_run()  # hundreds of predictions: the fast path is measured compiled (PUSHTORCH_COMPILE=0: eager)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -124,6 +239,9 @@ def main() -> None:
     folder.mkdir(parents=True, exist_ok=True)
     model = paper_size_model(args.object, args.pushes, folder)
     obj = load_object(args.object)
+    if args.loaded:
+        loaded_child(args, model, obj)
+        return
     s = model.settings
     print(f"model {args.object}: {len(model.motions[0].environment)} environment / "
           f"{len(model.motions[0].manipulator)} manipulator kernels per action; settings: "
@@ -133,26 +251,10 @@ def main() -> None:
           f"compiled={fast_path_compiled()} "
           f"load_average={os.getloadavg()[0]:.2f}")
 
-    g = torch.Generator().manual_seed(args.seed)
-    conditions = []
-    feature_seconds = []
-    for i in range(args.conditions + 1):
-        yaw = (float(torch.rand(1, generator=g)) - 0.5) * math.pi / 2
-        truth0 = obj.resting_pose(x=0.0, y=0.0, yaw=yaw)
-        cloud = capture_partial_cloud(obj, truth0)
-        started = time.perf_counter()
-        features = compute_surface_features(cloud, radius=s.feature_radius)
-        feature_seconds.append(time.perf_counter() - started)
-        conditions.append((truth0, features, model.actions[i % len(model.actions)]))
-
-    warm_truth, warm_features, warm_action = conditions.pop()
-    started = time.perf_counter()
-    predict(model, warm_features, warm_action, torch.Generator().manual_seed(10_000), method="fast")
-    predict(model, warm_features, warm_action, torch.Generator().manual_seed(10_001), method="fast")
-    batch = min(args.batch_size, len(conditions))
-    predict_many(model, [warm_features] * batch, warm_action, seed=10_002, method="fast", batch_size=batch)
-    warm = time.perf_counter() - started
-    print(f"warm-up (compilation) of the fast path, single and batched: {warm:.1f} s")
+    conditions, feature_seconds = test_conditions(model, obj, args.conditions, args.seed)
+    warm = warm_up(model, conditions.pop()[1:], min(args.batch_size, len(conditions)))
+    graphs_after_warm_up = graphs_compiled()
+    print(f"warm-up (compilation) of the fast path, single and batched: {warm:.1f} s, {graphs_after_warm_up} graphs")
 
     seconds = {"dense": [], "fast": []}
     scores = {"dense": [], "fast": []}
@@ -175,7 +277,16 @@ def main() -> None:
     batched_seconds = (time.perf_counter() - started) / len(conditions)
     batched_scores = [hacc(obj, p, c[0], c[2]) for p, c in zip(batched, conditions, strict=True)]
 
+    recompiles = graphs_compiled() - graphs_after_warm_up
+    loaded = measure_loaded(args)
+    loaded_seconds = loaded["seconds"]
+    recompiles += loaded["recompiles"]
+    print(f"fast under load (2 busy simulation processes, {loaded['threads']} torch thread(s) set before "
+          f"compiling, load average {loaded['load_average']:.2f}): median {statistics.median(loaded_seconds):.3f} s, "
+          f"max {max(loaded_seconds):.3f} s, {loaded['recompiles']} recompiles")
+
     p50 = {m: statistics.median(v) for m, v in seconds.items()}
+    p95 = statistics.quantiles(seconds["fast"], n=20)[-1] if len(seconds["fast"]) > 1 else seconds["fast"][0]
     mean = {m: statistics.fmean(v) for m, v in scores.items()}
     difference = [f - d for f, d in zip(scores["fast"], scores["dense"], strict=True)]
     spread = statistics.stdev(difference) / math.sqrt(len(difference)) if len(difference) > 1 else math.nan
@@ -189,7 +300,13 @@ def main() -> None:
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kB on Linux
     print(f"load_average={os.getloadavg()[0]:.2f} peak_rss={peak_mb:.0f} MB (whole run so far: both paths)")
 
-    subset = range(0, len(conditions), max(1, args.straightforward_every))
+    summary = (f"p50_s={p50['fast']:.4f} p95_s={p95:.4f} loaded_p50_s={statistics.median(loaded_seconds):.4f} "
+               f"batched_s={batched_seconds:.4f} peak_mb={peak_mb:.0f} recompiles={recompiles} "
+               f"ratio={p50['dense'] / p50['fast']:.1f} hacc_fast={mean['fast']:.4f} hacc_dense={mean['dense']:.4f}")
+    if args.straightforward_every <= 0:
+        print(summary)
+        return
+    subset = range(0, len(conditions), args.straightforward_every)
     plain_seconds, plain_scores, offsets_mm = [], [], []
     for i in subset:
         truth0, features, action = conditions[i]
@@ -211,8 +328,7 @@ def main() -> None:
           f"{len(offsets_mm)}, median {statistics.median(offsets_mm):.3f} mm apart)")
     print(f"ratios: straightforward / fast {p50_plain / p50['fast']:.1f}, straightforward / dense "
           f"{p50_plain / p50['dense']:.2f}")
-    print(f"p50_s={p50['fast']:.4f} ratio={p50['dense'] / p50['fast']:.1f} "
-          f"hacc_fast={mean['fast']:.4f} hacc_dense={mean['dense']:.4f}")
+    print(summary)
 
 
 if __name__ == "__main__":
