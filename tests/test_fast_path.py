@@ -23,9 +23,9 @@ from pushtorch.kde import (
     PoseKDE,
     ProductOfExperts,
     SharedKernelProduct,
-    _FastIndex,
     fused_function,
 )
+from pushtorch.kde.fast_index import _FastIndex
 from pushtorch.models.frames import embed_descriptors
 from pushtorch.models.query import (
     _fast_kernel_draws,

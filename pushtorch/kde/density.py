@@ -1,0 +1,833 @@
+"""The weighted kernel density over SE(3) (× descriptors), :class:`PoseKDE` (Eqs. surface_feature_kernel,
+surface_feature_probability): its dense reference evaluation, the textbook one (:func:`straightforward_evaluation`),
+mean shift, trial rounds and sampling; the fast path lives in :mod:`pushtorch.kde.fused` and
+:mod:`pushtorch.kde.fast_index`."""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import math
+from collections.abc import Iterator, Sequence
+
+import torch
+from pytorch_kinematics import transforms as pkt
+
+from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
+from pushtorch.kde.bandwidth import KernelBandwidth, TrialRounds
+from pushtorch.kde.fast_index import _FastIndex
+from pushtorch.kde.fused import (
+    _DEFAULT_BLOCK_ELEMENTS,
+    _descriptor_sums,
+    _linear_sums_exact,
+    fast_path_compiled,
+    fused_function,
+)
+from pushtorch.kde.sampling import _sample_rotation_offsets, _sample_translation_offsets
+from pushtorch.se3 import Pose, check_unit_quaternion
+
+Tensor = torch.Tensor
+
+
+
+# --------------------------------------------------------------------------------------------------
+# The density
+# --------------------------------------------------------------------------------------------------
+
+
+def _augment_query(x: Tensor) -> Tensor:
+    """``[x, 1, |x|²]`` so that ``aug(x) @ aug_kernel(μ)ᵀ = s (|x|² − 2 x·μ + |μ|²)`` is one matmul."""
+    return torch.cat([x, torch.ones_like(x[..., :1]), (x * x).sum(-1, keepdim=True)], -1)
+
+
+def _augment_kernel(mu: Tensor, scale: Tensor) -> Tensor:
+    """``scale · [−2 μ, |μ|², 1]``; ``scale`` broadcasts over ``mu``'s batch dims as ``(*B, 1, 1)``."""
+    aug = torch.cat([-2.0 * mu, (mu * mu).sum(-1, keepdim=True), torch.ones_like(mu[..., :1])], -1)
+    return aug * scale
+
+
+_STRAIGHTFORWARD = contextvars.ContextVar("pushtorch_straightforward_evaluation", default=False)
+
+
+@contextlib.contextmanager
+def straightforward_evaluation() -> Iterator[None]:
+    """Within this block, ``method="dense"`` log densities are evaluated the straightforward way.
+
+    Every query against every kernel in one block per density (no chunking, no expansion around the
+    kernel centre, no in-place passes): ``d_p`` from ``torch.cdist``, ``d_q`` from the quaternion dot
+    product, the cut-offs as masks, ``logsumexp`` over the kernels; a stacked density (e.g. the experts
+    of a product) is evaluated one element at a time on its own kernels, padding left out. The values
+    are those of the dense reference up to float rounding. It is the baseline issue 6 sized (timed by
+    ``tools/bench_predict.py`` beside the dense reference) and an independent check of the dense and
+    fast paths. Memory is a whole ``(queries, kernels)`` block per density, not bounded by chunks, so
+    the library itself never evaluates this way. Scoped to the current thread or task (a context
+    variable), like ``torch.no_grad``.
+
+    Example:
+        >>> with straightforward_evaluation():
+        ...     prediction = predict(model, cloud, action, generator, method="dense")  # doctest: +SKIP
+    """
+    token = _STRAIGHTFORWARD.set(True)
+    try:
+        yield
+    finally:
+        _STRAIGHTFORWARD.reset(token)
+
+
+class PoseKDE:
+    """A weighted kernel density over SE(3) (× R^k descriptors) with the paper's cut-off kernels.
+
+    ``P(x) ≈ Σ_i w_i K(x | μ_i)`` with ``K = N3(p) Θ(q) N2(r)`` (Eq. surface_feature_kernel, its
+    approximations and Eq. surface_feature_probability), batched: the kernel tensors carry leading batch
+    dims ``*B`` (e.g. one density per problem, or one per expert of a product of experts) and a kernel dim
+    ``N``. Kernels with weight ``-inf`` are padding, so densities with different kernel counts stack
+    into one tensor (:meth:`stack`). Trial rounds are per batch element: ``trial_rounds (*B, 3)``.
+
+    Args:
+        means: kernel means, a Pose with ``p (*B, N, 3)`` and ``q (*B, N, 4)`` (unit, w,x,y,z).
+        bandwidth: the shared :class:`KernelBandwidth`.
+        log_weights: ``(*B, N)`` unnormalised log-weights (normalised here with logsumexp over N);
+            ``-inf`` marks padding. Default: uniform.
+        descriptors: kernel descriptors ``(*B, N, k)``; required iff ``bandwidth.r_std`` is set (k each).
+        trial_rounds: initial T, a :class:`TrialRounds` for all batch elements or an int tensor
+            ``(*B, 3)``/``(3,)``. Default (0, 0, 0).
+        validate_args: check the queries of every call (unit quaternions, finite values). The kernel
+            arguments are always checked.
+
+    Raises:
+        InvalidPoseError: malformed means.
+        InvalidParameterError: shapes that do not match, NaN/+inf weights, a batch element whose weights
+            are all ``-inf``, descriptors missing or of the wrong size.
+
+    Example:
+        >>> bw = KernelBandwidth(p_std=0.01, rot_std=0.1)
+        >>> kde = PoseKDE(Pose(torch.zeros(5, 3), torch.tensor([[1.0, 0, 0, 0]]).expand(5, 4)), bw)
+        >>> kde.log_prob(Pose(torch.zeros(2, 3), torch.tensor([[1.0, 0, 0, 0]]).expand(2, 4))).shape
+        torch.Size([2])
+    """
+
+    def __init__(
+        self,
+        means: Pose,
+        bandwidth: KernelBandwidth,
+        log_weights: Tensor | None = None,
+        descriptors: Tensor | None = None,
+        trial_rounds: TrialRounds | Tensor | None = None,
+        validate_args: bool = True,
+    ) -> None:
+        if not isinstance(bandwidth, KernelBandwidth):
+            raise InvalidParameterError(
+                f"bandwidth must be a KernelBandwidth, got {type(bandwidth).__name__}"
+            )
+        p, q = means
+        if p.dim() < 2 or p.shape[-1] != 3:
+            raise InvalidPoseError(f"kernel means p must have shape (*B, N, 3), got {tuple(p.shape)}")
+        if q.dim() < 2 or q.shape[-1] != 4:
+            raise InvalidPoseError(f"kernel means q must have shape (*B, N, 4) w,x,y,z, got {tuple(q.shape)}")
+        if not p.is_floating_point():
+            raise InvalidPoseError(f"kernel means must be floating point, got {p.dtype}")
+        if not torch.isfinite(p).all():
+            raise InvalidPoseError("kernel means p hold NaN or infinite values")
+        check_unit_quaternion(q, name="kernel means q")
+        dtype, device = p.dtype, p.device
+        q = q.to(dtype)
+        shapes = [p.shape[:-1], q.shape[:-1]]
+        if log_weights is not None:
+            log_weights = torch.as_tensor(log_weights, device=device).to(dtype)
+            shapes.append(log_weights.shape)
+        if (descriptors is None) != (bandwidth.r_std is None):
+            raise InvalidParameterError(
+                "kernel descriptors and bandwidth.r_std must be given together"
+                f" (descriptors {'missing' if descriptors is None else 'given'},"
+                f" r_std {'missing' if bandwidth.r_std is None else 'given'})"
+            )
+        if descriptors is not None:
+            descriptors = torch.as_tensor(descriptors, device=device).to(dtype)
+            if descriptors.dim() < 2 or descriptors.shape[-1] != bandwidth.descriptor_dim:
+                raise InvalidParameterError(
+                    f"kernel descriptors must have shape (*B, N, {bandwidth.descriptor_dim}) to match r_std,"
+                    f" got {tuple(descriptors.shape)}"
+                )
+            if not torch.isfinite(descriptors).all():
+                raise InvalidParameterError("kernel descriptors hold NaN or infinite values")
+            shapes.append(descriptors.shape[:-1])
+        try:
+            full = torch.broadcast_shapes(*shapes)
+        except RuntimeError as exc:
+            raise InvalidParameterError(
+                f"kernel tensors do not broadcast to one (*B, N): {[tuple(s) for s in shapes]}"
+            ) from exc
+        if full[-1] == 0:
+            raise InvalidParameterError("a kernel density needs at least one kernel (N = 0)")
+        if log_weights is None:
+            log_weights = torch.zeros(full, dtype=dtype, device=device)
+        if torch.isnan(log_weights).any() or (log_weights == math.inf).any():
+            raise InvalidParameterError("kernel log-weights hold NaN or +inf (use -inf for padding)")
+        log_weights = log_weights.expand(full)
+        total = torch.logsumexp(log_weights, -1, keepdim=True)
+        if (total == -math.inf).any():
+            raise InvalidParameterError("every kernel weight of some batch element is zero (-inf log-weight)")
+        batch = full[:-1]
+        self._p = p.expand(*full, 3).contiguous()
+        self._q = q.expand(*full, 4).contiguous()
+        self._r = None
+        if descriptors is not None:
+            self._r = descriptors.expand(*full, descriptors.shape[-1]).contiguous()
+        self._log_w = (log_weights - total).contiguous()
+        self.bandwidth = bandwidth
+        self.validate_args = validate_args
+        self._trial_rounds = self._rounds_tensor(trial_rounds, batch, device)
+        self._precompute()
+
+    # -- construction helpers ------------------------------------------------------------------
+
+    @staticmethod
+    def _rounds_tensor(rounds: TrialRounds | Tensor | None, batch: torch.Size, device) -> Tensor:
+        if rounds is None:
+            rounds = TrialRounds()
+        if isinstance(rounds, TrialRounds):
+            t = rounds.as_tensor(device)
+        else:
+            t = torch.as_tensor(rounds, device=device)
+            if t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
+                raise InvalidParameterError(f"trial rounds must be an integer tensor, got {t.dtype}")
+            if (t < 0).any():
+                raise InvalidParameterError("trial rounds must be >= 0")
+            t = t.to(torch.int64)
+        if t.shape[-1:] != (3,):
+            raise InvalidParameterError(f"trial rounds must have shape (*B, 3) or (3,), got {tuple(t.shape)}")
+        try:
+            return t.expand(*batch, 3).contiguous()
+        except RuntimeError as exc:
+            raise InvalidParameterError(
+                f"trial rounds of shape {tuple(t.shape)} do not match the batch shape {tuple(batch)}"
+            ) from exc
+
+    def _precompute(self) -> None:
+        """Scaled kernel matrices so that every chunk needs one matmul per factor."""
+        bw = self.bandwidth
+        dtype = self._p.dtype
+        self._beta = torch.pow(
+            torch.tensor(bw.alpha_t, dtype=torch.float64, device=self._p.device), -self._trial_rounds.double()
+        ).to(dtype)  # (*B, 3)
+        weights = self._log_w.exp().unsqueeze(-1)  # padding kernels get 0 weight in the centre
+        # Centring on the weighted kernel mean keeps the expanded |x|² − 2x·μ + |μ|² well conditioned.
+        self._p_centre = (weights * self._p).sum(-2, keepdim=True)
+        # Kernel matrices carry the minus sign and β/σ, so one matmul yields −β d directly.
+        scale_p = -(self._beta[..., 0] / bw.sigma_p)[..., None, None]
+        self._p_aug_t = _augment_kernel(self._p - self._p_centre, scale_p).transpose(-1, -2).contiguous()
+        self._kappa = (self._beta[..., 1] / bw.sigma_q)[..., None, None]  # κ = β_q / σ_q, (*B, 1, 1)
+        self._q_kappa_t = (self._q * self._kappa).transpose(-1, -2).contiguous()
+        if self._r is not None:
+            sigma_r = torch.tensor(bw.sigma_r, dtype=torch.float64)
+            inv_sqrt_sigma = sigma_r.rsqrt().to(dtype=dtype, device=self._r.device)
+            self._r_inv_sqrt_sigma = inv_sqrt_sigma
+            self._r_centre = (weights * self._r).sum(-2, keepdim=True)
+            scale_r = -self._beta[..., 2][..., None, None]
+            mu_r = (self._r - self._r_centre) * inv_sqrt_sigma
+            self._r_aug_t = _augment_kernel(mu_r, scale_r).transpose(-1, -2).contiguous()
+
+    def _replace(self, **changes) -> PoseKDE:
+        new = object.__new__(PoseKDE)
+        new.__dict__.update(self.__dict__)
+        new.__dict__.update(changes)
+        new.__dict__.pop("_fast_index", None)  # built from the old kernels / trial rounds
+        new.__dict__.pop("_fast_descriptor_table", None)
+        new._precompute()
+        return new
+
+    # -- properties ----------------------------------------------------------------------------
+
+    @property
+    def means(self) -> Pose:
+        """Kernel means, ``p (*B, N, 3)``, ``q (*B, N, 4)``."""
+        return Pose(self._p, self._q)
+
+    @property
+    def descriptors(self) -> Tensor | None:
+        """Kernel descriptors ``(*B, N, k)`` or None."""
+        return self._r
+
+    @property
+    def log_weights(self) -> Tensor:
+        """Normalised log-weights ``(*B, N)`` (logsumexp over N is 0; padding is -inf)."""
+        return self._log_w
+
+    @property
+    def trial_rounds(self) -> Tensor:
+        """``(*B, 3)`` int64 trial rounds (T_p, T_q, T_r) of each batch element."""
+        return self._trial_rounds
+
+    @property
+    def beta(self) -> Tensor:
+        """``(*B, 3)`` bandwidth multipliers (β_p, β_q, β_r) = α_T^(−T)."""
+        return self._beta
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self._log_w.shape[:-1]
+
+    @property
+    def num_kernels(self) -> int:
+        """N, the size of the kernel dim (padding included)."""
+        return self._log_w.shape[-1]
+
+    @property
+    def descriptor_dim(self) -> int:
+        return 0 if self._r is None else self._r.shape[-1]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self._p.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self._p.device
+
+    def __repr__(self) -> str:
+        return (
+            f"PoseKDE(batch_shape={tuple(self.batch_shape)}, num_kernels={self.num_kernels},"
+            f" descriptor_dim={self.descriptor_dim}, bandwidth={self.bandwidth})"
+        )
+
+    def to(self, *args, **kwargs) -> PoseKDE:
+        """Move/cast like ``Tensor.to``; a floating dtype applies to every floating tensor."""
+        moved = {
+            "_p": self._p.to(*args, **kwargs),
+            "_q": self._q.to(*args, **kwargs),
+            "_log_w": self._log_w.to(*args, **kwargs),
+            "_r": None if self._r is None else self._r.to(*args, **kwargs),
+        }
+        moved["_trial_rounds"] = self._trial_rounds.to(moved["_p"].device)
+        return self._replace(**moved)
+
+    def with_trial_rounds(self, rounds: TrialRounds | Tensor) -> PoseKDE:
+        """The same kernels with other trial rounds (a TrialRounds for all, or ``(*B, 3)``/``(3,)``)."""
+        return self._replace(_trial_rounds=self._rounds_tensor(rounds, self.batch_shape, self.device))
+
+    @staticmethod
+    def stack(kdes: Sequence[PoseKDE]) -> PoseKDE:
+        """Stack densities along a new leading batch dim, padding kernel counts with -inf weights.
+
+        Args:
+            kdes: densities with equal bandwidth, batch shape, descriptor dim, dtype and device.
+
+        Returns:
+            A PoseKDE of batch shape ``(len(kdes), *B)`` and ``max N`` kernels; each keeps its trial rounds.
+
+        Raises:
+            InvalidParameterError: an empty list or densities that differ in any of the above.
+        """
+        if len(kdes) == 0:
+            raise InvalidParameterError("stack needs at least one PoseKDE")
+        first = kdes[0]
+        for i, k in enumerate(kdes):
+            if (k.bandwidth, k.batch_shape, k.descriptor_dim, k.dtype, k.device) != (
+                first.bandwidth,
+                first.batch_shape,
+                first.descriptor_dim,
+                first.dtype,
+                first.device,
+            ):
+                raise InvalidParameterError(
+                    f"cannot stack PoseKDE {i}: bandwidth, batch shape, descriptor dim, dtype and device"
+                    " must match the first one"
+                )
+        n_max = max(k.num_kernels for k in kdes)
+
+        def pad(t: Tensor, n: int, value: float) -> Tensor:
+            extra = n_max - n
+            if extra == 0:
+                return t
+            filler = torch.full((*t.shape[:-2], extra, t.shape[-1]), value, dtype=t.dtype, device=t.device)
+            return torch.cat([t, filler], -2)
+
+        p = torch.stack([pad(k._p, k.num_kernels, 0.0) for k in kdes])
+        q_parts = []
+        for k in kdes:
+            qk = pad(k._q, k.num_kernels, 0.0)
+            qk[..., k.num_kernels :, 0] = 1.0
+            q_parts.append(qk)
+        log_w = torch.stack([pad(k._log_w.unsqueeze(-1), k.num_kernels, -math.inf).squeeze(-1) for k in kdes])
+        r = None if first._r is None else torch.stack([pad(k._r, k.num_kernels, 0.0) for k in kdes])
+        return PoseKDE(
+            Pose(p, torch.stack(q_parts)),
+            first.bandwidth,
+            log_w,
+            r,
+            torch.stack([k._trial_rounds for k in kdes]),
+            validate_args=first.validate_args,
+        )
+
+    # -- queries -------------------------------------------------------------------------------
+
+    def _prepare_queries(
+        self, pose: Pose, descriptors: Tensor | None
+    ) -> tuple[Tensor, Tensor, Tensor | None]:
+        p, q = pose
+        if p.dim() < 2 or p.shape[-1] != 3 or q.dim() < 2 or q.shape[-1] != 4:
+            raise InvalidPoseError(
+                f"query poses need p (..., M, 3) and q (..., M, 4); got {tuple(p.shape)} and {tuple(q.shape)}"
+            )
+        p = p.to(self.dtype)
+        q = q.to(self.dtype)
+        try:
+            shape = torch.broadcast_shapes(p.shape[:-1], q.shape[:-1])
+        except RuntimeError as exc:
+            raise InvalidPoseError(
+                f"query p {tuple(p.shape)} and q {tuple(q.shape)} do not broadcast"
+            ) from exc
+        if descriptors is not None:
+            if self._r is None:
+                raise InvalidParameterError("query descriptors given to a PoseKDE built without descriptors")
+            descriptors = descriptors.to(self.dtype)
+            if descriptors.shape[-1:] != (self.descriptor_dim,):
+                raise InvalidParameterError(
+                    f"query descriptors must have shape (..., M, {self.descriptor_dim}),"
+                    f" got {tuple(descriptors.shape)}"
+                )
+            try:
+                shape = torch.broadcast_shapes(shape, descriptors.shape[:-1])
+            except RuntimeError as exc:
+                raise InvalidParameterError(
+                    f"query descriptors {tuple(descriptors.shape)} do not broadcast with the poses"
+                    f" {tuple(shape)}"
+                ) from exc
+            descriptors = descriptors.expand(*shape, self.descriptor_dim)
+        try:
+            torch.broadcast_shapes(shape[:-1], self.batch_shape)
+        except RuntimeError as exc:
+            raise InvalidPoseError(
+                f"query batch dims {tuple(shape[:-1])} do not broadcast with the density's batch shape"
+                f" {tuple(self.batch_shape)} (queries are (..., M))"
+            ) from exc
+        p = p.expand(*shape, 3)
+        q = q.expand(*shape, 4)
+        if self.validate_args:
+            if not torch.isfinite(p).all():
+                raise InvalidPoseError("query positions hold NaN or infinite values")
+            check_unit_quaternion(q, name="query q")
+            if descriptors is not None and not torch.isfinite(descriptors).all():
+                raise InvalidParameterError("query descriptors hold NaN or infinite values")
+        return p, q, descriptors
+
+    def _chunk_size(self, query_batch: torch.Size, chunk_size: int | None) -> int:
+        if chunk_size is not None:
+            if isinstance(chunk_size, bool) or int(chunk_size) != chunk_size or chunk_size < 1:
+                raise InvalidParameterError(f"chunk_size must be a positive integer, got {chunk_size!r}")
+            return int(chunk_size)
+        batch = torch.broadcast_shapes(query_batch, self.batch_shape).numel()
+        return max(1, _DEFAULT_BLOCK_ELEMENTS // max(1, batch * self.num_kernels))
+
+    def _neg_terms(self, p: Tensor, q: Tensor, r: Tensor | None, inplace: bool = True
+                   ) -> tuple[Tensor, Tensor, Tensor | None]:
+        """−β·d of each factor for a chunk of queries: ``(*BB, m, N)`` tensors (r: None if unused).
+
+        One matmul per factor plus in-place element-wise passes: this is the hot path of every density
+        evaluation, so it avoids boolean masks and ``where`` (several times slower on CPU). ``inplace=False``
+        does the same out of place, for queries autograd follows (in place, it would overwrite what the
+        backward pass needs).
+        """
+        clamp = torch.Tensor.clamp_max_ if inplace else torch.Tensor.clamp_max
+        dot = torch.matmul(q, self._q_kappa_t)
+        neg_p = clamp(torch.matmul(_augment_query(p - self._p_centre), self._p_aug_t), 0.0)
+        neg_q = clamp(dot.abs_().sub_(self._kappa) if inplace else dot.abs() - self._kappa, 0.0)
+        neg_r = None
+        if r is not None:
+            x = (r - self._r_centre) * self._r_inv_sqrt_sigma
+            neg_r = clamp(torch.matmul(_augment_query(x), self._r_aug_t), 0.0)
+        return neg_p, neg_q, neg_r
+
+    def _scaled_terms(self, p: Tensor, q: Tensor, r: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
+        """β·d of each factor, computed exactly as in :meth:`log_prob` (negation is exact)."""
+        neg_p, neg_q, neg_r = self._neg_terms(p, q, r)
+        return neg_p.neg_(), neg_q.neg_(), (None if neg_r is None else neg_r.neg_())
+
+    def _chunk_log_kernels(self, p: Tensor, q: Tensor, r: Tensor | None, with_weights: bool,
+                           inplace: bool = True) -> Tensor:
+        """log(w_i K(x|μ_i)) (or log K) for a chunk: ``(*BB, m, N)``, -inf where a factor is cut off
+        (``inplace`` as :meth:`_neg_terms`)."""
+        terms = self._neg_terms(p, q, r, inplace)
+        total = None
+        for neg, delta in zip(terms, self.bandwidth.delta, strict=True):
+            if neg is None:
+                continue
+            # keeps x where x > −δ (β d < δ) and writes −inf elsewhere: the paper's cut-off
+            if inplace:
+                torch.nn.functional.threshold_(neg, -delta, -math.inf)
+            else:
+                neg = torch.where(neg > -delta, neg, torch.full_like(neg, -math.inf))
+            total = neg if total is None else (total.add_(neg) if inplace else total + neg)
+        assert total is not None
+        if with_weights:
+            total = total.add_(self._log_w.unsqueeze(-2)) if inplace else total + self._log_w.unsqueeze(-2)
+        return total
+
+    def _iter_chunks(self, pose: Pose, descriptors: Tensor | None, chunk_size: int | None):
+        p, q, r = self._prepare_queries(pose, descriptors)
+        m = p.shape[-2]
+        step = self._chunk_size(p.shape[:-2], chunk_size)
+        for start in range(0, m, step):
+            sl = slice(start, start + step)
+            yield p[..., sl, :], q[..., sl, :], (None if r is None else r[..., sl, :])
+
+    def log_prob(
+        self,
+        pose: Pose,
+        descriptors: Tensor | None = None,
+        chunk_size: int | None = None,
+        method: str = "dense",
+    ) -> Tensor:
+        """log P(x) = log Σ_i w_i K(x | μ_i) with the hard cut-offs (Eq. surface_feature_probability).
+
+        Args:
+            pose: query poses, ``p (*B', M, 3)``, ``q (*B', M, 4)``; ``*B'`` broadcasts with ``batch_shape``.
+            descriptors: query descriptors ``(*B', M, k)``; None evaluates the density over SE(3) alone
+                (marginal over descriptors, see the module docstring).
+            chunk_size: queries per dense ``(chunk, N)`` block; None picks one bounded in memory.
+            method: ``"dense"`` (the reference: every query against every kernel) or ``"fast"``:
+                exact distances evaluated in fused passes (compiled, see :func:`fast_path_compiled`),
+                for more than ``FAST_DENSE_KERNELS`` kernels only on the leaf blocks the cut-offs let
+                reach a query. Same values up to float rounding; the kernel layout is built on first
+                use and cached. Queries with descriptors are fused without pruning (one density, batch
+                shape ``()``); weights spanning more than ~e^60, descriptors on a batched density and
+                small densities without a compiler take the dense path.
+
+        Returns:
+            ``(*broadcast(B, B'), M)`` log densities (unnormalised kernels, ``K(μ|μ) = 1``); ``-inf``
+            where every kernel is cut off.
+
+        Raises:
+            InvalidPoseError / InvalidParameterError: malformed queries.
+
+        Precision: the dense path expands squared distances (|x|² − 2x·μ + |μ|², one matmul) around the
+        weighted kernel centre, so in float32 the error of β d_p is about 1e-7 · (distance to that
+        centre / p_std)² and that of β d_q about 1e-7 · κ (both paths); use float64 densities for
+        extreme ratios. The fast path subtracts directly.
+        """
+        if method not in ("dense", "fast"):
+            raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
+        if method == "fast" and descriptors is None:
+            index = self.fast_index()
+            # uncompiled, the dense reference is as fast as an eager fused pass for small densities
+            if index.linear and (index.blocks or fast_path_compiled(self.device)):
+                p, q, _ = self._prepare_queries(pose, None)
+                return index.log_prob(p, q)
+        if method == "fast" and descriptors is not None and len(self.batch_shape) == 0:
+            table = self._descriptor_table()
+            if table is not None:
+                p, q, r = self._prepare_queries(pose, descriptors)
+                return self._fast_log_prob_descriptors(table, p, q, r)
+        if _STRAIGHTFORWARD.get():
+            return self._straightforward_log_prob(*self._prepare_queries(pose, descriptors))
+        inplace = not _needs_grad(pose, descriptors)
+        out = [
+            _logsumexp_last(self._chunk_log_kernels(p, q, r, with_weights=True, inplace=inplace), inplace)
+            for p, q, r in self._iter_chunks(pose, descriptors, chunk_size)
+        ]
+        if not out:  # M = 0
+            p, _, _ = self._prepare_queries(pose, descriptors)
+            shape = torch.broadcast_shapes(p.shape[:-2], self.batch_shape) + (0,)
+            return torch.empty(shape, dtype=self.dtype, device=self.device)
+        return torch.cat(out, -1)
+
+    def _straightforward_log_prob(self, p: Tensor, q: Tensor, r: Tensor | None) -> Tensor:
+        """log_prob the textbook way (see :func:`straightforward_evaluation`): ``(*BB, M)``."""
+        batch = torch.broadcast_shapes(p.shape[:-2], self.batch_shape)
+        m, n = p.shape[-2], self.num_kernels
+        flat = batch.numel()
+        p = p.expand(*batch, m, 3).reshape(flat, m, 3)
+        q = q.expand(*batch, m, 4).reshape(flat, m, 4)
+        kernel_p = self._p.expand(*batch, n, 3).reshape(flat, n, 3)
+        kernel_q = self._q.expand(*batch, n, 4).reshape(flat, n, 4)
+        log_w = self._log_w.expand(*batch, n).reshape(flat, n)
+        beta = self._beta.expand(*batch, 3).reshape(flat, 3)
+        bw = self.bandwidth
+        delta_p, delta_q, delta_r = bw.delta
+        if r is not None:
+            inv_sqrt_sigma = torch.tensor(bw.sigma_r, dtype=torch.float64).rsqrt().to(self.device, self.dtype)
+            k = r.shape[-1]
+            r = (r * inv_sqrt_sigma).expand(*batch, m, k).reshape(flat, m, k)
+            kernel_r = (self._r * inv_sqrt_sigma).expand(*batch, n, k).reshape(flat, n, k)
+        out = []
+        for b in range(flat):
+            keep = log_w[b] > -math.inf  # padding kernels of a stacked density are not kernels
+            d_p = torch.cdist(p[b], kernel_p[b][keep]).square() * (beta[b, 0] / bw.sigma_p)
+            d_q = (1.0 - (q[b] @ kernel_q[b][keep].T).abs().clamp(max=1.0)) * (beta[b, 1] / bw.sigma_q)
+            inside = (d_p < delta_p) & (d_q < delta_q)
+            distance = d_p + d_q
+            if r is not None:
+                d_r = torch.cdist(r[b], kernel_r[b][keep]).square() * beta[b, 2]
+                inside &= d_r < delta_r
+                distance = distance + d_r
+            log_kernels = torch.where(inside, log_w[b][keep] - distance, -math.inf)
+            out.append(torch.logsumexp(log_kernels, -1))
+        return torch.stack(out).reshape(*batch, m) if out else p.new_empty(*batch, m)
+
+    def _descriptor_table(self) -> tuple[Tensor, Tensor] | None:
+        """Kernels as rows ``(8 + k, N)`` (p, q, log w relative to the largest, r) and that largest log w,
+        for the fused pass with descriptors; None when the weights cannot be summed in the linear domain.
+        Built on first use and cached."""
+        if "_fast_descriptor_table" not in self.__dict__:
+            top = self._log_w.amax()
+            relative = self._log_w - top
+            rows = torch.cat([self._p, self._q, relative.unsqueeze(-1), self._r], -1).T.contiguous()
+            self._fast_descriptor_table = (rows, top) if _linear_sums_exact(relative) else None
+        return self._fast_descriptor_table
+
+    def _fast_log_prob_descriptors(self, table: tuple[Tensor, Tensor], p: Tensor, q: Tensor, r: Tensor) -> Tensor:
+        """log_prob of one density (batch shape ()) with descriptors in one fused pass per chunk."""
+        rows, top = table
+        shape = p.shape[:-1]
+        x = torch.cat([p, q, r], -1).reshape(-1, p.shape[-1] + q.shape[-1] + r.shape[-1]).T.contiguous()
+        bw = self.bandwidth
+        beta = self._beta.double()
+        scale = torch.stack([beta[0] / bw.sigma_p, beta[1] / bw.sigma_q, beta[2]]).to(self.dtype)
+        r_scale = (1.0 / torch.tensor(bw.sigma_r, dtype=torch.float64)).to(device=x.device, dtype=self.dtype)
+        evaluate = fused_function("descriptor_sums", _descriptor_sums, x.device)
+        step = max(1, _DEFAULT_BLOCK_ELEMENTS // rows.shape[1])
+        total = torch.cat([evaluate(x[:, s : s + step], rows, scale, r_scale, *bw.delta)
+                           for s in range(0, x.shape[1], step)])
+        return (torch.log(total) + top).reshape(shape)
+
+    def mean_shift(self, pose: Pose, chunk_size: int | None = None, method: str = "dense") -> Pose:
+        """One mean-shift step of every query towards a local mode of the density over SE(3).
+
+        With responsibilities ``a_i ∝ w_i K(x | μ_i)`` (cut-offs included) the step is
+        ``p ← Σ a_i μ_p,i`` and ``q ← normalise(Σ a_i s_i μ_q,i)``, ``s_i = sign<q, μ_q,i>``: the
+        fixed-point equations of a maximum of ``Σ w_i K(x | μ_i)`` (the Gaussian's and the vMF's
+        stationarity conditions), so a mode is a fixed point. A query of zero density stays where it is.
+        ``method="fast"`` sums the moments over the leaf blocks in reach (large densities only);
+        ``"dense"`` forms every query's responsibilities. Poses ``(*B', M)`` → ``(*broadcast, M)``.
+        """
+        if method not in ("dense", "fast"):
+            raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
+        if method == "fast" and self._r is None:
+            index = self.fast_index()
+            if index.linear and index.blocks:
+                p, q, _ = self._prepare_queries(pose, None)
+                return index.mean_shift(p, q)
+        new_p, new_q = [], []
+        for p, q, _ in self._iter_chunks(pose, None, chunk_size):
+            logits = self._chunk_log_kernels(p, q, None, with_weights=True)  # (*BB, m, N)
+            alive = torch.isfinite(logits).any(-1, keepdim=True)
+            a = torch.softmax(torch.where(alive, logits, torch.zeros_like(logits)), -1) * alive
+            sign = torch.where(q @ self._q.transpose(-1, -2) < 0, -1.0, 1.0).to(a.dtype)
+            moved_p = a @ self._p
+            moved_q = (a * sign) @ self._q
+            moved_q = moved_q / moved_q.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+            new_p.append(torch.where(alive, moved_p, p.expand_as(moved_p)))
+            new_q.append(torch.where(alive, moved_q, q.expand_as(moved_q)))
+        return Pose(torch.cat(new_p, -2), torch.cat(new_q, -2))
+
+    def fast_index(self) -> _FastIndex:
+        """The fast path's leaf blocks of this density (built on first use, then cached)."""
+        index = self.__dict__.get("_fast_index")
+        if index is None:
+            index = _FastIndex(self)
+            self._fast_index = index
+        return index
+
+    def __call__(self, pose: Pose, descriptors: Tensor | None = None) -> Tensor:
+        """Alias of :meth:`log_prob`, so a PoseKDE is itself a ``log_prob_fn`` for annealing."""
+        return self.log_prob(pose, descriptors)
+
+    def log_kernels(self, pose: Pose, descriptors: Tensor | None = None) -> Tensor:
+        """Per-kernel log K(x | μ_i) (weights not included): dense ``(*BB, M, N)``, -inf at cut-offs.
+
+        Use it for the contact-frame terms of Eq. pdf_motion; memory is ``M × N`` per batch element.
+        """
+        p, q, r = self._prepare_queries(pose, descriptors)
+        return self._chunk_log_kernels(p, q, r, with_weights=False)
+
+    def fitted_log_kernels(self, pose: Pose, descriptors: Tensor | None = None) -> tuple[PoseKDE, Tensor]:
+        """:meth:`fit_trial_rounds` then :meth:`log_kernels`: ``(fitted density, (*BB, M, N))``.
+
+        The log kernels are computed first; only if some batch element has no surviving (query, kernel)
+        pair are the trial rounds fitted and the kernels evaluated again, so the common, covered case
+        costs one pass instead of a coverage pass and an evaluation.
+        """
+        log_k = self.log_kernels(pose, descriptors)
+        survivors = torch.isfinite(log_k).any(-1).any(-1).to(torch.int64)  # (*BB)
+        if survivors.dim() > len(self.batch_shape):
+            survivors = survivors.sum(tuple(range(survivors.dim() - len(self.batch_shape))))
+        if bool((survivors.sum_to_size(self.batch_shape) > 0).all()):
+            return self, log_k
+        fitted = self.fit_trial_rounds(pose, descriptors)
+        return fitted, fitted.log_kernels(pose, descriptors)
+
+    def log_kernel_terms(self, pose: Pose, descriptors: Tensor | None = None) -> Tensor:
+        """The scaled distances β·d of each factor, dense ``(*BB, M, N, 3)`` in order (p, q, r).
+
+        The r column is 0 when no descriptors take part. A factor is cut off where its value is ≥ the
+        matching ``bandwidth.delta``; the trial-round search counts exactly these.
+        """
+        p, q, r = self._prepare_queries(pose, descriptors)
+        bd_p, bd_q, bd_r = self._scaled_terms(p, q, r)
+        if bd_r is None:
+            bd_r = torch.zeros_like(bd_p)
+        return torch.stack(torch.broadcast_tensors(bd_p, bd_q, bd_r), -1)
+
+    # -- trial rounds --------------------------------------------------------------------------
+
+    def _coverage(
+        self, pose: Pose, descriptors: Tensor | None, chunk_size: int | None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Per batch element: surviving (query, kernel) pairs ``(*B,)``, cut-offs per factor ``(*B, 3)``
+        and the smallest β·d per factor ``(*B, 3)``, over valid (non-padding) kernels."""
+        delta = self.bandwidth.delta
+        valid = self._log_w > -math.inf  # (*B, N)
+        batch = self.batch_shape
+        survivors = torch.zeros(batch, dtype=torch.int64, device=self.device)
+        cuts = torch.zeros(*batch, 3, dtype=torch.int64, device=self.device)
+        nearest = torch.full((*batch, 3), math.inf, dtype=self.dtype, device=self.device)
+        for p, q, r in self._iter_chunks(pose, descriptors, chunk_size):
+            terms = self._scaled_terms(p, q, r)
+            valid_b = valid.unsqueeze(-2).expand_as(terms[0])
+            alive = valid_b.clone()
+            for k, bd in enumerate(terms):
+                if bd is None:
+                    continue
+                cut = bd >= delta[k]
+                alive &= ~cut
+                cuts[..., k] += (cut & valid_b).sum((-1, -2)).sum_to_size(batch)
+                masked = bd.masked_fill(~valid_b, math.inf).amin((-1, -2))
+                while masked.dim() > len(batch):
+                    masked = masked.amin(0)
+                nearest[..., k] = torch.minimum(nearest[..., k], _amin_to_size(masked, batch))
+            survivors += alive.sum((-1, -2)).sum_to_size(batch)
+        return survivors, cuts, nearest
+
+    def fit_trial_rounds(
+        self, pose: Pose, descriptors: Tensor | None = None, chunk_size: int | None = None
+    ) -> PoseKDE:
+        """Widen the kernels by trial rounds until some (query, kernel) pair survives the cut-offs.
+
+        Paper (Kernel Density Estimation): a trial round fails when every (query, kernel) pair is cut
+        off by at least one factor; then one of T_p, T_q, T_r is incremented — the smallest, ties broken
+        by which factor (N3, Θ, N2) caused the most cut-offs — and β = α_T^(−T) recomputed. A factor
+        that cut off no pair is never raised (widening it cannot help); remaining ties go p, q, r.
+        Each batch element is fitted independently; queries broadcast as in :meth:`log_prob` and every
+        query batch that maps onto one density element counts toward that element.
+
+        Args:
+            pose: query poses ``(*B', M)``; descriptors: ``(*B', M, k)`` or None; chunk_size: as log_prob.
+
+        Returns:
+            A new PoseKDE with the fitted ``trial_rounds``; itself if no round fails or M = 0.
+
+        Raises:
+            ModelError: some element still fails when T_p + T_q + T_r reaches
+                ``bandwidth.max_trial_rounds``.
+        """
+        p, _, _ = self._prepare_queries(pose, descriptors)
+        if p.shape[-2] == 0:
+            return self
+        current = self
+        max_rounds = self.bandwidth.max_trial_rounds
+        while True:
+            survivors, cuts, nearest = current._coverage(pose, descriptors, chunk_size)
+            failed = survivors == 0
+            if not failed.any():
+                return current
+            rounds = current._trial_rounds
+            exhausted = failed & (rounds.sum(-1) >= max_rounds)
+            if exhausted.any():
+                where = exhausted.nonzero().tolist()
+                first = tuple(where[0])
+                raise ModelError(
+                    f"no kernel covers any query after {max_rounds} trial rounds"
+                    f" (T=(T_p, T_q, T_r)={tuple(rounds[first].tolist())}) for batch element(s)"
+                    f" {where[:5]}{'...' if len(where) > 5 else ''}; the smallest scaled distances β·d there"
+                    f" are (p, q, r)={tuple(round(v, 3) for v in nearest[first].tolist())} against cut-offs"
+                    f" δ={tuple(round(v, 3) for v in self.bandwidth.delta)}. The queries lie far outside the"
+                    " model: widen the bandwidth, relax cutoff_std or raise max_trial_rounds."
+                )
+            eligible = cuts > 0
+            big = torch.iinfo(torch.int64).max
+            masked_rounds = torch.where(eligible, rounds, torch.full_like(rounds, big))
+            smallest = masked_rounds.amin(-1, keepdim=True)
+            candidates = eligible & (rounds == smallest)
+            choice = torch.where(candidates, cuts, torch.full_like(cuts, -1)).argmax(-1)
+            step = torch.nn.functional.one_hot(choice, 3) * failed.unsqueeze(-1)
+            current = current._replace(_trial_rounds=rounds + step)
+
+    # -- sampling ------------------------------------------------------------------------------
+
+    def sample_kernels(self, n: int, generator: torch.Generator | None = None) -> Tensor:
+        """Kernel indices ``(*B, n)`` drawn with probability w_i (padding is never drawn)."""
+        if isinstance(n, bool) or int(n) != n or n < 0:
+            raise InvalidParameterError(f"number of samples must be an integer >= 0, got {n!r}")
+        n = int(n)
+        flat = self._log_w.reshape(-1, self.num_kernels).double().exp()
+        if n == 0:
+            return torch.zeros(*self.batch_shape, 0, dtype=torch.int64, device=self.device)
+        idx = torch.multinomial(flat, n, replacement=True, generator=generator)
+        return idx.reshape(*self.batch_shape, n)
+
+    def kernel_means(self, index: Tensor) -> Pose:
+        """Gather kernel means at ``index (*B, n)`` → Pose ``(*B, n)``."""
+        p = torch.gather(self._p, -2, index.unsqueeze(-1).expand(*index.shape, 3))
+        q = torch.gather(self._q, -2, index.unsqueeze(-1).expand(*index.shape, 4))
+        return Pose(p, q)
+
+    def sample(self, n: int, generator: torch.Generator | None = None) -> tuple[Pose, Tensor]:
+        """Draw ``n`` poses per batch element from the (cut-off) density over SE(3).
+
+        A kernel is chosen with probability w_i; the translation is the Gaussian of per-axis std
+        ``p_std / sqrt(β_p)`` around μ_p and the rotation the vMF pair of concentration
+        ``κ = β_q / σ_q`` around μ_q (rotation-vector std ``rot_std / sqrt(β_q)`` per axis), each
+        truncated at its cut-off exactly as :meth:`log_prob` evaluates it — every sample has a finite
+        log-density (up to float rounding on the cut-off boundary itself). All kernels share bandwidth
+        and cut-offs, so this samples exactly the normalised density. Descriptors are not sampled
+        (gather ``descriptors`` with the returned indices if needed).
+
+        Args:
+            n: samples per batch element; generator: a seeded torch.Generator for reproducibility.
+
+        Returns:
+            ``(Pose (*B, n), kernel index (*B, n))``; quaternions are on the kernel mean's hemisphere.
+        """
+        index = self.sample_kernels(n, generator)
+        mean = self.kernel_means(index)
+        delta_p, delta_q, _ = self.bandwidth.delta
+        beta = self._beta.double().unsqueeze(-2).expand(*index.shape, 3)
+        std = self.bandwidth.p_std / torch.sqrt(beta[..., 0])
+        offset = _sample_translation_offsets(std, delta_p, generator)
+        kappa = beta[..., 1] / self.bandwidth.sigma_q
+        around_identity = _sample_rotation_offsets(kappa, delta_q, generator)
+        p = mean.p + offset.to(self.dtype)
+        q = pkt.quaternion_raw_multiply(mean.q.double(), around_identity)
+        q = q / q.norm(dim=-1, keepdim=True)
+        return Pose(p, q.to(self.dtype)), index
+
+
+def _needs_grad(pose: Pose, descriptors: Tensor | None) -> bool:
+    """Whether autograd records a density evaluation of these queries."""
+    tensors = [pose.p, pose.q] + ([] if descriptors is None else [descriptors])
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+
+
+def _logsumexp_last(x: Tensor, inplace: bool = True) -> Tensor:
+    """logsumexp over the last dim; all ``-inf`` gives ``-inf``. In place (``x`` is consumed) unless
+    autograd follows ``x``.
+
+    ``torch.logsumexp`` over a long last dim is several times slower on CPU than these four passes. Out of
+    place, a row without a finite entry is taken as zeros and masked, so its gradient is 0, not the NaN of
+    exp(−inf + inf).
+    """
+    if not inplace:
+        reached = torch.isfinite(x).any(-1, keepdim=True)
+        safe = torch.logsumexp(torch.where(reached, x, torch.zeros_like(x)), -1)
+        return torch.where(reached.squeeze(-1), safe, torch.full_like(safe, -math.inf))
+    peak = x.amax(-1, keepdim=True)
+    peak = torch.where(torch.isfinite(peak), peak, torch.zeros_like(peak))  # small: (*BB, m, 1)
+    return x.sub_(peak).exp_().sum(-1).log_().add_(peak.squeeze(-1))
+
+
+def _amin_to_size(x: Tensor, size: torch.Size) -> Tensor:
+    """Min-reduce broadcast dims of ``x`` down to ``size`` (the min analogue of ``sum_to_size``)."""
+    for dim, (have, want) in enumerate(zip(x.shape, size, strict=False)):
+        if want == 1 and have != 1:
+            x = x.amin(dim, keepdim=True)
+    return x.expand(size) if x.shape != size else x

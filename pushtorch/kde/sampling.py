@@ -1,0 +1,34 @@
+"""Exact draws of one kernel factor, truncated at its cut-off (the translation's Gaussian, the rotation's vMF
+pair): what :meth:`pushtorch.kde.PoseKDE.sample` is made of."""
+
+from __future__ import annotations
+
+import torch
+
+from pushtorch.se3 import truncated_gamma_1p5, vmf_offsets
+
+Tensor = torch.Tensor
+
+# --------------------------------------------------------------------------------------------------
+# Samplers for one kernel factor (exact, truncated at the cut-off)
+# --------------------------------------------------------------------------------------------------
+
+
+def _unit_vectors(shape: tuple[int, ...], generator, device) -> Tensor:
+    v = torch.randn(*shape, 3, generator=generator, dtype=torch.float64, device=device)
+    return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+
+
+def _sample_translation_offsets(
+    std: Tensor, delta_p: float, generator: torch.Generator | None
+) -> Tensor:
+    """Offsets ``(..., 3)`` (float64): isotropic Gaussian of per-axis ``std (...)``, cut at β d_p < δ_p."""
+    x = truncated_gamma_1p5(torch.full_like(std, delta_p), generator)
+    radius = torch.sqrt(2.0 * x) * std  # β d_p = |Δ|² / (2 std²) = x
+    return radius.unsqueeze(-1) * _unit_vectors(tuple(std.shape), generator, std.device)
+
+
+def _sample_rotation_offsets(kappa: Tensor, delta_q: float, generator: torch.Generator | None) -> Tensor:
+    """Unit quaternions ``(..., 4)`` (float64) around identity, density ∝ exp(κ|w|), cut at κ(1−|w|) < δ_q
+    (:func:`pushtorch.se3.vmf_offsets`, the library's one vMF sampler)."""
+    return vmf_offsets(kappa, kappa.shape, generator, torch.float64, kappa.device, delta_q)
