@@ -168,12 +168,14 @@ def test_conditions(model: PushModel, obj, count: int, seed: int) -> tuple[list,
 
 
 def warm_up(model: PushModel, condition: tuple, batch: int) -> float:
-    """Compile the fast path on one extra condition, single and batched; seconds taken."""
+    """Compile the fast path on one extra condition, single and batched (two batch sizes: a run's last batch
+    is usually smaller, and the second size makes the batch dimension dynamic); seconds taken."""
     features, action = condition
     started = time.perf_counter()
     predict(model, features, action, torch.Generator().manual_seed(10_000), method="fast")
     predict(model, features, action, torch.Generator().manual_seed(10_001), method="fast")
-    predict_many(model, [features] * batch, action, seed=10_002, method="fast", batch_size=batch)
+    for size in sorted({batch, max(2, batch // 2 + 1)}):
+        predict_many(model, [features] * size, action, seed=10_002, method="fast", batch_size=size)
     return time.perf_counter() - started
 
 

@@ -1,0 +1,65 @@
+"""Where a fast prediction's time goes at the paper's sizes (issue 18): a cProfile of warm predictions.
+
+Uses tools/bench_predict.py's cached cube model (500 pushes per action; trained on first use) and its
+conditions; compiles and warms up the fast path first (as in a long run), then profiles ``--predictions``
+single predictions and prints the functions with the most time of their own, and the count of calls into
+compiled code and into torch operators per prediction.
+
+    .venv/bin/python tools/profile_predict.py [--predictions 10] [--top 25]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as bench_predict: before torch loads OpenMP
+
+import argparse
+import cProfile
+import io
+import pstats
+import time
+from pathlib import Path
+
+import torch
+from bench_predict import cpu_name, paper_size_model, test_conditions, warm_up
+
+from pushtorch.kde import declare_long_run
+from pushtorch.objects import load_object
+from pushtorch.predict import predict
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--predictions", type=int, default=10, help="profiled predictions (default 10)")
+    parser.add_argument("--top", type=int, default=25, help="functions listed (default 25)")
+    parser.add_argument("--cache", default="runs/bench_predict", help="model cache folder")
+    args = parser.parse_args()
+    declare_long_run()
+    model = paper_size_model("cube", 500, Path(args.cache))
+    obj = load_object("cube")
+    conditions, _ = test_conditions(model, obj, args.predictions, seed=1)
+    warm_up(model, conditions.pop()[1:], 4)
+    print(f"cpu {cpu_name()!r} ({os.cpu_count()} cores) threads={torch.get_num_threads()} "
+          f"load_average={os.getloadavg()[0]:.2f}")
+    profiler = cProfile.Profile()
+    started = time.perf_counter()
+    profiler.enable()
+    for i, (_, features, action) in enumerate(conditions):
+        predict(model, features, action, torch.Generator().manual_seed(i), method="fast")
+    profiler.disable()
+    seconds = (time.perf_counter() - started) / len(conditions)
+    stats = pstats.Stats(profiler)
+    compiled = sum(calls for (file, _, name), (_, calls, *_rest) in stats.stats.items()
+                   if name == "call" and file.endswith(os.path.join("kde", "fused.py")))
+    operators = sum(calls for (file, _, name), (_, calls, *_rest) in stats.stats.items()
+                    if file == "~" and "torch" in name)
+    print(f"{seconds:.3f} s per prediction under the profiler; per prediction {compiled / len(conditions):.0f} calls "
+          f"into fused (compiled) functions, {operators / len(conditions):.0f} calls of torch built-ins")
+    text = io.StringIO()
+    pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(args.top)
+    print(text.getvalue())
+
+
+if __name__ == "__main__":
+    main()
