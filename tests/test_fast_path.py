@@ -495,3 +495,17 @@ def test_shared_kernel_product_mean_shift_is_the_products_fixed_point_step():
     assert torch.allclose(got.p[alive], want_p[alive], atol=1e-9)
     assert torch.allclose(got.q[alive], want_q[alive], atol=1e-9)
     assert torch.equal(got.p[~alive], queries.p[~alive])  # zero product: the query stays
+
+
+@given(st.integers(0, 500), st.integers(1, 64))
+def test_chunks_cover_the_rows_without_a_lone_row(n, step):
+    """Fused functions see no size-1 chunk (the compiler would specialise and recompile for it)."""
+    from pushtorch.kde.fused import chunk_bounds
+
+    bounds = chunk_bounds(n, step)
+    assert [a for a, _ in bounds] == ([0] if bounds else []) + [b for _, b in bounds[:-1]]
+    assert not bounds or bounds[-1][1] == n
+    sizes = [b - a for a, b in bounds]
+    assert sum(sizes) == n and all(size <= step + 1 for size in sizes)
+    if n >= 2 and step >= 2:
+        assert min(sizes) >= 2

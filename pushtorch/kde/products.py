@@ -12,7 +12,7 @@ import torch
 from pushtorch.errors import InvalidParameterError, InvalidPoseError
 from pushtorch.kde.bandwidth import KernelBandwidth, TrialRounds
 from pushtorch.kde.density import PoseKDE
-from pushtorch.kde.fused import _DEFAULT_BLOCK_ELEMENTS, _pose_distances, fused_function
+from pushtorch.kde.fused import _DEFAULT_BLOCK_ELEMENTS, _pose_distances, chunk_bounds, fused_function
 from pushtorch.se3 import Pose, check_unit_quaternion
 
 Tensor = torch.Tensor
@@ -325,8 +325,8 @@ class SharedKernelProduct:
         x = x.transpose(1, 2).contiguous()  # (D, 7, M): a strided view compiles ~6x slower (measured)
         evaluate = fused_function(name, fn, x.device)
         step = max(1, _DEFAULT_BLOCK_ELEMENTS // max(1, m * self.table.shape[1]))
-        return torch.cat([evaluate(x[s : s + step], *(t[s : s + step] for t in layout), self.delta_p, self.delta_q)
-                          for s in range(0, d, step)], 0)
+        return torch.cat([evaluate(x[a:b], *(t[a:b] for t in layout), self.delta_p, self.delta_q)
+                          for a, b in chunk_bounds(d, step)], 0)
 
     def __call__(self, pose: Pose) -> Tensor:
         return self.log_prob(pose)

@@ -35,6 +35,7 @@ from pushtorch.kde import (
     descriptor_distance_unscaled,
     fused_function,
 )
+from pushtorch.kde.fused import chunk_bounds
 from pushtorch.models.frames import DESCRIPTOR_SCALE, ContactFrames, embed_descriptors
 
 Tensor = torch.Tensor
@@ -197,8 +198,12 @@ def _fast_kernel_draws(
     step = max(1, _BLOCK // (groups * _FRAME_GROUP))
 
     def group_sums(rows: Tensor) -> Tensor:
-        return torch.cat([sums_fn(e_features[rows[s : s + step]], grouped_0, grouped_1, grouped_w, scale, delta)
-                          for s in range(0, len(rows), step)])
+        # a single row (one redraw) is sent twice: a size-1 dimension would make the compiler specialise
+        # and recompile the fused function
+        padded = rows.repeat(2) if len(rows) == 1 else rows
+        sums = torch.cat([sums_fn(e_features[padded[a:b]], grouped_0, grouped_1, grouped_w, scale, delta)
+                          for a, b in chunk_bounds(len(padded), step)])
+        return sums[: len(rows)]
 
     pick = torch.randint(len(e_features), (n_kernels,), generator=generator).to(device)
     sums = group_sums(pick)
