@@ -289,9 +289,10 @@ def anneal(
         planar: optional bool ``(*B,)`` per problem: planar moves (x, y, yaw) where True, full SE(3)
             moves where False, so planar and free problems anneal in one batch; None uses
             ``schedule.planar`` for all. Needs ``method="fast"``.
-        method: ``"dense"``, the reference proposals (vMF by Wood's rejection sampler in float64), or
-            ``"fast"``: the same proposal distributions drawn with fewer, cheaper operations
-            (:func:`pushtorch.se3.vmf_offsets`). The seed's random stream differs between the two.
+        method: ``"dense"``, the reference proposals (one step's draws at a time, :func:`pushtorch.se3.perturb`),
+            or ``"fast"``: the same proposal distributions, several steps drawn at once and applied in fused
+            calls. Both draw rotations with :func:`pushtorch.se3.vmf_offsets`; the seed's random stream
+            differs between the two.
 
     Returns:
         :class:`AnnealResult`. A candidate at ``-inf`` accepts any finite proposal; if its proposal is
