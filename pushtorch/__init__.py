@@ -10,15 +10,10 @@ first use, so ``import pushtorch`` stays light (no open3d, pybullet or Hydra unt
 from __future__ import annotations
 
 import importlib
-import os
-import sys
 from typing import TYPE_CHECKING, Any
 
-if "torch" not in sys.modules:  # OpenMP reads it when torch loads: idle threads sleep (pushtorch.parallel)
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-from pushtorch.errors import PushtorchError  # noqa: E402 (after the OpenMP policy)
-from pushtorch.se3 import Pose  # noqa: E402
+from pushtorch.errors import PushtorchError
+from pushtorch.se3 import Pose
 
 __version__ = "0.1.0"
 

@@ -11,11 +11,11 @@ pushtorch process uses, decided here and nowhere else, so that threads × proces
   no torch) per core of the share, and prediction uses the share's cores as torch threads.
 * **Beside other work** (:func:`share_cores` with ``busy`` CPU-bound processes next to this one) prediction
   uses ``max(1, share // (busy + 1))`` threads.
-* **OpenMP waits passively.** Importing pushtorch before torch sets ``OMP_WAIT_POLICY=PASSIVE`` unless the
-  user set it (it only takes effect before torch's OpenMP runtime starts). Measured on a 2-core host with
-  another process busy, a quickstart-size prediction took 1.48 s with two threads spinning in OpenMP's
-  active wait, 0.28 s with them waiting passively and 0.23–0.25 s on one thread (README, "Prediction
-  speed").
+* **OpenMP keeps its default (active) wait.** Threads matched to the share leave no core to fight over;
+  waiting passively (``OMP_WAIT_POLICY=PASSIVE``) only pays when a process oversubscribes. Measured on a
+  2-core host, quickstart-size predictions: with another process busy, two threads took 1.23–1.48 s
+  spinning in the active wait, 0.24–0.63 s waiting passively and 0.22–0.24 s on one thread; with the
+  cores free (a niced job beside), two threads took 0.16–0.17 s actively and 0.24 s passively.
 """
 
 from __future__ import annotations

@@ -49,13 +49,10 @@ measure it uncompiled.
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads OpenMP (pushtorch.parallel)
-
 import argparse
 import json
 import math
+import os
 import platform
 import resource
 import statistics

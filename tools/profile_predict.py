@@ -10,13 +10,10 @@ compiled code and into torch operators per prediction.
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as bench_predict: before torch loads OpenMP
-
 import argparse
 import cProfile
 import io
+import os
 import pstats
 import time
 from pathlib import Path
