@@ -36,7 +36,8 @@ from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.kde import KernelBandwidth, PoseKDE, SharedKernelProduct
 from pushtorch.likelihood import log_kernel_normaliser, log_normaliser
-from pushtorch.models.library import DEFAULT_SEED
+from pushtorch.models.library import as_generator
+from pushtorch.models.motion import stack_products
 
 Tensor = torch.Tensor
 
@@ -48,8 +49,6 @@ __all__ = ["FinalPoseDistribution"]
 NORMALISER_SAMPLES = 1024
 #: Proposal draws per expert of the resampling pool, at least (``sample``).
 MIN_POOL_PER_EXPERT = 512
-#: How far from unit length a query quaternion may be (the kernels' own tolerance).
-UNIT_TOLERANCE = 1e-3
 
 
 class FinalPoseDistribution(Distribution):
@@ -90,6 +89,7 @@ class FinalPoseDistribution(Distribution):
         self._mode = mode
         self.normaliser_centres = normaliser_centres
         self._log_z: Tensor | None = None
+        self._log_kernel: Tensor | None = None
         self._experts: PoseKDE | None = None
         self._product: SharedKernelProduct | None = None
         super().__init__(batch_shape=batch, event_shape=torch.Size([7]), validate_args=validate_args)
@@ -108,31 +108,13 @@ class FinalPoseDistribution(Distribution):
         densities = [densities] if single else list(densities)
         if not densities:
             raise InvalidParameterError("a distribution needs at least one prediction")
-        shared = [d.shared_kernels() for d in densities]
-        dtype, device = shared[0][0].p.dtype, shared[0][0].p.device
-        n_kernels = max(m.p.shape[0] for m, _ in shared)
-        n_experts = max(w.shape[0] for _, w in shared)
-        p = torch.zeros(len(densities), n_kernels, 3, dtype=dtype, device=device)
-        q = torch.zeros(len(densities), n_kernels, 4, dtype=dtype, device=device)
-        q[..., 0] = 1.0
-        log_w = torch.full((n_experts, len(densities), n_kernels), -math.inf, dtype=dtype, device=device)
-        exponent = torch.zeros(n_experts, len(densities), dtype=dtype, device=device)
-        for b, ((means, weights), density) in enumerate(zip(shared, densities, strict=True)):
-            e, k = weights.shape
-            p[b, :k], q[b, :k] = means.p, means.q
-            log_w[:e, b, :k] = weights
-            log_w[e:, b, :k] = weights[0]  # padding experts copy the first one and count nothing (γ = 0)
-            exponent[:e, b] = density.expert_exponent.to(dtype)
-        rounds = torch.stack([d.experts.trial_rounds[0] for d in densities])
-        bandwidth = densities[0].experts.bandwidth
-        if any(d.experts.bandwidth != bandwidth for d in densities):
-            raise InvalidParameterError("a batch of predictions must share the motion bandwidth")
-        mode = modes.vector().to(dtype).reshape(len(densities), 7)
+        stacked = stack_products(densities)
+        mode = modes.vector().to(stacked.log_weights.dtype).reshape(len(densities), 7)
         if centres is not None:
             counts = {c.p.shape[0] for c in centres}
             centres = se3.Pose.stack(centres) if len(counts) == 1 else None  # ragged: default centres
-        dist = FinalPoseDistribution(se3.Pose(p, q), log_w, bandwidth, rounds, exponent, mode, method, centres,
-                                     validate_args)
+        dist = FinalPoseDistribution(stacked.means, stacked.log_weights, stacked.bandwidth, stacked.trial_rounds,
+                                     stacked.exponent, mode, method, centres, validate_args)
         return dist[0] if single else dist
 
     @staticmethod
@@ -150,11 +132,19 @@ class FinalPoseDistribution(Distribution):
         if len(self.batch_shape) != 1:
             raise InvalidParameterError("only a distribution with batch_shape (B,) is indexed")
         centres = None if self.normaliser_centres is None else self.normaliser_centres.take(index)
-        out = FinalPoseDistribution(self.means.take(index), self.log_weights[:, index], self.bandwidth,
-                                    self.trial_rounds[index], self.exponent[:, index], self._mode[index],
-                                    self.method, centres, self._validate_args)
-        if self._log_z is not None:
-            out._log_z = self._log_z[index]
+        return self._replace(means=self.means.take(index), log_weights=self.log_weights[:, index],
+                             trial_rounds=self.trial_rounds[index], exponent=self.exponent[:, index],
+                             mode=self._mode[index], normaliser_centres=centres,
+                             log_z=None if self._log_z is None else self._log_z[index])
+
+    def _replace(self, log_z: Tensor | None = None, **changes) -> FinalPoseDistribution:
+        """This distribution with some constructor arguments changed, and the normaliser ``log_z`` if known."""
+        arguments = dict(means=self.means, log_weights=self.log_weights, bandwidth=self.bandwidth,
+                         trial_rounds=self.trial_rounds, exponent=self.exponent, mode=self._mode,
+                         method=self.method, normaliser_centres=self.normaliser_centres,
+                         validate_args=self._validate_args)
+        out = FinalPoseDistribution(**(arguments | changes))
+        out._log_z = log_z
         return out
 
     # ------------------------------------------------------------------------------------------ properties
@@ -196,10 +186,17 @@ class FinalPoseDistribution(Distribution):
                 centres = None if self.normaliser_centres is None else \
                     self.normaliser_centres.reshape(flat_batch, -1).take(b)
                 # seeded per prediction: its normaliser is the same alone and in any batch
-                generator = torch.Generator(device=self.means.p.device).manual_seed(DEFAULT_SEED)
+                generator = as_generator(None, self.means.p.device)
                 values.append(log_normaliser(kde, generator, NORMALISER_SAMPLES, centres, exponent[counted, b]))
             self._log_z = torch.stack(values).reshape(self.batch_shape)
         return self._log_z
+
+    def log_kernel_integral(self) -> Tensor:
+        """``(*B,)`` float64 log of one cut-off kernel's integral (every kernel of a prediction shares its
+        bandwidth and trial rounds; computed once)."""
+        if self._log_kernel is None:
+            self._log_kernel = log_kernel_normaliser(self.experts())[0]
+        return self._log_kernel
 
     # ------------------------------------------------------------------------------------------ evaluation
 
@@ -212,12 +209,7 @@ class FinalPoseDistribution(Distribution):
         except RuntimeError as exc:
             raise InvalidPoseError(f"values {tuple(value.shape)} do not broadcast with the batch shape "
                                    f"{tuple(self.batch_shape)} (values are (..., *batch_shape, 7))") from exc
-        if not torch.isfinite(value).all():
-            raise InvalidPoseError("values hold NaN or infinite entries")
-        norm = value[..., 3:].norm(dim=-1)
-        if ((norm - 1.0).abs() > UNIT_TOLERANCE).any():
-            raise InvalidPoseError(f"value quaternions must be unit length (within {UNIT_TOLERANCE}); the "
-                                   f"furthest has norm {float(norm[(norm - 1).abs().argmax()]):.4f}")
+        se3.check_pose(se3.Pose.from_vector(value), "values")
 
     def _as_queries(self, value: Tensor) -> tuple[Tensor, torch.Size]:
         """Values ``(..., *B, 7)`` as queries ``(*B, M, 7)`` and the sample shape ``(...)``."""
@@ -246,8 +238,8 @@ class FinalPoseDistribution(Distribution):
         if self._validate_args:
             self._validate_sample(value)
         queries, sample_shape = self._as_queries(value)
-        kernels = log_kernel_normaliser(self.experts())[0]  # (*B,): one bandwidth per problem
-        constant = (self.exponent.double().sum(0) * kernels + self.log_normaliser()).to(queries.dtype)
+        constant = (self.exponent.double().sum(0) * self.log_kernel_integral() + self.log_normaliser()
+                    ).to(queries.dtype)
         out = self._unnormalised(queries) - constant.unsqueeze(-1)  # (*B, M)
         return out.movedim(-1, 0).reshape(torch.Size([*sample_shape, *self.batch_shape]))
 
@@ -256,8 +248,7 @@ class FinalPoseDistribution(Distribution):
         ``generator`` one seeded with DEFAULT_SEED (the same draws every call)."""
         sample_shape = torch.Size(sample_shape)
         n = max(1, sample_shape.numel())
-        if generator is None:
-            generator = torch.Generator(device=self.means.p.device).manual_seed(DEFAULT_SEED)
+        generator = as_generator(generator, self.means.p.device)
         with torch.no_grad():
             experts = self.experts()
             per_expert_draws = max(MIN_POOL_PER_EXPERT, math.ceil(4 * n / self.num_experts))
@@ -265,7 +256,7 @@ class FinalPoseDistribution(Distribution):
             nb = len(self.batch_shape)
             pool = se3.Pose(pool.p.movedim(0, nb).reshape(*self.batch_shape, -1, 3),
                             pool.q.movedim(0, nb).reshape(*self.batch_shape, -1, 4))  # (*B, E·m)
-            log_p = experts.log_prob(pool).double() - log_kernel_normaliser(experts).unsqueeze(-1)  # (E, *B, M)
+            log_p = experts.log_prob(pool).double() - self.log_kernel_integral().unsqueeze(-1)  # (E, *B, M)
             gamma = self.exponent.double().unsqueeze(-1)
             target = torch.where(gamma > 0, gamma * log_p, torch.zeros_like(log_p)).sum(0)
             mixture = torch.logsumexp(log_p, 0)
@@ -286,19 +277,14 @@ class FinalPoseDistribution(Distribution):
             return t.to(device=device, dtype=dtype if t.is_floating_point() else None)
 
         centres = None if self.normaliser_centres is None else self.normaliser_centres.to(device=device, dtype=dtype)
-        out = FinalPoseDistribution(self.means.to(device=device, dtype=dtype), move(self.log_weights), self.bandwidth,
-                                    self.trial_rounds.to(device), move(self.exponent), move(self._mode), self.method,
-                                    centres, self._validate_args)
-        if self._log_z is not None:
-            out._log_z = self._log_z.to(device)
-        return out
+        return self._replace(means=self.means.to(device=device, dtype=dtype), log_weights=move(self.log_weights),
+                             trial_rounds=self.trial_rounds.to(device), exponent=move(self.exponent),
+                             mode=move(self._mode), normaliser_centres=centres,
+                             log_z=None if self._log_z is None else self._log_z.to(device))
 
     def with_method(self, method: str) -> FinalPoseDistribution:
         """The same distribution evaluated by ``method`` (``"fast"`` or ``"dense"``)."""
-        out = FinalPoseDistribution(self.means, self.log_weights, self.bandwidth, self.trial_rounds, self.exponent,
-                                    self._mode, method, self.normaliser_centres, self._validate_args)
-        out._log_z = self._log_z
-        return out
+        return self._replace(method=method, log_z=self._log_z)
 
     def __repr__(self) -> str:
         return (f"FinalPoseDistribution(batch_shape={tuple(self.batch_shape)}, experts={self.num_experts}, "

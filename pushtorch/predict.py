@@ -225,10 +225,12 @@ def _polish_steps(settings: ModelSettings, method: str) -> int:
 
 
 def _as_features(cloud: PointCloud | SurfaceFeatures, settings: ModelSettings,
-                 dtype: torch.dtype = torch.float32, device: torch.device | None = None) -> SurfaceFeatures:
-    """The cloud's surface features in the model's ``dtype`` on its ``device`` (a float64 cloud is cast
+                 model: PushModel | PositionModel) -> SurfaceFeatures:
+    """The cloud's surface features in the ``model``'s dtype on its device (a float64 cloud is cast
     before its features are computed, so it predicts exactly as the same cloud in float32). Features are
     computed on the CPU (open3d's neighbourhoods and normals) and then moved."""
+    frames = (model.position if isinstance(model, PushModel) else model).frames.r
+    dtype, device = frames.dtype, frames.device
     if isinstance(cloud, SurfaceFeatures):
         features = cloud if cloud.p.dtype == dtype else cloud.to(dtype)
     else:
@@ -240,17 +242,7 @@ def _as_features(cloud: PointCloud | SurfaceFeatures, settings: ModelSettings,
             cloud = PointCloud(cloud)  # validates an array or tensor (shape, NaN, empty)
             cloud = PointCloud(cloud.points.to("cpu", dtype))
         features = compute_surface_features(cloud, radius=settings.feature_radius)
-    return features if device is None or features.p.device == device else features.to(device)
-
-
-def _model_tensor(model: PushModel | ModelLibrary | PositionModel) -> torch.Tensor:
-    """One of the model's tensors: its floating dtype (clouds are cast to it) and device (their features are
-    moved there) are the model's."""
-    if isinstance(model, ModelLibrary):
-        model = model.models[0]
-    if isinstance(model, PushModel):
-        model = model.position
-    return model.frames.r
+    return features if features.p.device == device else features.to(device)
 
 
 def _check_actions(actions, count: int) -> torch.Tensor:
@@ -298,7 +290,7 @@ def estimate_pose(
     _check_method(method)
     settings = settings or ModelSettings()
     generator = as_generator(generator)
-    features = _as_features(cloud, settings, _model_tensor(position).dtype, _model_tensor(position).device)
+    features = _as_features(cloud, settings, position)
     density = _pose_density(position, features, settings, generator, method)
     result = optimise_query_density(
         density, settings.anneal_candidates, _schedule(settings, False, method), generator, record_history,
@@ -422,7 +414,7 @@ def generate_push_condition(
     """
     _check_method(method)
     generator = as_generator(generator)
-    features = _as_features(cloud, model.settings, _model_tensor(model).dtype, _model_tensor(model).device)
+    features = _as_features(cloud, model.settings, model)
     if not (isinstance(action_index, int) and 0 <= action_index < len(model.motions)):
         raise InvalidParameterError(
             f"action_index must be an int in [0, {len(model.motions)}) for model {model.name!r}, got {action_index!r}"
@@ -601,8 +593,7 @@ def _predict_batch(
     """One batch of :func:`predict_many`: a library selects per cloud, then each model's share runs
     together."""
     first = model.models[0] if isinstance(model, ModelLibrary) else model
-    features = [_as_features(c, first.settings, _model_tensor(first).dtype, _model_tensor(first).device)
-                for c in clouds]
+    features = [_as_features(c, first.settings, first) for c in clouds]
     chosen = [model.select(f)[0] if isinstance(model, ModelLibrary) else model for f in features]
     out: list[Prediction | None] = [None] * len(clouds)
     distinct = [m for i, m in enumerate(chosen) if all(m is not c for c in chosen[:i])]  # first-use order

@@ -29,7 +29,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,42 +57,22 @@ print(json.dumps({"import_s": import_s, "first_predict_s": first_s, "warm_predic
 
 
 def quickstart_model(folder: Path) -> Path:
-    """The cached quickstart-size cube model, trained on first use (simulation, ~1-2 min on 2 cores)."""
-    import torch
+    """The cached quickstart-size cube model (conf/model/quick.yaml, the spread protocol), trained on first use
+    (simulation and training, ~1-2 min on 2 cores)."""
+    from bench_predict import paper_size_model
     from omegaconf import OmegaConf
 
-    from pushtorch.errors import RecordFormatError
-    from pushtorch.models.library import ModelSettings, load_model, train_push_model
-    from pushtorch.objects import load_object
-    from pushtorch.sim.plan import Placement, plan_training_pushes
-    from pushtorch.sim.priors import Normal
-    from pushtorch.sim.push import make_actions
-    from pushtorch.sim.records import load_records
-    from pushtorch.sim.runner import run_plan
-    from pushtorch.sim.world import object_spec
+    from pushtorch.models.library import ModelSettings
+    from pushtorch.sim.plan import Placement
 
-    path = folder / "cube_quick.npz"
-    if path.exists():
-        try:
-            load_model(path)
-            return path
-        except RecordFormatError as exc:  # saved by an older pushtorch: retrain from the cached pushes
-            print(f"retraining: {exc}")
     conf = ROOT / "conf"
     model_conf = OmegaConf.merge(OmegaConf.load(conf / "model" / "default.yaml"),
                                  OmegaConf.load(conf / "model" / "quick.yaml"))
-    placement = OmegaConf.to_container(OmegaConf.load(conf / "protocol" / "spread.yaml"))
+    placement = Placement(**OmegaConf.to_container(OmegaConf.load(conf / "protocol" / "spread.yaml")))
     settings = ModelSettings.from_mapping(OmegaConf.to_container(model_conf.settings))
-    cube = load_object("cube")
-    plan = plan_training_pushes(cube, make_actions(3), int(model_conf.samples_per_action), Normal(0.5, 0.025),
-                                Normal(0.3, 0.05), seed=0, placement=Placement(**placement))
-    records = folder / "pushes_cube_quick"
-    started = time.perf_counter()
-    run_plan(object_spec(cube), plan, records, workers=2, progress=False)
-    model = train_push_model(cube, load_records(records), settings, generator=torch.Generator().manual_seed(0))
-    model.save(path)
-    print(f"trained the quickstart-size cube model in {time.perf_counter() - started:.0f} s")
-    return path
+    pushes = int(model_conf.samples_per_action)
+    paper_size_model("cube", pushes, folder, settings, placement, tag="_quick")
+    return folder / f"cube_{pushes}_quick.npz"
 
 
 def measure(model_path: Path, compile_mode: str | None) -> dict:
@@ -115,10 +94,10 @@ def main() -> None:
     args = parser.parse_args()
     folder = Path(args.cache)
     folder.mkdir(parents=True, exist_ok=True)
-    model_path = quickstart_model(folder)
-
     sys.path.insert(0, str(ROOT / "tools"))
     from bench_predict import cpu_name
+
+    model_path = quickstart_model(folder)
 
     print(f"cpu {cpu_name()!r} ({os.cpu_count()} cores) load_average={os.getloadavg()[0]:.2f}")
     compiled = measure(model_path, "1")

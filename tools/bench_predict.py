@@ -67,12 +67,12 @@ from pushtorch import metrics, se3
 from pushtorch.errors import RecordFormatError
 from pushtorch.features import compute_surface_features
 from pushtorch.kde import declare_long_run, fast_path_compiled, straightforward_evaluation
-from pushtorch.models.library import PushModel, load_model, train_push_model
+from pushtorch.models.library import ModelSettings, PushModel, load_model, train_push_model
 from pushtorch.objects import load_object
 from pushtorch.parallel import share_cores
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.predict import predict, predict_many
-from pushtorch.sim.plan import plan_training_pushes
+from pushtorch.sim.plan import Placement, plan_training_pushes
 from pushtorch.sim.priors import Normal
 from pushtorch.sim.push import make_actions
 from pushtorch.sim.records import load_records
@@ -82,21 +82,24 @@ from pushtorch.sim.world import object_spec
 MASS, FRICTION = 0.5, 0.3  # the training priors' means: the test pushes' physics
 
 
-def paper_size_model(object_name: str, pushes: int, folder: Path) -> PushModel:
-    """Load the cached model, or simulate ``pushes`` per action, train and cache it."""
-    path = folder / f"{object_name}_{pushes}.npz"
+def paper_size_model(object_name: str, pushes: int, folder: Path, settings: ModelSettings | None = None,
+                     placement: Placement | None = None, tag: str = "") -> PushModel:
+    """Load the cached model, or simulate ``pushes`` per action (mass N(0.5, 0.025), friction N(0.3, 0.05),
+    ``placement``), train it with ``settings`` (default the paper's) and cache it; ``tag`` names the file."""
+    path = folder / f"{object_name}_{pushes}{tag}.npz"
     if path.exists():
         try:
             return load_model(path)
         except RecordFormatError as exc:  # e.g. saved by an older pushtorch: retrain from the cached pushes
             print(f"retraining: {exc}")
     obj = load_object(object_name)
-    plan = plan_training_pushes(obj, make_actions(3), pushes, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=0)
-    records_folder = folder / f"pushes_{object_name}_{pushes}"
+    plan = plan_training_pushes(obj, make_actions(3), pushes, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=0,
+                                placement=placement)
+    records_folder = folder / f"pushes_{object_name}_{pushes}{tag}"
     started = time.perf_counter()
     run_plan(object_spec(obj), plan, records_folder, workers=2, progress=False)
     print(f"simulated {3 * pushes} training pushes in {time.perf_counter() - started:.0f} s")
-    model = train_push_model(obj, load_records(records_folder), generator=torch.Generator().manual_seed(0))
+    model = train_push_model(obj, load_records(records_folder), settings, generator=torch.Generator().manual_seed(0))
     model.save(path)
     return model
 

@@ -306,21 +306,23 @@ def _unsealed(path: Path, data: bytes) -> None:
 DEFAULT_SEED = 0
 
 
-def as_generator(generator: torch.Generator | int | None) -> torch.Generator:
+def as_generator(generator: torch.Generator | int | None, device: torch.device | str | None = None
+                 ) -> torch.Generator:
     """A ``torch.Generator`` as given, a new one seeded with an int, or (None) a new one seeded with
-    :data:`DEFAULT_SEED`: never torch's global stream, so a call without a generator is reproducible.
+    :data:`DEFAULT_SEED`: never torch's global stream, so a call without a generator is reproducible. New
+    generators are made for ``device`` (default the CPU).
 
     Raises:
         InvalidParameterError: anything else (a float, a string, a negative or too large seed).
     """
     if generator is None:
-        return torch.Generator().manual_seed(DEFAULT_SEED)
+        return torch.Generator(device=device or "cpu").manual_seed(DEFAULT_SEED)
     if isinstance(generator, torch.Generator):
         return generator
     if isinstance(generator, int | np.integer) and not isinstance(generator, bool):
         if not 0 <= int(generator) < 2**64:
             raise InvalidParameterError(f"a seed must be an integer in [0, 2**64), got {generator}")
-        return torch.Generator().manual_seed(int(generator))
+        return torch.Generator(device=device or "cpu").manual_seed(int(generator))
     raise InvalidParameterError(
         f"generator must be a torch.Generator or an integer seed, got {type(generator).__name__} {generator!r}"
     )

@@ -481,6 +481,52 @@ class MotionDensity:
         return MotionPrediction(result.best, result.best_log_prob, result)
 
 
+@dataclass
+class StackedProducts:
+    """The products of experts of several conditions, padded to common kernel and expert counts and stacked
+    along a problem dim ``B`` (:func:`stack_products`)."""
+
+    means: se3.Pose  # (B, K) shared kernel means (padding: the identity)
+    log_weights: Tensor  # (E, B, K) each expert's kernel log weights (-inf: not in it, or padding)
+    exponent: Tensor  # (E, B) the experts' exponents (0: a padding expert)
+    trial_rounds: Tensor  # (B, 3)
+    bandwidth: KernelBandwidth
+
+
+def stack_products(densities: list[MotionDensity]) -> StackedProducts:
+    """Every density's :meth:`MotionDensity.shared_kernels`, padded and stacked: padding kernels weigh
+    nothing; a padding expert copies the condition's first expert (so no expert is empty) and counts for
+    nothing (exponent 0).
+
+    Raises:
+        InvalidParameterError: no densities, or densities of different dtype or motion bandwidth.
+    """
+    if not densities:
+        raise InvalidParameterError("stacking products of experts needs at least one density")
+    layouts = [d.shared_kernels() for d in densities]
+    n_experts = max(w.shape[0] for _, w in layouts)
+    n_kernels = max(w.shape[1] for _, w in layouts)
+    first = densities[0].experts
+    dtype, device = first.dtype, first.device
+    p = torch.zeros(len(densities), n_kernels, 3, dtype=dtype, device=device)
+    q = torch.zeros(len(densities), n_kernels, 4, dtype=dtype, device=device)
+    q[..., 0] = 1.0
+    log_w = torch.full((n_experts, len(densities), n_kernels), -math.inf, dtype=dtype, device=device)
+    rounds = torch.zeros(len(densities), 3, dtype=torch.int64, device=device)
+    exponent = torch.zeros(n_experts, len(densities), dtype=dtype, device=device)
+    for b, (density, (means, weights)) in enumerate(zip(densities, layouts, strict=True)):
+        experts = density.experts
+        if experts.bandwidth != first.bandwidth or experts.dtype != dtype:
+            raise InvalidParameterError("products stacked together need one motion bandwidth and dtype")
+        e, n = weights.shape
+        p[b, :n], q[b, :n] = means.p, means.q
+        log_w[:e, b, :n] = weights
+        log_w[e:, b, :n] = weights[0]
+        rounds[b] = density.shared_product().rounds
+        exponent[:e, b] = density.expert_exponent.to(dtype)
+    return StackedProducts(se3.Pose(p, q), log_w, exponent, rounds, first.bandwidth)
+
+
 def anneal_motion_densities(
     densities: list[MotionDensity],
     n_candidates: int,
@@ -511,29 +557,10 @@ def anneal_motion_densities(
     for density in densities:
         init = density.proposal(n_candidates, generator)
         starts.append(density.widen_until_supported(init, method="fast"))
-    layouts = [d.shared_kernels() for d in densities]
-    n_experts = max(w.shape[0] for _, w in layouts)
-    n_kernels = max(w.shape[1] for _, w in layouts)
-    first = densities[0].experts
-    dtype, device = first.dtype, first.device
-    p = torch.zeros(len(densities), n_kernels, 3, dtype=dtype, device=device)
-    q = torch.zeros(len(densities), n_kernels, 4, dtype=dtype, device=device)
-    q[..., 0] = 1.0
-    log_w = torch.full((n_experts, len(densities), n_kernels), -math.inf, dtype=dtype, device=device)
-    rounds = torch.zeros(len(densities), 3, dtype=torch.int64, device=device)
-    exponent = torch.zeros(n_experts, len(densities), dtype=dtype, device=device)  # 0: a padding expert
-    for b, (density, (means, weights)) in enumerate(zip(densities, layouts, strict=True)):
-        experts = density.experts
-        if experts.bandwidth != first.bandwidth or experts.dtype != dtype:
-            raise InvalidParameterError("densities annealed together need one motion bandwidth and dtype")
-        e, n = weights.shape
-        p[b, :n], q[b, :n] = means.p, means.q
-        log_w[:e, b, :n] = weights
-        rounds[b] = density.shared_product().rounds
-        exponent[:e, b] = density.expert_exponent.to(dtype)
+    stacked = stack_products(densities)
     # its only queries are the annealing's own (finite, normalised) candidates: no per-step checks
-    product = SharedKernelProduct(se3.Pose(p, q), log_w, first.bandwidth, rounds, validate_args=False,
-                                  expert_exponent=exponent)
+    product = SharedKernelProduct(stacked.means, stacked.log_weights, stacked.bandwidth, stacked.trial_rounds,
+                                  validate_args=False, expert_exponent=stacked.exponent)
     init = se3.Pose(torch.stack([s.p for s in starts]), torch.stack([s.q for s in starts]))  # (B, C)
     result = anneal(product.log_prob, init, schedule, generator, record_history=record_history, method="fast")
     result = polish_candidates(result, product.mean_shift, product.log_prob, polish_steps)
