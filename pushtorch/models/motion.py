@@ -562,7 +562,7 @@ def anneal_motion_densities(
     product = SharedKernelProduct(stacked.means, stacked.log_weights, stacked.bandwidth, stacked.trial_rounds,
                                   validate_args=False, expert_exponent=stacked.exponent)
     init = se3.Pose(torch.stack([s.p for s in starts]), torch.stack([s.q for s in starts]))  # (B, C)
-    result = anneal(product.log_prob, init, schedule, generator, record_history=record_history, method="fast")
+    result = anneal(product, init, schedule, generator, record_history=record_history, method="fast")
     result = polish_candidates(result, product.mean_shift, product.log_prob, polish_steps)
     out = []
     for b in range(len(densities)):
