@@ -28,12 +28,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import torch
 from pytorch_kinematics import transforms as pkt
 
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
-from pushtorch.kde import PoseKDE, SharedKernelProduct, fused_function
+from pushtorch.kde import PoseKDE, SharedKernelProduct, fast_path_compiled, fused_function
+from pushtorch.kde.fused import _block_sums, _reachable_blocks
 from pushtorch.kde.products import _shared_kernel_product
 from pushtorch.se3 import (
     Pose,
@@ -285,6 +287,67 @@ def _anneal_shared_product(
     return Pose(best_p, best_q), best_lp, saw_nan
 
 
+def _propose_and_reach(
+    p: Tensor, q: Tensor, step_p: Tensor, left: Tensor, right: Tensor,
+    lo: Tensor, hi: Tensor, centre: Tensor, cos_reach: Tensor, r2: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """A step's proposals against a block-pruned density (fused): the proposals as query rows
+    ``(D, C, 7)`` and which leaf blocks each may touch ``(D, C, nb)`` (see ``kde.fused._reachable_blocks``)."""
+    prop_p, prop_q = _fast_proposal(p, q, step_p, left, right)
+    x = torch.cat([prop_p, prop_q], -1)
+    return x, _reachable_blocks(x.transpose(1, 2), lo, hi, centre, cos_reach, r2)
+
+
+def _block_step_acceptance(
+    p: Tensor, q: Tensor, lp: Tensor, best_p: Tensor, best_q: Tensor, best_lp: Tensor, saw_nan: Tensor,
+    x: Tensor, u: Tensor, inverse_energy: Tensor, table: Tensor, scale: Tensor, query_density: Tensor,
+    pair_query: Tensor, pair_block: Tensor, num_blocks: int, log_w_max: Tensor, delta_p: float, delta_q: float,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The rest of that step (fused): the proposals' log densities over their (query, block) pairs and the
+    Metropolis test. ``log_w_max (D, 1)`` is each density's largest log weight (the table's are relative)."""
+    total = _block_sums(x.reshape(-1, 7), table, scale, query_density, pair_query, pair_block, num_blocks,
+                        delta_p, delta_q)
+    prop_lp = torch.log(total.reshape(lp.shape)) + log_w_max
+    return _fast_acceptance(p, q, lp, best_p, best_q, best_lp, x[..., :3], x[..., 3:], prop_lp, u, inverse_energy,
+                            saw_nan)
+
+
+def _anneal_pruned_kde(
+    kde: PoseKDE, current: Pose, current_lp: Tensor, schedule: AnnealSchedule, generator, planar: Tensor | None,
+) -> tuple[Pose, Tensor, Tensor]:
+    """The fast path's steps against a density on pruned leaf blocks: the same draws as the generic loop,
+    each step two fused calls — proposal with block reach, then the pair sums with the Metropolis test —
+    around the one data-dependent step, the list of (query, block) pairs, instead of four calls and the
+    glue of :meth:`PoseKDE.log_prob`. Returns as :func:`_anneal_shared_product`."""
+    index = kde.fast_index()
+    shape = current.batch_shape
+    d, c = max(1, kde.batch_shape.numel()), shape[-1]
+    dtype, device = current.p.dtype, current.p.device
+    propose = fused_function("anneal_propose_and_reach", _propose_and_reach, device)
+    accept = fused_function("anneal_block_step_acceptance", _block_step_acceptance, device)
+    p, q, lp = current.p.reshape(d, c, 3), current.q.reshape(d, c, 4), current_lp.reshape(d, c)
+    # distinct tensors: aliased inputs would make torch.compile guard on the aliasing and recompile
+    state = (p.clone(), q.clone(), lp.clone(), p.clone(), q.clone(), lp.clone(),
+             torch.zeros((), dtype=torch.bool, device=device))
+    query_density = torch.arange(d, device=device).repeat_interleave(c)
+    log_w_max = index.log_w_max.reshape(d, 1)
+    bounds = (index.lo, index.hi, index.centre, index.cos_reach, index.r2)
+    temperatures = schedule.temperatures()
+    for start in range(0, len(temperatures), _DRAW_STEPS):
+        chunk = temperatures[start : start + _DRAW_STEPS]
+        step_p, left, right, accept_u = _draw_fast_proposals(chunk, shape, schedule, generator, planar, dtype,
+                                                             device)
+        step_p, accept_u = step_p.reshape(len(chunk), d, c, 3), accept_u.reshape(len(chunk), d, c)
+        left, right = left.reshape(len(chunk), d, c, 4), right.reshape(len(chunk), d, c, 4)
+        for k, temperature in enumerate(chunk):
+            x, reach = propose(state[0], state[1], step_p[k], left[k], right[k], *bounds)
+            pair_query, pair_block = (reach.reshape(d * c, index.num_blocks) > 0).nonzero(as_tuple=True)
+            inverse_energy = torch.tensor(1.0 / (schedule.energy_scale * temperature), dtype=dtype, device=device)
+            state = accept(*state, x, accept_u[k], inverse_energy, index.table, index.scale, query_density,
+                           pair_query, pair_block, index.num_blocks, log_w_max, index.delta_p, index.delta_q)
+    return Pose(state[3].reshape(*shape, 3), state[4].reshape(*shape, 4)), state[5].reshape(shape), state[6]
+
+
 _Z_AXIS = torch.tensor([False, False, True])
 
 
@@ -311,10 +374,20 @@ def _anneal_fast_steps(
     the shape was checked on the initial evaluation)."""
     shape = current.batch_shape
     dtype, device = current.p.dtype, current.p.device
-    if isinstance(log_prob_fn, SharedKernelProduct) and not record_history and shape[:-1] == log_prob_fn.batch_shape:
+    own_problems = shape[:-1] == getattr(log_prob_fn, "batch_shape", None)
+    if isinstance(log_prob_fn, SharedKernelProduct) and own_problems and not record_history:
         best, best_lp, saw_nan = _anneal_shared_product(log_prob_fn, current, current_lp, schedule, generator, planar)
         _raise_on_bad_values(saw_nan, best_lp)
         return best, best_lp, ([], [], [])
+    if isinstance(log_prob_fn, PoseKDE):
+        index = log_prob_fn.fast_index()
+        # eagerly the generic loop's pair sums are chunked in memory; the fused step streams them compiled
+        if index.blocks and index.linear and own_problems and not record_history and fast_path_compiled(device):
+            best, best_lp, saw_nan = _anneal_pruned_kde(log_prob_fn, current, current_lp, schedule, generator,
+                                                        planar)
+            _raise_on_bad_values(saw_nan, best_lp)
+            return best, best_lp, ([], [], [])
+        log_prob_fn = partial(log_prob_fn.log_prob, method="fast")
     propose = fused_function("anneal_proposal", _fast_proposal, device)
     accept = fused_function("anneal_acceptance", _fast_acceptance, device)
     p, q, lp = current.p, current.q, current_lp
@@ -376,7 +449,10 @@ def anneal(
         method: ``"dense"``, the reference proposals (one step's draws at a time, :func:`pushtorch.se3.perturb`),
             or ``"fast"``: the same proposal distributions, several steps drawn at once and applied in fused
             calls. Both draw rotations with :func:`pushtorch.se3.vmf_offsets`; the seed's random stream
-            differs between the two.
+            differs between the two. With ``"fast"``, a :class:`PoseKDE` given as ``log_prob_fn`` is
+            evaluated by its own fast path (``log_prob(..., method="fast")``: the same values up to
+            float rounding), and a pruned one or a :class:`~pushtorch.kde.SharedKernelProduct` anneals in
+            steps fused with their evaluation.
 
     Returns:
         :class:`AnnealResult`. A candidate at ``-inf`` accepts any finite proposal; if its proposal is
@@ -389,6 +465,7 @@ def anneal(
     schedule = AnnealSchedule() if schedule is None else schedule
     if method not in ("dense", "fast"):
         raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
+    fast_kde = method == "fast" and isinstance(log_prob_fn, PoseKDE)
     shape = init.batch_shape
     if planar is not None:
         if method != "fast":
@@ -412,7 +489,8 @@ def anneal(
     check_unit_quaternion(init.q, name="init.q")
     current = Pose(init.p.expand(*shape, 3).clone(), init.q.expand(*shape, 4).clone())
     current = Pose(current.p, current.q / current.q.norm(dim=-1, keepdim=True))
-    current_lp = _evaluate(log_prob_fn, current, shape)
+    evaluate = partial(log_prob_fn.log_prob, method="fast") if fast_kde else log_prob_fn
+    current_lp = _evaluate(evaluate, current, shape)
     best, best_lp = current, current_lp
     history_p, history_q, history_lp = [current.p], [current.q], [current_lp]
     dtype, device = current.p.dtype, current.p.device

@@ -7,6 +7,7 @@ path runs the same functions and is checked by the slow test at the end and by t
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import pytest
 import torch
@@ -15,7 +16,7 @@ from hypothesis import strategies as st
 from scipy import stats
 
 from pushtorch import se3
-from pushtorch.anneal import AnnealSchedule, anneal, initial_candidates
+from pushtorch.anneal import AnnealSchedule, _anneal_pruned_kde, anneal, initial_candidates
 from pushtorch.errors import InvalidParameterError
 from pushtorch.kde import (
     FAST_DENSE_KERNELS,
@@ -406,6 +407,28 @@ def test_annealing_a_shared_kernel_product_in_fused_steps_follows_the_generic_lo
         assert (fused.log_prob > product.log_prob(init)).any()  # the chains moved up
 
 
+def test_annealing_a_pruned_density_in_fused_steps_follows_the_generic_loop():
+    """A density on leaf blocks anneals (compiled) in two fused calls per step around its (query, block)
+    pairs; run eagerly here on a problem small enough for one pair chunk, it must end where the generic
+    loop over ``log_prob(method="fast")`` ends: the same accepted moves, the same values up to the
+    rounding of the queries ``log_prob`` normalises again (planar and free problems)."""
+    kde = _random_kde(FAST_DENSE_KERNELS + 700, (2,), seed=60, dtype=torch.float32)
+    assert kde.fast_index().blocks
+    init = initial_candidates(kde, 100, torch.Generator().manual_seed(61))
+    init_lp = kde.log_prob(init, method="fast")
+    schedule = AnnealSchedule(steps=12)
+    for planar in (None, torch.tensor([[True], [False]])):
+        best, best_lp, saw_nan = _anneal_pruned_kde(kde, init, init_lp, schedule, torch.Generator().manual_seed(5),
+                                                    planar)
+        generic = anneal(partial(kde.log_prob, method="fast"), init, schedule, torch.Generator().manual_seed(5),
+                         planar=None if planar is None else planar.squeeze(-1), method="fast")
+        assert not saw_nan
+        assert torch.equal(best.p, generic.candidates.p)
+        assert torch.allclose(best.q, generic.candidates.q, atol=1e-7)
+        assert torch.allclose(best_lp, generic.log_prob, atol=1e-4)  # κ (1 − |<q, μ>|) scales q rounding by ~400
+        assert (best_lp > init_lp).any()  # the chains moved up
+
+
 @pytest.mark.slow
 def test_compiled_fast_path_equals_dense(monkeypatch):
     """The torch.compile'd functions (first call compiles: tens of seconds on a cold cache): block and
@@ -447,6 +470,16 @@ def test_compiled_fast_path_equals_dense(monkeypatch):
     fused = anneal(product, init, schedule, torch.Generator().manual_seed(4), method="fast")
     monkeypatch.setenv("PUSHTORCH_COMPILE", "0")
     generic = anneal(product.log_prob, init, schedule, torch.Generator().manual_seed(4), method="fast")
+    monkeypatch.setenv("PUSHTORCH_COMPILE", "1")
+    assert torch.allclose(fused.log_prob, generic.log_prob, atol=1e-4)
+    assert torch.allclose(fused.candidates.p, generic.candidates.p, atol=1e-5)
+    # the compiled fused steps against a pruned density against the eager generic loop
+    kde = _random_kde(FAST_DENSE_KERNELS + 700, (2,), seed=60, dtype=torch.float32)
+    init = initial_candidates(kde, 100, torch.Generator().manual_seed(61))
+    fused = anneal(kde, init, schedule, torch.Generator().manual_seed(4), method="fast")
+    monkeypatch.setenv("PUSHTORCH_COMPILE", "0")
+    generic = anneal(partial(kde.log_prob, method="fast"), init, schedule, torch.Generator().manual_seed(4),
+                     method="fast")
     monkeypatch.setenv("PUSHTORCH_COMPILE", "1")
     assert torch.allclose(fused.log_prob, generic.log_prob, atol=1e-4)
     assert torch.allclose(fused.candidates.p, generic.candidates.p, atol=1e-5)

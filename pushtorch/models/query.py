@@ -386,7 +386,7 @@ def optimise_query_densities(
     init = initial_candidates(kde, n_candidates, generator)  # (D, C)
     mask = torch.tensor(planar, dtype=torch.bool, device=init.p.device)
     log_prob = partial(kde.log_prob, method="fast")
-    result = anneal(log_prob, init, schedule, generator, record_history=record_history, planar=mask, method="fast")
+    result = anneal(kde, init, schedule, generator, record_history=record_history, planar=mask, method="fast")
     result = polish_candidates(result, partial(kde.mean_shift, method="fast"), log_prob, polish_steps)
     out = []
     for i, density in enumerate(densities):
