@@ -192,6 +192,16 @@ def _draw_fast_proposals(
     return step_p, left.contiguous(), right.contiguous(), accept_u
 
 
+def _drawn_steps(schedule: AnnealSchedule, shape: torch.Size, generator, planar: Tensor | None, dtype, device):
+    """The fast path's steps in chunks of :data:`_DRAW_STEPS`: yields each chunk's temperatures and its
+    pre-drawn proposals and acceptance uniforms (:func:`_draw_fast_proposals`), in the one order every
+    fast loop draws them, so they share the seed's random stream."""
+    temperatures = schedule.temperatures()
+    for start in range(0, len(temperatures), _DRAW_STEPS):
+        chunk = temperatures[start : start + _DRAW_STEPS]
+        yield chunk, *_draw_fast_proposals(chunk, shape, schedule, generator, planar, dtype, device)
+
+
 def _fast_proposal(p: Tensor, q: Tensor, step_p: Tensor, left: Tensor, right: Tensor, component_dim: int = -1
                    ) -> tuple[Tensor, Tensor]:
     """One step's proposals from pre-drawn offsets (fused): ``p + Δp``, ``normalise(left ⊗ q ⊗ right)``, with
@@ -257,6 +267,7 @@ def _anneal_shared_product(
     step = fused_function("anneal_shared_product_step", _shared_product_step, device)
     chunks = product.problem_chunks(c)
     layout = (product.table, product.weights, product.scale, product.offset, product.exponent)
+
     def rows(t: Tensor, width: int) -> Tensor:  # (…, D·C, width) → (…, D, width, C), contiguous
         return t.reshape(*t.shape[: t.dim() - len(shape) - 1], d, c, width).transpose(-1, -2).contiguous()
 
@@ -266,11 +277,7 @@ def _anneal_shared_product(
         # distinct tensors: aliased inputs would make torch.compile guard on the aliasing and recompile
         states.append((p.clone(), q.clone(), lp.clone(), p.clone(), q.clone(), lp.clone(),
                        torch.zeros((), dtype=torch.bool, device=device)))
-    temperatures = schedule.temperatures()
-    for start in range(0, len(temperatures), _DRAW_STEPS):
-        chunk = temperatures[start : start + _DRAW_STEPS]
-        step_p, left, right, accept_u = _draw_fast_proposals(chunk, shape, schedule, generator, planar, dtype,
-                                                             device)
+    for chunk, step_p, left, right, accept_u in _drawn_steps(schedule, shape, generator, planar, dtype, device):
         step_p, left, right = rows(step_p, 3), rows(left, 4), rows(right, 4)
         accept_u = accept_u.reshape(len(chunk), d, c)
         inverse_energy = [torch.tensor(1.0 / (schedule.energy_scale * t), dtype=dtype, device=device) for t in chunk]
@@ -332,11 +339,7 @@ def _anneal_pruned_kde(
     query_density = torch.arange(d, device=device).repeat_interleave(c)
     log_w_max = index.log_w_max.reshape(d, 1)
     bounds = (index.lo, index.hi, index.centre, index.cos_reach, index.r2)
-    temperatures = schedule.temperatures()
-    for start in range(0, len(temperatures), _DRAW_STEPS):
-        chunk = temperatures[start : start + _DRAW_STEPS]
-        step_p, left, right, accept_u = _draw_fast_proposals(chunk, shape, schedule, generator, planar, dtype,
-                                                             device)
+    for chunk, step_p, left, right, accept_u in _drawn_steps(schedule, shape, generator, planar, dtype, device):
         step_p, accept_u = step_p.reshape(len(chunk), d, c, 3), accept_u.reshape(len(chunk), d, c)
         left, right = left.reshape(len(chunk), d, c, 4), right.reshape(len(chunk), d, c, 4)
         for k, temperature in enumerate(chunk):
@@ -395,11 +398,7 @@ def _anneal_fast_steps(
     best_p, best_q, best_lp = p.clone(), q.clone(), lp.clone()
     history: tuple[list[Tensor], list[Tensor], list[Tensor]] = ([p], [q], [lp])
     saw_nan = torch.zeros((), dtype=torch.bool, device=device)
-    temperatures = schedule.temperatures()
-    for start in range(0, len(temperatures), _DRAW_STEPS):
-        chunk = temperatures[start : start + _DRAW_STEPS]
-        step_p, left, right, accept_u = _draw_fast_proposals(chunk, shape, schedule, generator, planar, dtype,
-                                                             device)
+    for chunk, step_p, left, right, accept_u in _drawn_steps(schedule, shape, generator, planar, dtype, device):
         for k, temperature in enumerate(chunk):
             prop_p, prop_q = propose(p, q, step_p[k], left[k], right[k])
             with torch.no_grad():
