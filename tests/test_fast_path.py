@@ -394,9 +394,9 @@ def test_annealing_a_shared_kernel_product_in_fused_steps_follows_the_generic_lo
     """Annealing a SharedKernelProduct itself runs each step as one fused call per chunk of problems; it
     draws the same proposals as the generic loop over its ``log_prob`` and must end where that loop ends
     (planar and free problems, several problem chunks: K · C fills the cache budget of one problem)."""
-    product, init = _shared_product_problem(5, 2000, 600, seed=40)
-    assert len(product.problem_chunks(600)) > 1
-    schedule = AnnealSchedule(steps=12)
+    product, init = _shared_product_problem(5, 1200, 500, seed=40)
+    assert len(product.problem_chunks(500)) > 1
+    schedule = AnnealSchedule(steps=8)
     for planar in (None, torch.tensor([True, False, True, False, True])):
         fused = anneal(product, init, schedule, torch.Generator().manual_seed(3), planar=planar, method="fast")
         generic = anneal(product.log_prob, init, schedule, torch.Generator().manual_seed(3), planar=planar,
