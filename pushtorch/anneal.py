@@ -231,6 +231,13 @@ def _fast_acceptance(
     return p, q, lp, best_p, best_q, best_lp, saw_nan | torch.isnan(prop_lp).any()
 
 
+def _chain_state(p: Tensor, q: Tensor, lp: Tensor) -> tuple[Tensor, ...]:
+    """The fused steps' state at the start: current and best poses and log-likelihoods, and the NaN flag.
+    Distinct tensors: aliased inputs would make torch.compile guard on the aliasing and recompile."""
+    return (p.clone(), q.clone(), lp.clone(), p.clone(), q.clone(), lp.clone(),
+            torch.zeros((), dtype=torch.bool, device=p.device))
+
+
 def _shared_product_step(
     p: Tensor, q: Tensor, lp: Tensor, best_p: Tensor, best_q: Tensor, best_lp: Tensor, saw_nan: Tensor,
     step_p: Tensor, left: Tensor, right: Tensor, u: Tensor, inverse_energy: Tensor,
@@ -274,9 +281,7 @@ def _anneal_shared_product(
     states = []
     for a, b in chunks:
         p, q, lp = rows(current.p, 3)[a:b], rows(current.q, 4)[a:b], current_lp.reshape(d, c)[a:b]
-        # distinct tensors: aliased inputs would make torch.compile guard on the aliasing and recompile
-        states.append((p.clone(), q.clone(), lp.clone(), p.clone(), q.clone(), lp.clone(),
-                       torch.zeros((), dtype=torch.bool, device=device)))
+        states.append(_chain_state(p, q, lp))
     for chunk, step_p, left, right, accept_u in _drawn_steps(schedule, shape, generator, planar, dtype, device):
         step_p, left, right = rows(step_p, 3), rows(left, 4), rows(right, 4)
         accept_u = accept_u.reshape(len(chunk), d, c)
@@ -333,9 +338,7 @@ def _anneal_pruned_kde(
     propose = fused_function("anneal_propose_and_reach", _propose_and_reach, device)
     accept = fused_function("anneal_block_step_acceptance", _block_step_acceptance, device)
     p, q, lp = current.p.reshape(d, c, 3), current.q.reshape(d, c, 4), current_lp.reshape(d, c)
-    # distinct tensors: aliased inputs would make torch.compile guard on the aliasing and recompile
-    state = (p.clone(), q.clone(), lp.clone(), p.clone(), q.clone(), lp.clone(),
-             torch.zeros((), dtype=torch.bool, device=device))
+    state = _chain_state(p, q, lp)
     query_density = torch.arange(d, device=device).repeat_interleave(c)
     log_w_max = index.log_w_max.reshape(d, 1)
     bounds = (index.lo, index.hi, index.centre, index.cos_reach, index.r2)
