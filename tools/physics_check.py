@@ -14,7 +14,10 @@ Prints, for the chosen ``sim.robot`` drive (default: the library's default):
 The last line is exactly ``mass_effect_cm=<X> mirror_mm=<Y> pushes_per_s=<Z>`` (targets of issue 16 on a
 2-core machine: X >= 5, Y <= 5, Z >= 40).
 
-    .venv/bin/python tools/physics_check.py [--robot p3dx|ideal] [--pushes 300]
+    .venv/bin/python tools/physics_check.py [--robot p3dx|ideal] [--pushes 300] [--wheel-friction MU]
+
+``--wheel-friction`` replaces the documented tyre friction (0.5) to show what a slipping drive would do; it
+is not a setting any experiment uses.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from bench_sim import measure
 from pushtorch import se3
 from pushtorch.objects import load_object
 from pushtorch.sim import SimSettings, default_workers, place_robot_against
+from pushtorch.sim.drive import DriveSettings
 from pushtorch.sim.runner import simulate_pushes
 
 MIRROR_OBJECTS = ("cube", "cylinder", "prism_thin", "hybrid")
@@ -78,9 +82,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--robot", default=SimSettings().robot, help="sim.robot (default: the library's)")
     parser.add_argument("--pushes", type=int, default=300, help="pushes of the throughput run (default 300)")
+    parser.add_argument("--wheel-friction", type=float, default=DriveSettings().wheel_friction,
+                        help="p3dx tyre-floor friction (default: the documented 0.5)")
     args = parser.parse_args()
-    settings = SimSettings(robot=args.robot)
-    print(f"CPU: {cpu_name()} ({os.cpu_count()} logical CPUs); sim.robot={settings.robot}")
+    settings = SimSettings(robot=args.robot, drive=DriveSettings(wheel_friction=args.wheel_friction))
+    print(f"CPU: {cpu_name()} ({os.cpu_count()} logical CPUs); sim.robot={settings.robot} "
+          f"wheel_friction={settings.drive.wheel_friction}")
     straight = mass_effect_cm(settings, 0.0)
     turning = [mass_effect_cm(settings, rate) for rate in (-10.0, 10.0)]
     print(f"mass effect, 0.1 kg vs 5 kg cube at friction 0.4: straight {straight:.2f} cm; "
