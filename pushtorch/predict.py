@@ -11,6 +11,10 @@ Paper, Fig. pipeline (prediction) and §Query Density / §Motion Model / §Model
 
 With a :class:`~pushtorch.models.library.ModelLibrary`, the model is chosen first by the lowest ``H_r``.
 
+A caller may also give the robot's start (``predict(..., robot_start=...)``, issue 17's ``placement_spread``
+test set): step 1 then skips the robot query and takes as manipulator contact frame the observed feature
+that touches the bumper at that start (:func:`manipulator_frame_at`); the rest is unchanged.
+
 Two implementations of the same method: ``method="fast"`` (default) evaluates the densities only where
 the kernels' hard cut-offs let them reach, in fused (compiled when possible) passes, anneals the robot's
 and the object's query densities in one batch and, in :func:`predict_many`, many conditions at once;
@@ -51,10 +55,10 @@ import torch
 from pushtorch import se3
 from pushtorch.anneal import AnnealResult, AnnealSchedule
 from pushtorch.distribution import FinalPoseDistribution
-from pushtorch.errors import InvalidParameterError, ModelError
+from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.features import SurfaceFeatures, compute_surface_features
 from pushtorch.kde import KernelBandwidth
-from pushtorch.models.contact import bumper_contact_patch, place_environment_contacts
+from pushtorch.models.contact import bumper_contact_patch, closest_points_on_mesh, place_environment_contacts
 from pushtorch.models.frames import ContactFrames
 from pushtorch.models.library import ModelLibrary, ModelSettings, PushModel, as_generator, check_action
 from pushtorch.models.motion import MotionDensity, MotionKernels, anneal_motion_densities
@@ -69,7 +73,7 @@ from pushtorch.models.query import (
     optimise_query_density,
 )
 from pushtorch.perception import PointCloud
-from pushtorch.robot import backed_off, backoff_distance
+from pushtorch.robot import backed_off, backoff_distance, bumper_mesh
 
 __all__ = [
     "MAX_BACKOFF",
@@ -82,6 +86,7 @@ __all__ = [
     "clearance_points",
     "estimate_pose",
     "generate_push_condition",
+    "manipulator_frame_at",
     "predict",
     "predict_many",
 ]
@@ -120,7 +125,7 @@ class PushCondition:
     manipulator_frame: ContactFrames  # (1,)
     environment_frames: ContactFrames  # (E,)
     object_pose: se3.Pose  # () estimated initial pose B0'
-    robot_query: QueryResult
+    robot_query: QueryResult | None  # None: the caller gave the start (no robot query was annealed)
     pose_query: QueryResult
     features: SurfaceFeatures = field(repr=False)  # the cloud's surface features
     model: PushModel = field(repr=False)
@@ -385,6 +390,49 @@ def clear_robot_start(robot_start: se3.Pose, features: SurfaceFeatures,
     return backed_off(robot_start, distance), value
 
 
+def manipulator_frame_at(features: SurfaceFeatures, robot_start: se3.Pose, cutoff: float = 0.01,
+                         drop_off: float = 100.0) -> ContactFrames:
+    """The manipulator contact frame ``(1,)`` for a robot start the caller chose (paper, Manipulator Contact
+    Model, as training takes it at a push's start): of the observed features within ``cutoff`` of the bumper
+    and facing it, the one with the largest weight ``exp(−λ_c d²)`` (the training law draws by that weight;
+    a prediction takes its mode), related to the start as ``u = v⁻¹ ∘ R0``.
+
+    Raises:
+        InvalidPoseError: ``robot_start`` is not one pose.
+        ModelError: no observed feature lies within ``cutoff`` of the bumper facing it (the start does not
+            touch the object where the camera saw it).
+    """
+    robot_start = se3.check_pose(robot_start, "robot_start")
+    if robot_start.batch_shape != torch.Size([]):
+        raise InvalidPoseError(f"robot_start must be one pose, got batch shape {tuple(robot_start.batch_shape)}")
+    robot_start = se3.Pose(robot_start.p.detach().cpu().to(features.p.dtype),
+                           robot_start.q.detach().cpu().to(features.p.dtype))
+    points = se3.apply(se3.inverse(robot_start), features.p.cpu())
+    normals = se3.apply(se3.Pose(torch.zeros(3, dtype=points.dtype), se3.inverse(robot_start).q), features.normal.cpu())
+    closest, dist = closest_points_on_mesh(bumper_mesh(se3.identity()), points)
+    towards = ((closest - points) * normals).sum(-1) >= -1e-4
+    weight = torch.where((dist < cutoff) & towards, torch.exp(-drop_off * dist**2), torch.zeros_like(dist))
+    if not bool((weight > 0).any()):
+        raise ModelError(
+            f"the given robot start touches none of the {len(points)} observed surface features: none lies within "
+            f"{cutoff} m of the bumper and faces it (place the bumper against the side the camera saw)"
+        )
+    best = int(weight.argmax())
+    device = features.p.device
+    v = se3.Pose(features.p[best : best + 1], features.q[best : best + 1])
+    u = se3.relative(v, se3.Pose(robot_start.p.to(device).unsqueeze(0), robot_start.q.to(device).unsqueeze(0)))
+    return ContactFrames(v, features.r[best : best + 1], u, weight[best : best + 1].to(device))
+
+
+def _given_start_condition(start: se3.Pose, environment: ContactFrames, pose: QueryResult,
+                           features: SurfaceFeatures, model: PushModel) -> PushCondition:
+    """The push condition of a start the caller gave: used as it is (no back-off; the caller owns it)."""
+    settings = model.settings
+    frame = manipulator_frame_at(features, start, settings.contact_cutoff, settings.contact_drop_off)
+    start = se3.Pose(start.p.to(features.p), start.q.to(features.p))
+    return PushCondition(start, frame, environment, pose.pose, None, pose, features, model, 0.0)
+
+
 def _condition(robot: QueryResult, environment: ContactFrames, pose: QueryResult, features: SurfaceFeatures,
                model: PushModel) -> PushCondition:
     """The push condition, its annealed robot start cleared of the cloud (an invalid one logged)."""
@@ -403,6 +451,7 @@ def generate_push_condition(
     generator: torch.Generator | None = None,
     record_history: bool = False,
     method: str = "fast",
+    robot_start: se3.Pose | None = None,
 ) -> PushCondition:
     """Robot start pose, manipulator and environment contact frames, and initial pose (paper, Query Density).
 
@@ -410,7 +459,8 @@ def generate_push_condition(
     one batch with pruned, fused densities; ``"dense"`` is the reference, one after the other. The
     annealed start is then backed off along the approach to clear the observed cloud
     (:func:`clear_robot_start`; ``PushCondition.backoff``); beyond :data:`MAX_BACKOFF` the condition is
-    marked invalid (``PushCondition.valid``) and a warning is logged.
+    marked invalid (``PushCondition.valid``) and a warning is logged. A given ``robot_start`` is used as it
+    is, with the manipulator frame the cloud shows at it (:func:`manipulator_frame_at`).
     """
     _check_method(method)
     generator = as_generator(generator)
@@ -420,14 +470,18 @@ def generate_push_condition(
             f"action_index must be an int in [0, {len(model.motions)}) for model {model.name!r}, got {action_index!r}"
         )
     if method == "fast":
-        return _push_conditions_fast(model, [features], [action_index], generator, record_history)[0]
+        return _push_conditions_fast(model, [features], [action_index], generator, record_history, [robot_start])[0]
     settings = model.settings
-    robot_density = _robot_density(model, features, generator, method)
-    robot = optimise_query_density(
-        robot_density, settings.anneal_candidates, _schedule(settings, True, method), generator, record_history
-    )
+    robot = None
+    if robot_start is None:
+        robot_density = _robot_density(model, features, generator, method)
+        robot = optimise_query_density(
+            robot_density, settings.anneal_candidates, _schedule(settings, True, method), generator, record_history
+        )
     environment = _environment_frames(model, features, action_index, generator)
     pose = estimate_pose(model.position, features, settings, generator, record_history, method)
+    if robot is None:
+        return _given_start_condition(robot_start, environment, pose, features, model)
     return _condition(robot, environment, pose, features, model)
 
 
@@ -448,23 +502,31 @@ def _push_conditions_fast(
     action_indices: list[int],
     generator: torch.Generator | None,
     record_history: bool,
+    starts: list[se3.Pose | None] | None = None,
 ) -> list[PushCondition]:
-    """Push conditions of several clouds: every robot and pose query density annealed in one batch."""
+    """Push conditions of several clouds: every robot and pose query density annealed in one batch (a cloud
+    whose start is given, ``starts[i]``, has no robot query)."""
     settings = model.settings
+    starts = starts if starts is not None else [None] * len(features)
     robot_densities, pose_densities = [], []
-    for f in features:
-        robot_densities.append(_robot_density(model, f, generator, "fast"))
+    for f, start in zip(features, starts, strict=True):
+        if start is None:
+            robot_densities.append(_robot_density(model, f, generator, "fast"))
         pose_densities.append(_pose_density(model.position, f, settings, generator, "fast"))
-    n = len(features)
+    n_robot = len(robot_densities)
     results = optimise_query_densities(
         robot_densities + pose_densities, settings.anneal_candidates, _schedule(settings, False, "fast"),
-        [True] * n + [False] * n, generator, record_history, settings.polish_steps,
+        [True] * n_robot + [False] * len(features), generator, record_history, settings.polish_steps,
     )
+    robots = iter(results[:n_robot])
     conditions = []
-    for i, (f, a) in enumerate(zip(features, action_indices, strict=True)):
-        robot, pose = results[i], _verified_pose(results[n + i], model.position, f, generator)
+    for f, a, start, pose_result in zip(features, action_indices, starts, results[n_robot:], strict=True):
+        pose = _verified_pose(pose_result, model.position, f, generator)
         environment = _environment_frames(model, f, a, generator)
-        conditions.append(_condition(robot, environment, pose, f, model))
+        if start is None:
+            conditions.append(_condition(next(robots), environment, pose, f, model))
+        else:
+            conditions.append(_given_start_condition(start, environment, pose, f, model))
     return conditions
 
 
@@ -475,6 +537,7 @@ def predict(
     generator: torch.Generator | None = None,
     record_history: bool = False,
     method: str = "fast",
+    robot_start: se3.Pose | None = None,
 ) -> Prediction:
     """Predict where the object in ``cloud`` ends up after ``action`` (paper, Motion Model, Eq. poe).
 
@@ -490,11 +553,16 @@ def predict(
             polished by mean shift (module docstring); ``"dense"``: the reference implementation, the
             paper's full schedule. Both optimise the same densities; their random streams differ, so
             single predictions differ as two seeds do.
+        robot_start: the robot's start pose (one pose, world), when the caller places the robot instead of
+            the manipulator contact model; the bumper must touch the observed cloud there. Default None:
+            the model chooses (the paper's push condition generation).
 
     Raises:
         InvalidParameterError: an unknown method, or an action that is not finite, misshaped or unknown
             to the model.
         InvalidPointCloudError: an empty, misshaped or non-finite cloud (a float64 cloud is cast).
+        InvalidPoseError: a ``robot_start`` that is not one finite pose with a unit quaternion.
+        ModelError: a ``robot_start`` at which the bumper touches no observed surface feature.
 
     The robot start (``prediction.condition.robot_start``) clears the observed cloud by
     :data:`START_CLEARANCE`: an overlapping annealed start is backed off along the approach
@@ -502,7 +570,7 @@ def predict(
     (``condition.check_start()`` raises ModelError then).
     """
     return predict_many(model, [cloud], action, generator=generator, record_history=record_history,
-                        method=method)[0]
+                        method=method, robot_starts=None if robot_start is None else [robot_start])[0]
 
 
 def _motion_density(model: PushModel, condition: PushCondition, a: int, generator: torch.Generator | None,
@@ -539,6 +607,7 @@ def predict_many(
     record_history: bool = False,
     method: str = "fast",
     batch_size: int = 1,
+    robot_starts: list[se3.Pose | None] | None = None,
 ) -> list[Prediction]:
     """Predict several conditions (one cloud and action each).
 
@@ -556,9 +625,11 @@ def predict_many(
         seed: base seed when no generator is given; generator: one generator for every batch.
         record_history, method: as :func:`predict`.
         batch_size: conditions annealed together (fast method only; the dense method runs one by one).
+        robot_starts: None (the model places the robot) or one entry per cloud: a start pose as
+            :func:`predict`'s ``robot_start``, or None for the model's own.
 
     Raises:
-        InvalidParameterError: an unknown method, a batch size < 1 or actions that do not match.
+        InvalidParameterError: an unknown method, a batch size < 1, actions or starts that do not match.
 
     Every condition's robot start is cleared of its cloud as in :func:`predict`.
     """
@@ -573,12 +644,17 @@ def predict_many(
         raise InvalidParameterError("clouds must be a list of clouds (use predict for one cloud)")
     clouds = list(clouds)
     actions = _check_actions(actions, len(clouds))
+    if robot_starts is None:
+        robot_starts = [None] * len(clouds)
+    elif isinstance(robot_starts, se3.Pose) or len(robot_starts) != len(clouds):
+        raise InvalidParameterError(
+            f"robot_starts must be a list with one pose (or None) per cloud, {len(clouds)} in all")
     step = int(batch_size) if method == "fast" else 1
     out: list[Prediction] = []
     for start in range(0, len(clouds), step):
         g = generator if generator is not None else torch.Generator().manual_seed(seed + start)
         out.extend(_predict_batch(model, clouds[start : start + step], actions[start : start + step], g,
-                                  record_history, method))
+                                  record_history, method, list(robot_starts[start : start + step])))
     return out
 
 
@@ -589,6 +665,7 @@ def _predict_batch(
     generator: torch.Generator | None,
     record_history: bool,
     method: str,
+    starts: list[se3.Pose | None],
 ) -> list[Prediction]:
     """One batch of :func:`predict_many`: a library selects per cloud, then each model's share runs
     together."""
@@ -604,7 +681,8 @@ def _predict_batch(
         schedule = _schedule(settings, False, method)
         if method == "fast":
             shares = [features[i] for i in rows]
-            conditions = _push_conditions_fast(m, shares, a_idx, generator, record_history)
+            conditions = _push_conditions_fast(m, shares, a_idx, generator, record_history,
+                                               [starts[i] for i in rows])
             densities = [_motion_density(m, c, a, generator, method)
                          for c, a in zip(conditions, a_idx, strict=True)]
             results = anneal_motion_densities(densities, settings.anneal_candidates, schedule, generator,
@@ -612,7 +690,8 @@ def _predict_batch(
         else:
             conditions, densities, results = [], [], []
             for i, a in zip(rows, a_idx, strict=True):
-                condition = generate_push_condition(m, features[i], a, generator, record_history, method)
+                condition = generate_push_condition(m, features[i], a, generator, record_history, method,
+                                                    starts[i])
                 density = _motion_density(m, condition, a, generator, method)
                 conditions.append(condition)
                 densities.append(density)

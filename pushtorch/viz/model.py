@@ -443,7 +443,8 @@ def log_prediction(
         log_points(rec, f"{root}/cloud", points[_subsample(points.shape[0], max_points, points.device)],
                    colors=_CLOUD_COLOUR, radii=0.0015, static=True)
 
-    log_query(rec, f"{root}/robot_query", condition.robot_query, max_points)
+    if condition.robot_query is not None:  # None: the caller gave the start
+        log_query(rec, f"{root}/robot_query", condition.robot_query, max_points)
     log_query(rec, f"{root}/pose_query", condition.pose_query, max_points)
 
     _log_robot(rec, root, condition.robot_start)

@@ -1,0 +1,99 @@
+"""Predictions from a robot start the caller gives (issue 17's placement_spread test set): the manipulator
+frame the cloud shows at that start, no robot query, the start used as given, and clear errors for a start
+that touches nothing. Real meshes, single-shot clouds and models trained on real pybullet pushes."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from pushtorch import robot, se3
+from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
+from pushtorch.features import compute_surface_features
+from pushtorch.objects import load_object
+from pushtorch.perception import capture_partial_cloud
+from pushtorch.predict import manipulator_frame_at, predict, predict_many
+from pushtorch.sim.push import place_robot_against
+
+
+@pytest.fixture(scope="module")
+def cube_scene():
+    cube = load_object("cube")
+    pose = cube.resting_pose()
+    cloud = capture_partial_cloud(cube, pose, generator=torch.Generator().manual_seed(0))
+    return cube, pose, cloud
+
+
+@pytest.mark.parametrize("lateral", [-0.08, 0.0, 0.06])
+def test_the_manipulator_frame_is_a_feature_touching_the_bumper_where_it_was_placed(cube_scene, lateral):
+    cube, pose, cloud = cube_scene
+    features = compute_surface_features(cloud)
+    start = place_robot_against(cube.mesh, pose, 0.0, lateral, gap=0.002)
+    frame = manipulator_frame_at(features, start)
+    assert len(frame) == 1 and float(frame.weight[0]) > 0
+    in_robot = se3.apply(se3.inverse(start), frame.v.p[0])
+    bumper = robot.bumper_geometry()
+    half_width = float(bumper.size[1]) / 2
+    assert abs(float(in_robot[1])) <= half_width + 0.01  # on the plate's width
+    # the relation reproduces the start: v ∘ u = R0
+    entity = se3.compose(frame.v, frame.u)
+    assert torch.allclose(entity.p[0], start.p, atol=1e-5)
+    assert float(se3.angle_between(entity.q[0], start.q)) < 1e-3
+
+
+def test_a_prediction_from_a_given_start_keeps_it_and_skips_the_robot_query(cube_scene, small_model):
+    cube, pose, cloud = cube_scene
+    model = small_model("cube")
+    start = place_robot_against(cube.mesh, pose, 0.05, 0.07, gap=0.002)
+    action = model.motions[0].action
+    prediction = predict(model, cloud, action, torch.Generator().manual_seed(3), robot_start=start)
+    condition = prediction.condition
+    assert condition.robot_query is None and condition.backoff == 0.0 and condition.valid
+    assert torch.allclose(condition.robot_start.p, start.p) and torch.allclose(condition.robot_start.q, start.q)
+    # the contact patch is read at the given start: the bumper meets the cube off its centre line
+    y_min, y_max, _ = condition.contact_patch.tolist()
+    assert abs((y_min + y_max) / 2 + 0.07) < 0.03  # the bumper passes 7 cm left of the cube's centre
+    assert torch.isfinite(prediction.final_pose.p).all() and torch.isfinite(prediction.log_prob)
+    moved = float((prediction.final_pose.p[:2] - condition.object_pose.p[:2]).norm())
+    assert 0.1 < moved < 0.8  # a 4 s push at 0.1 m/s moves the cube, and not farther than the robot drives
+
+
+def test_dense_and_fast_take_the_given_start_alike(cube_scene, small_model):
+    cube, pose, cloud = cube_scene
+    model = small_model("cube")
+    start = place_robot_against(cube.mesh, pose, 0.0, -0.05, gap=0.002)
+    action = model.motions[1].action
+    fast = predict(model, cloud, action, torch.Generator().manual_seed(1), robot_start=start)
+    dense = predict(model, cloud, action, torch.Generator().manual_seed(1), robot_start=start, method="dense")
+    for prediction in (fast, dense):
+        assert torch.allclose(prediction.condition.robot_start.p, start.p)
+    assert torch.equal(fast.condition.manipulator_frame.v.p, dense.condition.manipulator_frame.v.p)
+
+
+def test_a_none_start_is_the_models_own_placement_with_the_same_stream(cube_scene, small_model):
+    cube, pose, cloud = cube_scene
+    model = small_model("cube")
+    action = model.motions[2].action
+    start = place_robot_against(cube.mesh, pose, 0.0, 0.04, gap=0.002)
+    mixed = predict_many(model, [cloud, cloud], action, seed=5, robot_starts=[None, start])
+    alone = predict(model, cloud, action, torch.Generator().manual_seed(5))
+    assert mixed[0].condition.robot_query is not None
+    assert torch.equal(mixed[0].final_pose.p, alone.final_pose.p)
+    assert torch.allclose(mixed[1].condition.robot_start.p, start.p)
+
+
+def test_a_start_that_touches_nothing_or_is_not_one_pose_is_refused(cube_scene, small_model):
+    cube, pose, cloud = cube_scene
+    model = small_model("cube")
+    action = model.motions[0].action
+    far = se3.from_xy_yaw(-2.0, 0.0, 0.0)
+    with pytest.raises(ModelError, match="touches none of the"):
+        predict(model, cloud, action, torch.Generator().manual_seed(0), robot_start=far)
+    two = se3.Pose(torch.zeros(2, 3), torch.tensor([[1.0, 0, 0, 0]] * 2))
+    with pytest.raises(InvalidPoseError, match="one pose"):
+        predict(model, cloud, action, torch.Generator().manual_seed(0), robot_start=two)
+    nan = se3.Pose(torch.tensor([float("nan"), 0.0, 0.0]), torch.tensor([1.0, 0, 0, 0]))
+    with pytest.raises(InvalidPoseError):
+        predict(model, cloud, action, torch.Generator().manual_seed(0), robot_start=nan)
+    with pytest.raises(InvalidParameterError, match="one pose"):
+        predict_many(model, [cloud, cloud], action, robot_starts=[None])
