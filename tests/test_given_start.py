@@ -4,8 +4,11 @@ that touches nothing. Real meshes, single-shot clouds and models trained on real
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import torch
+import trimesh
 
 from pushtorch import robot, se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
@@ -97,3 +100,52 @@ def test_a_start_that_touches_nothing_or_is_not_one_pose_is_refused(cube_scene, 
         predict(model, cloud, action, torch.Generator().manual_seed(0), robot_start=nan)
     with pytest.raises(InvalidParameterError, match="one pose"):
         predict_many(model, [cloud, cloud], action, robot_starts=[None])
+
+
+# -- the placement_spread test set (experiments) ------------------------------------------------------------
+
+
+def test_the_spread_test_set_is_a_config_group_off_by_default(tmp_path):
+    from hydra import compose, initialize_config_dir
+
+    from pushtorch.experiments.common import context_from_config
+    from pushtorch.sim.plan import Placement
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        default = context_from_config(compose("config", ["experiment=quickstart"]), tmp_path)
+        spread = context_from_config(compose("config", ["experiment=quickstart", "test_placement=spread"]), tmp_path)
+        spread_overrides = ["experiment=quickstart", "test_placement=spread"]
+        wider = compose("config", [*spread_overrides, "test_placement.lateral_jitter=0.05"])
+        unknown = compose("config", [*spread_overrides, "+test_placement.lateral=0.05"])
+    assert default.test_placement is None
+    assert spread.test_placement == Placement(gap=0.002, lateral_jitter=0.1, yaw_jitter_deg=5.0)
+    assert context_from_config(wider, tmp_path).test_placement.lateral_jitter == 0.05
+    with pytest.raises(InvalidParameterError, match="test_placement"):
+        context_from_config(unknown, tmp_path)
+
+
+@pytest.mark.parametrize("name", ["cube", "prism_thin", "cylinder_wide"])
+def test_spread_test_starts_touch_the_object_off_centre_along_its_own_axis(name):
+    from pushtorch.experiments.common import sample_test_poses, spread_test_start
+    from pushtorch.sim.plan import Placement
+
+    obj = load_object(name)
+    placement = Placement(gap=0.002, lateral_jitter=0.1, yaw_jitter_deg=5.0)
+    poses = sample_test_poses(obj, 12, (-45.0, 45.0), seed=7)
+    points, _ = trimesh.sample.sample_surface(obj.mesh, 4000, seed=1)
+    surface = torch.as_tensor(points, dtype=torch.float32)
+    headings, laterals = [], []
+    for i in range(len(poses.p)):
+        pose = poses.take(i)
+        start = spread_test_start(obj, pose, placement, torch.Generator().manual_seed(i))
+        again = spread_test_start(obj, pose, placement, torch.Generator().manual_seed(i))
+        assert torch.equal(start.p, again.p)  # seeded
+        world = se3.apply(pose, surface.to(pose.p.dtype))
+        clearance = float(robot.start_clearance(start, world))
+        assert 0.0 <= clearance < 0.01  # against the object, not in it
+        heading = float(se3.yaw_of(start.q)) - float(se3.yaw_of(pose.q))
+        headings.append(abs(heading))
+        laterals.append(float(se3.apply(se3.inverse(start), pose.p)[1]))  # object centre in the robot frame
+    assert max(headings) <= 5.0 * torch.pi / 180 + 1e-5
+    assert max(abs(y) for y in laterals) <= 0.1 + 1e-4 and max(abs(y) for y in laterals) > 0.03  # off-centre

@@ -130,6 +130,9 @@ class ExperimentContext:
             (for the recording's blueprint and part summaries; shared by :meth:`with_model` contexts).
         placement: how training places the robot (``model.placement``; default the paper's single
             placement, see docs/method.md "Training placement").
+        test_placement: None (default): every test push starts where the model's contact model puts the
+            robot; a :class:`Placement`: the ``placement_spread`` test set (``test_placement=spread``), the
+            robot placed off-centre against the test object by that law and the model predicting from there.
     """
 
     run_dir: Path
@@ -146,6 +149,7 @@ class ExperimentContext:
     recording: Any = None
     log_examples: int = 1
     placement: Placement = Placement()
+    test_placement: Placement | None = None
     logged_predictions: list[tuple[str, str]] = field(default_factory=list, repr=False)
     _models: dict[str, PushModel] = field(default_factory=dict, repr=False)
     _slots: list[int] = field(default_factory=lambda: [0], repr=False)
@@ -198,6 +202,17 @@ def _placement(model_cfg: Mapping[str, Any]) -> Placement:
     return Placement(**{k: float(v) for k, v in entry.items()})
 
 
+def _test_placement(entry: Mapping[str, Any] | None) -> Placement | None:
+    entry = dict(entry or {})
+    if not entry.pop("spread", False):
+        return None
+    unknown = set(entry) - {"gap", "lateral_jitter", "yaw_jitter_deg"}
+    if unknown:
+        raise InvalidParameterError(f"unknown test_placement keys {sorted(unknown)}; known: spread, gap, "
+                                    "lateral_jitter, yaw_jitter_deg")
+    return Placement(**{k: float(v) for k, v in entry.items()})
+
+
 def context_from_config(cfg: DictConfig | Mapping[str, Any], run_dir: str | Path) -> ExperimentContext:
     """Build the context from a composed experiment config (keys ``seed``, ``model``, ``priors``, ``sim``,
     ``experiment.actions``, ``experiment.workers``, ...).
@@ -236,6 +251,7 @@ def context_from_config(cfg: DictConfig | Mapping[str, Any], run_dir: str | Path
         progress=bool(exp.get("progress", True)),
         log_examples=int(exp.get("log_examples", 1)),
         placement=_placement(model_cfg),
+        test_placement=_test_placement(c.get("test_placement")),
     )
 
 
@@ -523,6 +539,18 @@ def truth_fingerprint(ctx: ExperimentContext, conditions: Sequence[tuple[str, st
                        seed_key=seed_key, sim=asdict(ctx.sim), duration=ctx.duration)
 
 
+def spread_test_start(obj: ObjectModel, pose: se3.Pose, placement: Placement,
+                      generator: torch.Generator) -> se3.Pose:
+    """A ``placement_spread`` start: the robot heading along the object's own x axis (its yaw in ``pose``)
+    plus a uniform ± ``yaw_jitter_deg``, its bumper's centre line a uniform ± ``lateral_jitter`` from the
+    object's centre, ``gap`` short of touching (:func:`pushtorch.sim.push.place_robot_against`)."""
+    from pushtorch.sim.push import place_robot_against
+
+    u = torch.rand(2, generator=generator, dtype=torch.float64) * 2 - 1
+    heading = float(se3.yaw_of(pose.q.double())) + float(u[0]) * math.radians(placement.yaw_jitter_deg)
+    return place_robot_against(obj.mesh, pose, heading, float(u[1]) * placement.lateral_jitter, placement.gap)
+
+
 def predict_set(
     ctx: ExperimentContext,
     key: str,
@@ -586,6 +614,7 @@ def predict_set(
         choice=[choose(i) for i in range(n)], settings=asdict(ctx.settings),
         poses=poses.p.tolist() + poses.q.tolist(), actions=ctx.actions.tolist(),
         physics=physics, samples_per_action=ctx.samples_per_action, version=PREDICTION_VERSION,
+        test_placement=None if ctx.test_placement is None else asdict(ctx.test_placement),
     )
     path = contained_path(ctx.run_dir, "predictions", f"{key}.npz", what="experiment, object or prior name")
     cached = None
@@ -604,6 +633,13 @@ def predict_set(
     memo = {} if memo is None else memo
     kept: list[Example] = []
 
+    def test_start(i: int, j: int) -> se3.Pose | None:
+        """The placement_spread start of condition ``i``, action ``j`` (None: the model's own)."""
+        if ctx.test_placement is None:
+            return None
+        return spread_test_start(obj, poses.take(i), ctx.test_placement,
+                                 torch.Generator().manual_seed(stable_seed(ctx.seed, seed_key, i, j, "placement")))
+
     def predict_condition(i: int, features: SurfaceFeatures, record: bool) -> tuple[int, list[dict]]:
         """Model index and, per action, the derived poses of condition ``i`` (kept predictions aside)."""
         index = int(library.select(features)[1].argmin()) if library is not None else choose(i)
@@ -615,7 +651,8 @@ def predict_set(
                 derived.append(memo[memo_key])
                 continue
             generator = torch.Generator().manual_seed(stable_seed(ctx.seed, seed_key, i, j))
-            prediction = predict(model, features, ctx.actions[j], generator, record_history=record)
+            prediction = predict(model, features, ctx.actions[j], generator, record_history=record,
+                                 robot_start=test_start(i, j))
             condition = prediction.condition
             motion = model.motions[model.action_index(ctx.actions[j])]
             start, estimate = condition.robot_start, condition.object_pose

@@ -785,11 +785,12 @@ def _score_text(score: float | None) -> str:
 
 def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequence[Mapping[str, Any]],
                  extras: Mapping[str, Any], figures: Sequence[Path],
-                 checks: Sequence[Mapping[str, Any]]) -> Path:
+                 checks: Sequence[Mapping[str, Any]], test_placement: Mapping[str, Any] | None = None) -> Path:
     """``report.md``: the paper's tables with our numbers (and the paper's where it gives them).
 
     ``records`` may hold both metrics: the tables read the primary (displacement) records, and the
-    per-object table adds the frame score as a labelled secondary column."""
+    per-object table adds the frame score as a labelled secondary column. ``test_placement``: the run's
+    ``test_placement`` config; a spread one is stated at the top (the starts are not the model's)."""
     out_dir = Path(out_dir)
     frame = frame_scores(records)
     records = primary(records)
@@ -808,6 +809,12 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
              "\"Likelihood score\"). `oracle_physics` simulates the true mesh from the true pose, which the "
              "method never sees: it is an oracle, not a peer. Every number is in `results.json`; the "
              "resolved configuration is in `resolved_config.yaml`.", ""]
+    if test_placement and test_placement.get("spread"):
+        yaw, lateral = test_placement["yaw_jitter_deg"], test_placement["lateral_jitter"]
+        lines += [f"**Test set: placement_spread.** Every test push starts where the experimenter placed the "
+                  f"robot, not where the model's contact model would: heading ±{yaw}° about the object's own x "
+                  f"axis, the bumper's centre line up to ±{lateral} m off the object's centre; the model "
+                  "predicts from that start (docs/experiments.md).", ""]
 
     def figure(name: str, caption: str) -> None:
         if name in figure_names:
@@ -959,6 +966,7 @@ def write_outputs(out_dir: Path, experiment: str, config: Mapping[str, Any], wal
     figures = make_figures(out_dir, primary(records), extras)
     figure_data = write_figure_data(out_dir, extras)  # what tools/redraw_figures.py redraws them from
     checks = acceptance_checks(primary(records), extras.get("thrown") or ())
-    report = write_report(out_dir, experiment, wall_s, records, extras, figures, checks)
+    report = write_report(out_dir, experiment, wall_s, records, extras, figures, checks,
+                          config.get("test_placement"))
     return {"results": results, "report": report, "figures": figures, "figure_data": figure_data,
             "checks": checks}
