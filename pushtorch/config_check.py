@@ -105,6 +105,11 @@ _RULES: list[tuple[str, Rule]] = [
     ("**.placement.lateral_jitter", _float(0.0, 1.0)),
     ("**.placement.yaw_jitter_deg", _float(0.0, 180.0)),
     ("**.placement.object_yaw_deg", _float(-360.0, 360.0)),
+    ("test_placement.spread", _BOOL),
+    ("test_placement.gap", _float(0.0, 0.05)),
+    # beyond 0.2 m off the object's centre the 0.4 m bumper's centre line can miss a thin object
+    ("test_placement.lateral_jitter", _float(0.0, 0.2)),
+    ("test_placement.yaw_jitter_deg", _float(0.0, 45.0)),
     ("**.settings.voxel_size", _float(5e-4, 0.1)),
     ("**.settings.feature_radius", _float(1e-3, 0.5)),
     ("**.settings.environment_kernels", _int(1, 1_000_000)),

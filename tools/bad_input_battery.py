@@ -128,6 +128,9 @@ def cases(fx: Fixtures) -> list[Case]:
     add("main-test-conditions-0", "configs", m, ["experiment=model_selection", "experiment.test_conditions=0"],
         "test_conditions")
     add("main-typo-sed", "configs", m, ["sed=1"], "sed")
+    add("main-test-placement-lateral-0.5", "configs", m, ["test_placement=spread", "test_placement.lateral_jitter=0.5"],
+        "lateral_jitter")
+    add("main-test-placement-group-nope", "configs", m, ["test_placement=nope"], "nope")
     add("main-model-group-huge", "configs", m, ["model=huge"], "huge")
     add("main-sweep-one-bad", "configs", m, ["-m", "seed=1,abc", "model=tiny"], "abc")
     # configs: simulate
