@@ -565,7 +565,8 @@ def predict(
         ModelError: a ``robot_start`` at which the bumper touches no observed surface feature.
 
     The robot start (``prediction.condition.robot_start``) clears the observed cloud by
-    :data:`START_CLEARANCE`: an overlapping annealed start is backed off along the approach
+    :data:`START_CLEARANCE` (a given ``robot_start`` is used as it is): an overlapping annealed start is
+    backed off along the approach
     (``condition.backoff``), and ``condition.valid`` is False if that took more than :data:`MAX_BACKOFF`
     (``condition.check_start()`` raises ModelError then).
     """
