@@ -301,6 +301,27 @@ def test_rerun_in_the_same_directory_reuses_models_and_predictions(tiny_run):
     assert json.loads((out / "results.json").read_text())["records"] == before
 
 
+def test_the_placement_spread_test_set_runs_beside_the_default_one_in_one_folder(tiny_run, tmp_path):
+    import shutil
+
+    cfg, out, _ = tiny_run
+    run = tmp_path / "run"
+    shutil.copytree(out, run)
+    default_predictions = {p.name: p.stat().st_mtime_ns for p in (run / "predictions").glob("friction_*.npz")}
+    spread_cfg = _compose([*TINY, "test_placement=spread", "~experiment.parts.model_selection",
+                           "~experiment.parts.pose_estimation", "~experiment.parts.mass_biasing"])
+    quickstart.run(spread_cfg, run)
+    truth = sorted(p.name for p in (run / "truth").iterdir() if p.name.startswith("friction_biasing_cube"))
+    spread = [name for name in truth if "_test_spread_lateral_jitter0.1_yaw_jitter_deg5" in name]
+    assert spread and len(spread) * 2 == len(truth)  # each group's ground truth twice: model starts, spread starts
+    assert {p.name: p.stat().st_mtime_ns for p in (run / "predictions").glob("friction_*.npz")
+            if p.name in default_predictions} == default_predictions  # the default set untouched
+    records = [r for r in json.loads((run / "results.json").read_text())["records"]
+               if r["task"] == "prediction" and r["method"] == "pushtorch"]
+    assert records and all(math.isfinite(r["hacc_mean"]) for r in records)
+    assert "placement_spread" in (run / "report.md").read_text()
+
+
 def test_train_and_predict_apps_on_the_runs_data(tiny_run, tmp_path):
     _, out, _ = tiny_run
     base = {"object": {"name": "cube", "path": None, "scale": 1.0},

@@ -526,8 +526,17 @@ class Example:
     features: SurfaceFeatures
 
 
+def _cache_name(ctx: ExperimentContext, key: str) -> str:
+    """A group's cache name: its key, tagged when the test pushes start off-centre (``test_placement``), so
+    both test sets' predictions, scores and ground truth keep apart in one run folder."""
+    if ctx.test_placement is None:
+        return key
+    return f"{key}_test_spread{_placement_tag(ctx.test_placement)}"
+
+
 def _scores_path(ctx: ExperimentContext, key: str) -> Path:
-    return contained_path(ctx.run_dir, "scores", f"{key}.npz", what="experiment, object or prior name")
+    return contained_path(ctx.run_dir, "scores", f"{_cache_name(ctx, key)}.npz",
+                          what="experiment, object or prior name")
 
 
 def truth_fingerprint(ctx: ExperimentContext, conditions: Sequence[tuple[str, str]], samples: int,
@@ -616,7 +625,8 @@ def predict_set(
         physics=physics, samples_per_action=ctx.samples_per_action, version=PREDICTION_VERSION,
         test_placement=None if ctx.test_placement is None else asdict(ctx.test_placement),
     )
-    path = contained_path(ctx.run_dir, "predictions", f"{key}.npz", what="experiment, object or prior name")
+    path = contained_path(ctx.run_dir, "predictions", f"{_cache_name(ctx, key)}.npz",
+                          what="experiment, object or prior name")
     cached = None
     if path.is_file() and _scores_path(ctx, key).is_file():
         try:
@@ -824,7 +834,7 @@ def simulate_truth(
     )
     if ctx.recording is not None:
         ctx._truth_plan = (predictions.fingerprint, plan, shape)
-    folder = contained_path(ctx.run_dir, "truth", key, what="experiment, object or prior name")
+    folder = contained_path(ctx.run_dir, "truth", _cache_name(ctx, key), what="experiment, object or prior name")
     # small plans run in this process: a worker pool costs more than it saves
     workers = 1 if len(plan) < 4 * ctx.shard_size else ctx.workers
     run_plan(object_spec(obj), plan, folder, ctx.sim, workers=workers, shard_size=ctx.shard_size,
