@@ -58,7 +58,7 @@ from pushtorch.distribution import FinalPoseDistribution
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.features import SurfaceFeatures, compute_surface_features
 from pushtorch.kde import KernelBandwidth
-from pushtorch.models.contact import bumper_contact_patch, closest_points_on_mesh, place_environment_contacts
+from pushtorch.models.contact import bumper_contact_patch, bumper_contacts, place_environment_contacts
 from pushtorch.models.frames import ContactFrames
 from pushtorch.models.library import ModelLibrary, ModelSettings, PushModel, as_generator, check_action
 from pushtorch.models.motion import MotionDensity, MotionKernels, anneal_motion_densities
@@ -390,6 +390,14 @@ def clear_robot_start(robot_start: se3.Pose, features: SurfaceFeatures,
     return backed_off(robot_start, distance), value
 
 
+def _check_start(robot_start: se3.Pose) -> se3.Pose:
+    """``robot_start`` if it is one finite pose with a unit quaternion, else InvalidPoseError."""
+    robot_start = se3.check_pose(robot_start, "robot_start")
+    if robot_start.batch_shape != torch.Size([]):
+        raise InvalidPoseError(f"robot_start must be one pose, got batch shape {tuple(robot_start.batch_shape)}")
+    return robot_start
+
+
 def manipulator_frame_at(features: SurfaceFeatures, robot_start: se3.Pose, cutoff: float = 0.01,
                          drop_off: float = 100.0) -> ContactFrames:
     """The manipulator contact frame ``(1,)`` for a robot start the caller chose (paper, Manipulator Contact
@@ -402,16 +410,13 @@ def manipulator_frame_at(features: SurfaceFeatures, robot_start: se3.Pose, cutof
         ModelError: no observed feature lies within ``cutoff`` of the bumper facing it (the start does not
             touch the object where the camera saw it).
     """
-    robot_start = se3.check_pose(robot_start, "robot_start")
-    if robot_start.batch_shape != torch.Size([]):
-        raise InvalidPoseError(f"robot_start must be one pose, got batch shape {tuple(robot_start.batch_shape)}")
+    robot_start = _check_start(robot_start)
     robot_start = se3.Pose(robot_start.p.detach().cpu().to(features.p.dtype),
                            robot_start.q.detach().cpu().to(features.p.dtype))
     points = se3.apply(se3.inverse(robot_start), features.p.cpu())
     normals = se3.apply(se3.Pose(torch.zeros(3, dtype=points.dtype), se3.inverse(robot_start).q), features.normal.cpu())
-    closest, dist = closest_points_on_mesh(bumper_mesh(se3.identity()), points)
-    towards = ((closest - points) * normals).sum(-1) >= -1e-4
-    weight = torch.where((dist < cutoff) & towards, torch.exp(-drop_off * dist**2), torch.zeros_like(dist))
+    dist, touching = bumper_contacts(bumper_mesh(se3.identity()), points, normals, cutoff)
+    weight = torch.where(touching, torch.exp(-drop_off * dist**2), torch.zeros_like(dist))
     if not bool((weight > 0).any()):
         raise ModelError(
             f"the given robot start touches none of the {len(points)} observed surface features: none lies within "
@@ -650,6 +655,8 @@ def predict_many(
     elif isinstance(robot_starts, se3.Pose) or len(robot_starts) != len(clouds):
         raise InvalidParameterError(
             f"robot_starts must be a list with one pose (or None) per cloud, {len(clouds)} in all")
+    else:  # refused before any annealing is spent on the batch
+        robot_starts = [None if start is None else _check_start(start) for start in robot_starts]
     step = int(batch_size) if method == "fast" else 1
     out: list[Prediction] = []
     for start in range(0, len(clouds), step):

@@ -176,7 +176,7 @@ class ExperimentContext:
         """The same context with another model config's settings, training size and placement."""
         settings = ModelSettings.from_mapping(model_cfg.get("settings", {}))
         samples = int(model_cfg.get("samples_per_action", self.samples_per_action))
-        placement = _placement(model_cfg) if "placement" in model_cfg else self.placement
+        placement = _model_placement(model_cfg) if "placement" in model_cfg else self.placement
         # the model and slot caches stay shared: replace passes the same dict and list on
         return replace(self, settings=settings, samples_per_action=samples, placement=placement)
 
@@ -193,24 +193,27 @@ def merged_model_config(base: Mapping[str, Any], override: Mapping[str, Any] | N
     return OmegaConf.to_container(merged, resolve=True)
 
 
-def _placement(model_cfg: Mapping[str, Any]) -> Placement:
-    entry = model_cfg.get("placement") or {}
-    unknown = set(entry) - {"gap", "lateral_jitter", "yaw_jitter_deg", "object_yaw_deg"}
+def _placement(entry: Mapping[str, Any] | None, name: str, known: Sequence[str]) -> Placement:
+    """A :class:`Placement` from the config mapping ``name`` whose keys may be ``known``."""
+    entry = entry or {}
+    unknown = set(entry) - set(known)
     if unknown:
-        raise InvalidParameterError(f"unknown model.placement keys {sorted(unknown)}; known: gap, "
-                                    "lateral_jitter, yaw_jitter_deg, object_yaw_deg")
+        raise InvalidParameterError(f"unknown {name} keys {sorted(unknown)}; known: {', '.join(known)}")
     return Placement(**{k: float(v) for k, v in entry.items()})
+
+
+def _model_placement(model_cfg: Mapping[str, Any]) -> Placement:
+    """Where training places the robot (``model.placement``)."""
+    return _placement(model_cfg.get("placement"), "model.placement",
+                      ("gap", "lateral_jitter", "yaw_jitter_deg", "object_yaw_deg"))
 
 
 def _test_placement(entry: Mapping[str, Any] | None) -> Placement | None:
+    """None for the model's own starts (``test_placement=model``), else the spread set's placement."""
     entry = dict(entry or {})
     if not entry.pop("spread", False):
         return None
-    unknown = set(entry) - {"gap", "lateral_jitter", "yaw_jitter_deg"}
-    if unknown:
-        raise InvalidParameterError(f"unknown test_placement keys {sorted(unknown)}; known: spread, gap, "
-                                    "lateral_jitter, yaw_jitter_deg")
-    return Placement(**{k: float(v) for k, v in entry.items()})
+    return _placement(entry, "test_placement", ("gap", "lateral_jitter", "yaw_jitter_deg"))
 
 
 def context_from_config(cfg: DictConfig | Mapping[str, Any], run_dir: str | Path) -> ExperimentContext:
@@ -250,7 +253,7 @@ def context_from_config(cfg: DictConfig | Mapping[str, Any], run_dir: str | Path
         shard_size=int(exp.get("shard_size", 100)),
         progress=bool(exp.get("progress", True)),
         log_examples=int(exp.get("log_examples", 1)),
-        placement=_placement(model_cfg),
+        placement=_model_placement(model_cfg),
         test_placement=_test_placement(c.get("test_placement")),
     )
 
@@ -623,7 +626,6 @@ def predict_set(
         choice=[choose(i) for i in range(n)], settings=asdict(ctx.settings),
         poses=poses.p.tolist() + poses.q.tolist(), actions=ctx.actions.tolist(),
         physics=physics, samples_per_action=ctx.samples_per_action, version=PREDICTION_VERSION,
-        test_placement=None if ctx.test_placement is None else asdict(ctx.test_placement),
     )
     path = contained_path(ctx.run_dir, "predictions", f"{_cache_name(ctx, key)}.npz",
                           what="experiment, object or prior name")

@@ -31,6 +31,7 @@ Tensor = torch.Tensor
 __all__ = [
     "ManipulatorContactModel",
     "bumper_contact_patch",
+    "bumper_contacts",
     "closest_points_on_mesh",
     "environment_feature_weights",
     "feature_frames",
@@ -59,6 +60,16 @@ def closest_points_on_mesh(mesh: trimesh.Trimesh, points: Tensor) -> tuple[Tenso
     query = o3d.core.Tensor(points.detach().cpu().numpy().astype(np.float32))
     closest = torch.from_numpy(scene.compute_closest_points(query)["points"].numpy()).to(points)
     return closest, (closest - points).norm(dim=-1)
+
+
+def bumper_contacts(bumper: trimesh.Trimesh, points: Tensor, normals: Tensor, cutoff: float) -> tuple[Tensor, Tensor]:
+    """Distances ``(N,)`` of ``points (N, 3)`` to the ``bumper`` mesh (same frame) and which touch it: within
+    ``cutoff`` and with their outward ``normals (N, 3)`` not facing away from it (lineage: a point whose
+    normal faces away from the link cannot be in contact with it). The one contact rule of the manipulator
+    contact model, its motion kernels and a start the caller gives (paper, Manipulator Contact Model)."""
+    closest, dist = closest_points_on_mesh(bumper, points)
+    towards = ((closest - points) * normals).sum(-1) >= -1e-4
+    return dist, (dist < cutoff) & towards
 
 
 def feature_frames(features: SurfaceFeatures) -> se3.Pose:
@@ -106,10 +117,7 @@ def fit_manipulator_contact_model(
     """
     if not cutoff > 0 or not drop_off >= 0:
         raise InvalidParameterError(f"contact cut-off must be > 0 and λ_c >= 0, got {cutoff}, {drop_off}")
-    closest, dist = closest_points_on_mesh(bumper_mesh_world, features.p)
-    # lineage: a point whose outward normal faces away from the link cannot be in contact with it
-    towards = ((closest - features.p) * features.normal).sum(-1) >= -1e-4
-    keep = (dist < cutoff) & towards
+    dist, keep = bumper_contacts(bumper_mesh_world, features.p, features.normal, cutoff)
     if int(keep.sum()) < min_contacts:
         raise ModelError(
             f"only {int(keep.sum())} surface features lie within {cutoff} m of the bumper "

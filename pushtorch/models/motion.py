@@ -60,7 +60,7 @@ from pushtorch.features import SurfaceFeatures
 from pushtorch.kde import KernelBandwidth, PoseKDE, ProductOfExperts, SharedKernelProduct
 from pushtorch.models.contact import (
     bumper_contact_patch,
-    closest_points_on_mesh,
+    bumper_contacts,
     floor_relations,
     sample_environment_contacts,
 )
@@ -203,14 +203,14 @@ def fit_motion_model(
     # Manipulator frames: features within the cut-off of the bumper at each push's start pose.
     robot_in_object = se3.relative(initial, robot_start)  # (P,)
     points_robot = se3.apply(se3.inverse(robot_in_object).unsqueeze(-1), x.p)  # (P, N, 3)
-    closest, dist = closest_points_on_mesh(bumper_mesh_robot, points_robot.reshape(-1, 3))
-    dist = dist.reshape(n_push, -1)
     normals_robot = se3.apply(
         se3.Pose(torch.zeros_like(robot_in_object.p), se3.inverse(robot_in_object).q).unsqueeze(-1),
         features_object.normal,
     )
-    towards = ((closest.reshape(n_push, -1, 3) - points_robot) * normals_robot).sum(-1) >= -1e-4
-    weight = torch.exp(-contact_drop_off * dist**2) * ((dist < contact_cutoff) & towards)
+    dist, touching = bumper_contacts(bumper_mesh_robot, points_robot.reshape(-1, 3), normals_robot.reshape(-1, 3),
+                                     contact_cutoff)
+    dist, touching = dist.reshape(n_push, -1), touching.reshape(n_push, -1)
+    weight = torch.exp(-contact_drop_off * dist**2) * touching
     touched = weight.sum(-1) > 0
     if not touched.any():
         raise ModelError(
