@@ -1,9 +1,11 @@
 """Predictions from a robot start the caller gives (issue 17's placement_spread test set): the manipulator
 frame the cloud shows at that start, no robot query, the start used as given, and clear errors for a start
-that touches nothing. Real meshes, single-shot clouds and models trained on real pybullet pushes."""
+that touches nothing or sits inside the object. Real meshes, single-shot clouds and models trained on real
+pybullet pushes."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -100,6 +102,26 @@ def test_a_start_that_touches_nothing_or_is_not_one_pose_is_refused(cube_scene, 
         predict(model, cloud, action, torch.Generator().manual_seed(0), robot_start=nan)
     with pytest.raises(InvalidParameterError, match="one pose"):
         predict_many(model, [cloud, cloud], action, robot_starts=[None])
+
+
+def test_a_start_inside_the_observed_object_is_refused_and_a_flush_one_is_not(cube_scene, small_model):
+    cube, pose, cloud = cube_scene
+    model = small_model("cube")
+    action = model.motions[0].action
+    features = compute_surface_features(cloud)
+    touching = place_robot_against(cube.mesh, pose, 0.1, 0.03, gap=0.0)
+
+    def forward(start: se3.Pose, metres: float) -> se3.Pose:
+        heading = float(se3.yaw_of(start.q))
+        step = torch.tensor([math.cos(heading), math.sin(heading), 0.0], dtype=start.p.dtype) * metres
+        return se3.Pose(start.p + step, start.q)
+
+    manipulator_frame_at(features, forward(touching, 0.004))  # within a sensor's few mm: accepted
+    with pytest.raises(InvalidPoseError, match=r"overlaps the observed object: .* reverse 0\.02"):
+        predict(model, cloud, action, torch.Generator().manual_seed(0), robot_start=forward(touching, 0.02))
+    buried = forward(touching, 0.15)  # the bumper wholly behind the visible face
+    with pytest.raises(InvalidPoseError, match="overlaps the observed object"):
+        predict_many(model, [cloud, cloud], action, robot_starts=[None, buried])
 
 
 # -- the placement_spread test set (experiments) ------------------------------------------------------------
