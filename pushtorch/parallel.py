@@ -16,6 +16,14 @@ pushtorch process uses, decided here and nowhere else, so that threads × proces
   2-core host, quickstart-size predictions: with another process busy, two threads took 1.23–1.48 s
   spinning in the active wait, 0.24–0.63 s waiting passively and 0.22–0.24 s on one thread; with the
   cores free (a niced job beside), two threads took 0.16–0.17 s actively and 0.24 s passively.
+* **A niced background job must be niced as a session.** Linux's autogroup scheduling (on by default:
+  ``/proc/sys/kernel/sched_autogroup_enabled``) shares the CPU fairly between *sessions* first; ``nice``
+  orders processes only within one. A job started with ``setsid``/``nohup`` from another terminal is its own
+  session, so ``nice -n 19`` leaves it an equal partner of your foreground work, and with OpenMP's active
+  wait both slow down badly. Measured on host B (2 cores), warm paper-size predictions under the profiler
+  (``tools/profile_predict.py``) beside a ``nice -n 19`` paper run in its own session: 4.2 s each, against
+  0.17 s with it paused and 0.14 s after ``echo 19 > /proc/<its pid>/autogroup`` (the whole session niced).
+  pushtorch does not write that file itself: it would lower every process of the caller's session.
 """
 
 from __future__ import annotations
