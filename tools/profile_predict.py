@@ -5,7 +5,7 @@ conditions; compiles and warms up the fast path first (as in a long run), then p
 single predictions and prints the functions with the most time of their own, and the count of calls into
 compiled code and into torch operators per prediction.
 
-    .venv/bin/python tools/profile_predict.py [--predictions 10] [--top 25]
+    .venv/bin/python tools/profile_predict.py [--predictions 10] [--top 25] [--sort cumulative]
 """
 
 from __future__ import annotations
@@ -31,6 +31,8 @@ def main() -> None:
     parser.add_argument("--predictions", type=int, default=10, help="profiled predictions (default 10)")
     parser.add_argument("--top", type=int, default=25, help="functions listed (default 25)")
     parser.add_argument("--cache", default="runs/bench_predict", help="model cache folder")
+    parser.add_argument("--sort", default="tottime", choices=("tottime", "cumulative"),
+                        help="list by own time (default) or by time including callees")
     args = parser.parse_args()
     declare_long_run()
     model = paper_size_model("cube", 500, Path(args.cache))
@@ -58,7 +60,7 @@ def main() -> None:
     print(f"own time per prediction: compiled kernels {kernel_s / n * 1e3:.1f} ms, other built-ins (eager torch "
           f"ops, C calls) {builtin_s / n * 1e3:.1f} ms, Python (glue, guards, set-up) {python_s / n * 1e3:.1f} ms")
     text = io.StringIO()
-    pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(args.top)
+    pstats.Stats(profiler, stream=text).sort_stats(args.sort).print_stats(args.top)
     print(text.getvalue())
 
 
