@@ -15,7 +15,12 @@ of pushes (test object and training object, both in pybullet) and scores:
   nearest the truth. This oracle *picks with the truth*: it shows how far the training motions reach, not
   what a model can reach, and it falls as ``--placements`` grows (more pushes to pick from).
 
-Both are scored as the experiments score a prediction: the displacement applied to the true start pose,
+With ``--models CUBE.npz CYLINDER.npz`` (trained models, e.g. from a run folder's ``models/``) it also predicts
+every test push with pushtorch from the same start (``predict(..., robot_start=)``; the model of the training
+object, H_r's choice between the two for held-out shapes) and prints its scores beside them: a
+model at the floor has learnt all the training object can teach.
+
+All are scored as the experiments score a prediction: the displacement applied to the true start pose,
 H_acc with the test object's own dimensions and symmetries, and the raw linear error. If ``floor / mean``
 is above issue 17's 0.85 on an object, a model that knew the training object perfectly would still miss
 that target there: the test object itself moves differently (a thinner body slides farther along the
@@ -26,7 +31,7 @@ The placements are issue 17's ``placement_spread`` set by default (bumper centre
 2 mm short); ``--lateral 0.03 --yaw-deg 2`` is close to where the contact model puts the robot.
 
     .venv/bin/python tools/transfer_floor.py [--placements 16] [--lateral 0.1] [--yaw-deg 5]
-        [--friction 0.3] [--mass 0.5] [--held-out 9]
+        [--friction 0.3] [--mass 0.5] [--held-out 9] [--models CUBE.npz CYLINDER.npz]
 
 The last line is exactly ``objects=<n> floor_over_085=<count> worst_floor_ratio=<r>``.
 """
@@ -41,9 +46,12 @@ import torch
 from bench_predict import cpu_name  # tools/ is on sys.path when a tool runs as a script
 
 from pushtorch import se3
+from pushtorch.experiments.common import observe
 from pushtorch.experiments.report import PAPER_LINEAR_CM
-from pushtorch.metrics import accuracy
+from pushtorch.metrics import accuracy, displaced
+from pushtorch.models.library import ModelLibrary, PushModel, load_model
 from pushtorch.objects import ObjectModel, load_object
+from pushtorch.predict import predict_many
 from pushtorch.shapes import held_out_shapes
 from pushtorch.sim import SimSettings, place_robot_against
 from pushtorch.sim.runner import simulate_pushes
@@ -91,8 +99,26 @@ def score(test: ObjectModel, robot: se3.Pose, initial: se3.Pose, truth_final: se
     return acc.hacc.double().reshape(shape), acc.linear_cm.double().reshape(shape)
 
 
+def pushtorch_scores(test: ObjectModel, model: PushModel | ModelLibrary, robot: se3.Pose, initial: se3.Pose,
+                     truth_final: se3.Pose) -> tuple[float, float]:
+    """Mean H_acc and linear error (cm) of pushtorch's predictions from the given starts ``(P,)`` of every
+    action, from the test object's single-shot cloud, scored on the displacement from the true start."""
+    first = model.models[0] if isinstance(model, ModelLibrary) else model
+    _, features = observe(test, se3.Pose(initial.p[0, 0].float(), initial.q[0, 0].float()), first.settings)
+    P, A = initial.batch_shape
+    actions = torch.tensor([[SPEED, math.radians(r)] for r in YAW_RATES_DEG]).repeat(P, 1)
+    starts = [se3.Pose(robot.p[i].float(), robot.q[i].float()) for i in range(P) for _ in range(A)]
+    predictions = predict_many(model, [features] * (P * A), actions, seed=0, robot_starts=starts)
+    estimate = se3.Pose.stack([p.condition.object_pose for p in predictions]).to(torch.float64)
+    final = se3.Pose.stack([p.final_pose for p in predictions]).to(torch.float64)
+    moved = displaced(estimate, final, initial.reshape(P * A))
+    acc = accuracy(moved, truth_final.reshape(P * A), test)
+    return float(acc.hacc.double().mean()), float(acc.linear_cm.double().mean())
+
+
 def transfer_scores(test: ObjectModel, trainers: list[ObjectModel], offsets: torch.Tensor, friction: float,
-                    mass: float, settings: SimSettings, cache: dict) -> dict:
+                    mass: float, settings: SimSettings, cache: dict,
+                    model: PushModel | ModelLibrary | None = None) -> dict:
     """Floor, mean-motion and best-push scores (H_acc, cm) of ``test`` against its better training object (by
     the floor's H_acc)."""
     robot, initial, truth_final, _ = robot_frame_motions(test, offsets, friction, mass, settings)
@@ -115,6 +141,8 @@ def transfer_scores(test: ObjectModel, trainers: list[ObjectModel], offsets: tor
                   "best": tuple(float(x.gather(0, nearest).mean()) for x in every)}
         if chosen is None or result["floor"][0] < chosen["floor"][0]:
             chosen = result
+    if model is not None:
+        chosen["pushtorch"] = pushtorch_scores(test, model, robot, initial, truth_final)
     return chosen
 
 
@@ -126,7 +154,13 @@ def main() -> None:
     parser.add_argument("--friction", type=float, default=0.3, help="ground friction of every push")
     parser.add_argument("--mass", type=float, default=0.5, help="kg, every object's mass")
     parser.add_argument("--held-out", type=int, default=0, help="also this many held-out random shapes")
+    parser.add_argument("--models", nargs=2, metavar=("CUBE", "CYLINDER"),
+                        help="model files trained on the cube and the cylinder: also score pushtorch")
     args = parser.parse_args()
+    models = {}
+    if args.models:
+        models = dict(zip(("cube", "cylinder"), (load_model(path) for path in args.models), strict=True))
+        models["either"] = ModelLibrary([models["cube"], models["cylinder"]])
 
     started = time.perf_counter()
     settings = SimSettings()
@@ -134,21 +168,25 @@ def main() -> None:
     print(f"cpu: {cpu_name()}; {args.placements} placements x {len(YAW_RATES_DEG)} actions per object, "
           f"lateral ±{args.lateral} m, heading ±{args.yaw_deg}°, friction {args.friction}, mass {args.mass} kg")
     cache: dict = {}
-    tests = [(name, [load_object(TRAINING_OBJECT_OF[name])], load_object(name)) for name in TRAINING_OBJECT_OF]
+    tests = [(name, [load_object(TRAINING_OBJECT_OF[name])], load_object(name), models.get(TRAINING_OBJECT_OF[name]))
+             for name in TRAINING_OBJECT_OF]
     both = [load_object("cube"), load_object("cylinder")]
-    tests += [(shape.name, both, shape) for shape in held_out_shapes(args.held_out)]
+    tests += [(shape.name, both, shape, models.get("either")) for shape in held_out_shapes(args.held_out)]
     print("H_acc (and linear cm) of the displacement; ratios to the mean motion's H_acc")
-    print(f"{'object':<18} {'trained on':<9} {'mean':>13} {'floor':>13} {'best':>13} {'floor/mean':>10} "
-          f"{'best/mean':>9} {'paper cm':>8}")
+    columns = ("mean", "floor", "best", *(("pushtorch",) if models else ()))
+    print(f"{'object':<18} {'trained on':<9} " + " ".join(f"{c:>13}" for c in columns)
+          + f" {'floor/mean':>10} {'best/mean':>9}" + (f" {'pushtorch/mean':>14}" if models else "")
+          + f" {'paper cm':>8}")
     ratios = []
-    for name, trainers, test in tests:
-        result = transfer_scores(test, trainers, offsets, args.friction, args.mass, settings, cache)
+    for name, trainers, test, model in tests:
+        result = transfer_scores(test, trainers, offsets, args.friction, args.mass, settings, cache, model)
         mean_h = max(result["mean"][0], 1e-12)
         ratios.append(result["floor"][0] / mean_h)
         paper = PAPER_LINEAR_CM.get(name)
-        cells = " ".join(f"{h:>6.3f} ({cm:>4.1f})" for h, cm in (result[k] for k in ("mean", "floor", "best")))
+        cells = " ".join(f"{h:>6.3f} ({cm:>4.1f})" for h, cm in (result[k] for k in columns))
+        ours = f" {result['pushtorch'][0] / mean_h:>14.2f}" if models else ""
         print(f"{name:<18} {result['trainer']:<9} {cells} {ratios[-1]:>10.2f} "
-              f"{result['best'][0] / mean_h:>9.2f} {'' if paper is None else f'{paper:.2f}':>8}", flush=True)
+              f"{result['best'][0] / mean_h:>9.2f}{ours} {'' if paper is None else f'{paper:.2f}':>8}", flush=True)
     print(f"{time.perf_counter() - started:.0f} s")
     print(f"objects={len(ratios)} floor_over_085={sum(r > 0.85 for r in ratios)} "
           f"worst_floor_ratio={max(ratios):.2f}")
