@@ -120,7 +120,7 @@ def transfer_scores(test: ObjectModel, trainers: list[ObjectModel], offsets: tor
                     mass: float, settings: SimSettings, cache: dict,
                     model: PushModel | ModelLibrary | None = None) -> dict:
     """Floor, mean-motion and best-push scores (H_acc, cm) of ``test`` against its better training object (by
-    the floor's H_acc)."""
+    the floor's H_acc), and pushtorch's with ``model`` (a library chooses by H_r, whatever the floor chose)."""
     robot, initial, truth_final, _ = robot_frame_motions(test, offsets, friction, mass, settings)
     chosen = None
     for trainer in trainers:
