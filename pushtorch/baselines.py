@@ -38,6 +38,7 @@ __all__ = [
     "no_motion_prediction",
     "oracle_physics_prediction",
     "physics_from_cloud_prediction",
+    "replay_motion",
 ]
 
 
@@ -46,15 +47,17 @@ def no_motion_prediction(initial_estimate: se3.Pose) -> se3.Pose:
     return initial_estimate
 
 
-def _replay(motion: se3.Pose, robot_start: se3.Pose, initial_estimate: se3.Pose) -> se3.Pose:
-    """``R0 ∘ M ∘ R0⁻¹ ∘ B0'``: a motion of the robot's start frame applied to this push."""
+def replay_motion(motion: se3.Pose, robot_start: se3.Pose, initial_estimate: se3.Pose) -> se3.Pose:
+    """``R0 ∘ M ∘ R0⁻¹ ∘ B0'``: a motion ``M`` of the robot's start frame (as
+    :func:`pushtorch.models.motion.local_motions` expresses it) replayed from the start ``R0`` on the object
+    at ``B0'``; batch dims broadcast."""
     world_motion = se3.compose(robot_start, se3.compose(motion, se3.inverse(robot_start)))
     return se3.compose(world_motion, initial_estimate)
 
 
 def mean_motion_prediction(motion: MotionModel, robot_start: se3.Pose, initial_estimate: se3.Pose) -> se3.Pose:
     """``B1 = R0 ∘ M̄ ∘ R0⁻¹ ∘ B0'``: the average training motion (robot frame) applied to this push."""
-    return _replay(motion.mean_motion, robot_start, initial_estimate)
+    return replay_motion(motion.mean_motion, robot_start, initial_estimate)
 
 
 def nearest_push_prediction(motion: MotionModel, manipulator_frame, robot_start: se3.Pose,
@@ -75,7 +78,8 @@ def nearest_push_prediction(motion: MotionModel, manipulator_frame, robot_start:
     log_w = contact_log_weights(manipulator_frame, motion.manipulator, robot_start, contact_bandwidth, contact_patch)
     best = int(log_w.reshape(-1, len(motion.manipulator)).amax(0).argmax())
     chosen = motion.manipulator.m.take(best)
-    return _replay(se3.Pose(chosen.p.to(robot_start.p), chosen.q.to(robot_start.q)), robot_start, initial_estimate)
+    return replay_motion(se3.Pose(chosen.p.to(robot_start.p), chosen.q.to(robot_start.q)), robot_start,
+                         initial_estimate)
 
 
 def cloud_body(points: torch.Tensor, initial_estimate: se3.Pose,

@@ -429,12 +429,12 @@ def manipulator_frame_at(features: SurfaceFeatures, robot_start: se3.Pose, cutof
     points = se3.apply(se3.inverse(robot_start), features.p.cpu())
     normals = se3.apply(se3.Pose(torch.zeros(3, dtype=points.dtype), se3.inverse(robot_start).q), features.normal.cpu())
     dist, touching = bumper_contacts(bumper_mesh(se3.identity()), points, normals, cutoff)
-    weight = torch.where(touching, torch.exp(-drop_off * dist**2), torch.zeros_like(dist))
-    if not bool((weight > 0).any()):
+    if not bool(touching.any()):
         raise ModelError(
             f"the given robot start touches none of the {len(points)} observed surface features: none lies within "
             f"{cutoff} m of the bumper and faces it (place the bumper against the side the camera saw)"
         )
+    weight = torch.where(touching, torch.exp(-drop_off * dist**2), torch.zeros_like(dist))
     best = int(weight.argmax())
     device = features.p.device
     v = se3.Pose(features.p[best : best + 1], features.q[best : best + 1])
@@ -496,7 +496,6 @@ def generate_push_condition(
     if method == "fast":
         return _push_conditions_fast(model, [features], [action_index], generator, record_history, [robot_start])[0]
     settings = model.settings
-    robot = None
     given_frame = _given_start_frame(robot_start, features, model)
     if robot_start is None:
         robot_density = _robot_density(model, features, generator, method)
@@ -505,7 +504,7 @@ def generate_push_condition(
         )
     environment = _environment_frames(model, features, action_index, generator)
     pose = estimate_pose(model.position, features, settings, generator, record_history, method)
-    if robot is None:
+    if robot_start is not None:
         return _given_start_condition(robot_start, given_frame, environment, pose, features, model)
     return _condition(robot, environment, pose, features, model)
 

@@ -337,6 +337,8 @@ def test_a_thin_prism_does_not_follow_the_cubes_motion_from_the_same_placement()
     (bumper centred on the 0.2 m face, 2 mm short) with the same turning action, the cube and the 0.1 m prism
     both turn with the bumper, but the prism slides farther along it. The cube's motion in the robot's start
     frame, moved to the prism's start, misses the prism by centimetres; a straight push transfers exactly."""
+    from pushtorch.baselines import replay_motion
+    from pushtorch.models.motion import local_motions
     from pushtorch.sim.runner import simulate_pushes
 
     def robot_frame_motion(name: str, yaw_rate_deg: float) -> tuple[se3.Pose, se3.Pose, se3.Pose, se3.Pose]:
@@ -346,14 +348,13 @@ def test_a_thin_prism_does_not_follow_the_cubes_motion_from_the_same_placement()
         action = torch.tensor([0.1, math.radians(yaw_rate_deg)])
         final = simulate_pushes(model, start, pose, action, 0.5, 0.3).object_final
         final = se3.Pose(final.p[0], final.q[0])
-        motion = se3.compose(se3.compose(se3.inverse(start), se3.compose(final, se3.inverse(pose))), start)
-        return start, pose, final, motion
+        return start, pose, final, local_motions(start, se3.compose(final, se3.inverse(pose)))
 
     misses = {}
     for rate in (-10.0, 0.0, 10.0):
         _, _, _, cube_motion = robot_frame_motion("cube", rate)
         start, pose, truth, prism_motion = robot_frame_motion("prism_thin", rate)
-        transferred = se3.compose(se3.compose(se3.compose(start, cube_motion), se3.inverse(start)), pose)
+        transferred = replay_motion(cube_motion, start, pose)
         misses[rate] = float((transferred.p[:2] - truth.p[:2]).norm())
         turn_gap = abs(math.degrees(float(se3.yaw_of(cube_motion.q) - se3.yaw_of(prism_motion.q))))
         assert turn_gap < 3.0, (rate, turn_gap)  # both turn with the bumper

@@ -41,26 +41,29 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from pathlib import Path
 
 import torch
+import yaml
 from bench_predict import cpu_name  # tools/ is on sys.path when a tool runs as a script
 
 from pushtorch import se3
+from pushtorch.baselines import replay_motion
 from pushtorch.experiments.common import observe
 from pushtorch.experiments.report import PAPER_LINEAR_CM
 from pushtorch.metrics import accuracy, displaced
 from pushtorch.models.library import ModelLibrary, PushModel, load_model
+from pushtorch.models.motion import local_motions
 from pushtorch.objects import ObjectModel, load_object
 from pushtorch.predict import predict_many
 from pushtorch.shapes import held_out_shapes
-from pushtorch.sim import SimSettings, place_robot_against
+from pushtorch.sim import SimSettings, make_actions, place_robot_against
 from pushtorch.sim.runner import simulate_pushes
 
-#: The paper's transfer pairs (test object: training object), as the biasing experiments use them.
-TRAINING_OBJECT_OF = {"cube": "cube", "prism_thin": "cube", "prism_long": "cube",
-                      "cylinder": "cylinder", "cylinder_wide": "cylinder", "hybrid": "cylinder"}
-SPEED = 0.1  # m/s, the paper's actions
-YAW_RATES_DEG = (-10.0, 0.0, 10.0)  # °/s, the quickstart's three actions
+#: The paper's transfer pairs (test object: training object), read from the friction-biasing experiment.
+TRAINING_OBJECT_OF = yaml.safe_load((Path(__file__).resolve().parents[1] / "conf" / "experiment" /
+                                     "friction_biasing.yaml").read_text())["experiment"]["training_object_of"]
+ACTIONS = make_actions(3, dtype=torch.float64)  # the paper's three actions: −10, 0, +10 °/s at 0.1 m/s
 
 
 def placements(count: int, lateral: float, yaw_deg: float, seed: int = 0) -> torch.Tensor:
@@ -77,14 +80,12 @@ def robot_frame_motions(obj: ObjectModel, offsets: torch.Tensor, friction: float
     pose = obj.resting_pose()
     starts = [place_robot_against(obj.mesh, pose, float(h), float(s), 0.002) for h, s in offsets]
     robot = se3.Pose(torch.stack([s.p for s in starts]).double(), torch.stack([s.q for s in starts]).double())
-    actions = torch.tensor([[SPEED, math.radians(r)] for r in YAW_RATES_DEG], dtype=torch.float64)
-    P, A = len(starts), len(actions)
+    P, A = len(starts), len(ACTIONS)
     robot_pa = se3.Pose(robot.p[:, None].expand(P, A, 3), robot.q[:, None].expand(P, A, 4))
     initial = se3.Pose(pose.p.double().expand(P, A, 3), pose.q.double().expand(P, A, 4))
-    records = simulate_pushes(obj, robot_pa, initial, actions.expand(P, A, 2), mass, friction, settings=settings)
+    records = simulate_pushes(obj, robot_pa, initial, ACTIONS.expand(P, A, 2), mass, friction, settings=settings)
     final = se3.Pose(records.object_final.p.reshape(P, A, 3), records.object_final.q.reshape(P, A, 4))
-    world_motion = se3.compose(final, se3.inverse(initial))
-    return robot, initial, final, se3.compose(se3.compose(se3.inverse(robot_pa), world_motion), robot_pa)
+    return robot, initial, final, local_motions(robot_pa, se3.compose(final, se3.inverse(initial)))
 
 
 def score(test: ObjectModel, robot: se3.Pose, initial: se3.Pose, truth_final: se3.Pose,
@@ -93,8 +94,7 @@ def score(test: ObjectModel, robot: se3.Pose, initial: se3.Pose, truth_final: se
     starts ``(P, A)`` (broadcast: motions ``(P, 1, A)`` against starts ``(1, P, A)`` give ``(P, P, A)``)."""
     shape = torch.broadcast_shapes(initial.batch_shape, motion.batch_shape)
     robot_pa = se3.Pose(robot.p[..., None, :].expand(*shape, 3), robot.q[..., None, :].expand(*shape, 4))
-    world = se3.compose(se3.compose(robot_pa, motion.expand(*shape)), se3.inverse(robot_pa))
-    estimate = se3.compose(world, initial.expand(*shape))
+    estimate = replay_motion(motion.expand(*shape), robot_pa, initial.expand(*shape))
     acc = accuracy(estimate.reshape(-1), truth_final.expand(*shape).reshape(-1), test)
     return acc.hacc.double().reshape(shape), acc.linear_cm.double().reshape(shape)
 
@@ -106,7 +106,7 @@ def pushtorch_scores(test: ObjectModel, model: PushModel | ModelLibrary, robot: 
     first = model.models[0] if isinstance(model, ModelLibrary) else model
     _, features = observe(test, se3.Pose(initial.p[0, 0].float(), initial.q[0, 0].float()), first.settings)
     P, A = initial.batch_shape
-    actions = torch.tensor([[SPEED, math.radians(r)] for r in YAW_RATES_DEG]).repeat(P, 1)
+    actions = ACTIONS.float().repeat(P, 1)
     starts = [se3.Pose(robot.p[i].float(), robot.q[i].float()) for i in range(P) for _ in range(A)]
     predictions = predict_many(model, [features] * (P * A), actions, seed=0, robot_starts=starts)
     estimate = se3.Pose.stack([p.condition.object_pose for p in predictions]).to(torch.float64)
@@ -165,7 +165,7 @@ def main() -> None:
     started = time.perf_counter()
     settings = SimSettings()
     offsets = placements(args.placements, args.lateral, args.yaw_deg)
-    print(f"cpu: {cpu_name()}; {args.placements} placements x {len(YAW_RATES_DEG)} actions per object, "
+    print(f"cpu: {cpu_name()}; {args.placements} placements x {len(ACTIONS)} actions per object, "
           f"lateral ±{args.lateral} m, heading ±{args.yaw_deg}°, friction {args.friction}, mass {args.mass} kg")
     cache: dict = {}
     tests = [(name, [load_object(TRAINING_OBJECT_OF[name])], load_object(name), models.get(TRAINING_OBJECT_OF[name]))
