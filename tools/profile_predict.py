@@ -2,10 +2,13 @@
 
 Uses tools/bench_predict.py's cached cube model (500 pushes per action; trained on first use) and its
 conditions; compiles and warms up the fast path first (as in a long run), then profiles ``--predictions``
-single predictions and prints the functions with the most time of their own, and the count of calls into
-compiled code and into torch operators per prediction.
+single predictions (or, with ``--batch-size``, the same conditions through ``predict_many`` in batches)
+and prints where each prediction's time goes: the stages of a prediction (query densities, their annealing,
+pose verification, environment contacts, the motion density, its annealing) with the time each takes
+including what it calls, the own time of compiled kernels, other built-ins and Python, the count of calls
+into compiled code and into torch operators, and the functions with the most time.
 
-    .venv/bin/python tools/profile_predict.py [--predictions 10] [--top 25] [--sort cumulative]
+    .venv/bin/python tools/profile_predict.py [--predictions 10] [--batch-size 1] [--top 25] [--sort cumulative]
 """
 
 from __future__ import annotations
@@ -23,7 +26,25 @@ from bench_predict import cpu_name, paper_size_model, test_conditions, warm_up
 
 from pushtorch.kde import declare_long_run
 from pushtorch.objects import load_object
-from pushtorch.predict import predict
+from pushtorch.predict import predict, predict_many
+
+#: A prediction's stages, in the order they run: (label, file, function). None of them calls another, so
+#: their inclusive times add up; what is left of a prediction is dispatch and bookkeeping between them.
+STAGES = (
+    ("query densities: kernel draws (robot, pose)", os.path.join("models", "query.py"), "build_query_density"),
+    ("query annealing: steps, polish (robot, pose)", os.path.join("models", "query.py"), "optimise_query_densities"),
+    ("pose verification", "predict.py", "_verified_pose"),
+    ("environment contact frames", "predict.py", "_environment_frames"),
+    ("robot start clearance", "predict.py", "clear_robot_start"),
+    ("motion density: contact weights, experts", "predict.py", "_motion_density"),
+    ("motion annealing: steps, polish", os.path.join("models", "motion.py"), "anneal_motion_densities"),
+)
+#: Parts of the two annealing stages, listed under them (callees included; they overlap the stages).
+ANNEALING_PARTS = (
+    ("leaf-block index of the query densities", os.path.join("kde", "fast_index.py"), "__init__"),
+    ("proposal draws (vMF, normal, uniform)", "anneal.py", "_draw_fast_proposals"),
+    ("mean-shift polish", "anneal.py", "polish_candidates"),
+)
 
 
 def main() -> None:
@@ -33,19 +54,28 @@ def main() -> None:
     parser.add_argument("--cache", default="runs/bench_predict", help="model cache folder")
     parser.add_argument("--sort", default="tottime", choices=("tottime", "cumulative"),
                         help="list by own time (default) or by time including callees")
+    parser.add_argument("--batch-size", type=int, default=1,
+                        help="profile predict_many with this many conditions per batch (default 1: predict)")
     args = parser.parse_args()
     declare_long_run()
     model = paper_size_model("cube", 500, Path(args.cache))
     obj = load_object("cube")
     conditions, _ = test_conditions(model, obj, args.predictions, seed=1)
-    warm_up(model, conditions.pop()[1:], 4)
+    warm_up(model, conditions.pop()[1:], max(args.batch_size, 4))
+    clouds = [features for _, features, _ in conditions]
+    actions = torch.stack([action for _, _, action in conditions])
+    if args.batch_size > 1:  # this run's batch sizes compiled before the profile (the last batch may be smaller)
+        predict_many(model, clouds, actions, seed=0, batch_size=args.batch_size)
     print(f"cpu {cpu_name()!r} ({os.cpu_count()} cores) threads={torch.get_num_threads()} "
-          f"load_average={os.getloadavg()[0]:.2f}")
+          f"load_average={os.getloadavg()[0]:.2f} batch_size={args.batch_size}")
     profiler = cProfile.Profile()
     started = time.perf_counter()
     profiler.enable()
-    for i, (_, features, action) in enumerate(conditions):
-        predict(model, features, action, torch.Generator().manual_seed(i), method="fast")
+    if args.batch_size > 1:
+        predict_many(model, clouds, actions, seed=0, batch_size=args.batch_size)
+    else:
+        for i, (features, action) in enumerate(zip(clouds, actions, strict=True)):
+            predict(model, features, action, torch.Generator().manual_seed(i), method="fast")
     profiler.disable()
     seconds = (time.perf_counter() - started) / len(conditions)
     stats = pstats.Stats(profiler)
@@ -59,9 +89,28 @@ def main() -> None:
     n = len(conditions)
     print(f"own time per prediction: compiled kernels {kernel_s / n * 1e3:.1f} ms, other built-ins (eager torch "
           f"ops, C calls) {builtin_s / n * 1e3:.1f} ms, Python (glue, guards, set-up) {python_s / n * 1e3:.1f} ms")
+    print_stages(stats, seconds, n)
     text = io.StringIO()
     pstats.Stats(profiler, stream=text).sort_stats(args.sort).print_stats(args.top)
     print(text.getvalue())
+
+
+def print_stages(stats: pstats.Stats, seconds: float, n: int) -> None:
+    """The time of each of :data:`STAGES` per prediction, callees included, and the share of the whole."""
+    def inclusive(file_end: str, name: str) -> float:
+        return sum(total for (file, _, fn), (_, _, _, total, _) in stats.stats.items()
+                   if fn == name and file.endswith(os.path.join("pushtorch", file_end))) / n
+
+    print("stage (per prediction, callees included)")
+    accounted = 0.0
+    for label, file_end, name in STAGES:
+        accounted += inclusive(file_end, name)
+        print(f"  {label:50s} {inclusive(file_end, name) * 1e3:6.1f} ms  {inclusive(file_end, name) / seconds:5.1%}")
+    print(f"  {'rest (dispatch, results, bookkeeping)':50s} {(seconds - accounted) * 1e3:6.1f} ms  "
+          f"{1 - accounted / seconds:5.1%}")
+    print("of the two annealings")
+    for label, file_end, name in ANNEALING_PARTS:
+        print(f"  {label:50s} {inclusive(file_end, name) * 1e3:6.1f} ms  {inclusive(file_end, name) / seconds:5.1%}")
 
 
 def split_own_time(stats: pstats.Stats) -> tuple[float, float, float]:
