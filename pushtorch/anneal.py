@@ -273,7 +273,7 @@ def _anneal_shared_product(
     dtype, device = current.p.dtype, current.p.device
     step = fused_function("anneal_shared_product_step", _shared_product_step, device)
     chunks = product.problem_chunks(c)
-    layout = (product.table, product.weights, product.scale, product.offset, product.exponent)
+    layouts = [product.chunk_layout(a, b) for a, b in chunks]
 
     def rows(t: Tensor, width: int) -> Tensor:  # (…, D·C, width) → (…, D, width, C), contiguous
         return t.reshape(*t.shape[: t.dim() - len(shape) - 1], d, c, width).transpose(-1, -2).contiguous()
@@ -287,10 +287,10 @@ def _anneal_shared_product(
         accept_u = accept_u.reshape(len(chunk), d, c)
         inverse_energy = [torch.tensor(1.0 / (schedule.energy_scale * t), dtype=dtype, device=device) for t in chunk]
         for i, (a, b) in enumerate(chunks):
-            state, parts = states[i], tuple(t[a:b] for t in layout)
+            state = states[i]
             for k in range(len(chunk)):
                 state = step(*state, step_p[k, a:b], left[k, a:b], right[k, a:b], accept_u[k, a:b],
-                             inverse_energy[k], *parts, product.delta_p, product.delta_q)
+                             inverse_energy[k], *layouts[i], product.delta_p, product.delta_q)
             states[i] = state
     best_p = torch.cat([s[3] for s in states]).transpose(1, 2).reshape(*shape, 3)
     best_q = torch.cat([s[4] for s in states]).transpose(1, 2).reshape(*shape, 4)

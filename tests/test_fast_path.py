@@ -224,6 +224,31 @@ def test_shared_kernel_product_equals_the_product_of_its_experts(rounds, exponen
     assert torch.allclose(got[finite], want[finite], atol=1e-9, rtol=0)
 
 
+def test_a_padded_batch_of_products_equals_each_problems_own_product():
+    """Products stacked as a batch pad every problem to the largest kernel count; each chunk of problems is
+    evaluated up to its own last weighted kernel. Values and mean shift must equal each problem's product
+    on its own kernels, across several chunks (500 queries of 1,200 kernels fill one chunk's budget)."""
+    counts = [1200, 700, 1200, 310, 45]
+    shared = _random_kde(1200, (len(counts),), seed=31)
+    log_w = torch.randn(3, len(counts), 1200, generator=torch.Generator().manual_seed(32), dtype=torch.float64)
+    for b, n in enumerate(counts):
+        log_w[:, b, n:] = -math.inf  # padding past the problem's own kernels
+    batch = SharedKernelProduct(shared.means, log_w, shared.bandwidth)
+    assert batch.kernel_counts == counts
+    assert any(max(counts[a:b]) < 1200 for a, b in batch.problem_chunks(500))  # a chunk is cut short
+    queries = _queries_near(shared, 500, seed=33, scale=0.3)
+    values, shifted = batch.log_prob(queries), batch.mean_shift(queries)
+    for b, n in enumerate(counts):
+        own = SharedKernelProduct(shared.means.take((b, slice(0, n))), log_w[:, b, :n], shared.bandwidth)
+        query = queries.take(b)
+        want = own.log_prob(query)
+        finite = torch.isfinite(want)
+        assert finite.any() and torch.equal(finite, torch.isfinite(values[b]))
+        assert torch.allclose(values[b][finite], want[finite], atol=1e-9, rtol=0)
+        moved = own.mean_shift(query)
+        assert torch.allclose(shifted.p[b], moved.p, atol=1e-9) and torch.allclose(shifted.q[b], moved.q, atol=1e-9)
+
+
 def test_shared_kernel_product_refuses_bad_layouts():
     shared = _random_kde(10, seed=24)
     with pytest.raises(InvalidParameterError, match="log_weights must have shape"):

@@ -275,6 +275,9 @@ class SharedKernelProduct:
         self.offset = offset.reshape(n_experts, d, 1).transpose(0, 1).contiguous()  # (D, E, 1)
         self.exponent = exponent.reshape(n_experts, d, 1).transpose(0, 1).contiguous()  # (D, E, 1), 0: left out
         self.delta_p, self.delta_q, _ = bandwidth.delta
+        # each problem's kernels up to its last weighted one: past it a stacked batch holds only padding
+        weighted = (self.weights > 0).any(1) * torch.arange(1, k + 1, device=device)  # (D, K)
+        self.kernel_counts: list[int] = weighted.amax(-1).tolist() if k else [0] * d
 
     def log_prob(self, pose: Pose) -> Tensor:
         """``Σ_e (log w^P_e + γ_e log P_e(pose))`` for poses ``(*B, M)`` → ``(*B, M)``; ``-inf`` where a counted
@@ -284,16 +287,14 @@ class SharedKernelProduct:
             InvalidPoseError: (``validate_args``) misshaped, non-finite or non-unit queries.
         """
         self._check_queries(pose)
-        out = self._per_problem("shared_kernel_product", _shared_kernel_product, pose,
-                                self.table, self.weights, self.scale, self.offset, self.exponent)
+        out = self._per_problem("shared_kernel_product", _shared_kernel_product, pose, with_offset=True)
         return out.reshape(*self.batch_shape, pose.p.shape[-2])
 
     def mean_shift(self, pose: Pose) -> Pose:
         """One mean-shift step of every query towards a local mode of the product (see
         :meth:`PoseKDE.mean_shift`; the experts' weights w^P do not move a mode): poses ``(*B, M)``."""
         self._check_queries(pose)
-        out = self._per_problem("shared_kernel_shift", _shared_kernel_shift, pose,
-                                self.table, self.weights, self.scale, self.exponent)
+        out = self._per_problem("shared_kernel_shift", _shared_kernel_shift, pose, with_offset=False)
         out = out.transpose(1, 2).reshape(*self.batch_shape, pose.p.shape[-2], 7)
         return Pose(out[..., :3], out[..., 3:])
 
@@ -317,15 +318,30 @@ class SharedKernelProduct:
             raise InvalidPoseError("query positions hold NaN or infinite values")
         check_unit_quaternion(q, name="query q")
 
-    def _per_problem(self, name: str, fn: Callable, pose: Pose, *layout: Tensor) -> Tensor:
-        """``fn`` (fused) over the queries ``(D, 7, M)`` and this product's per-problem ``layout`` tensors,
-        in chunks of problems that keep the ``(problems × K × M)`` kernel values cache-sized (~8 MB)."""
+    def _per_problem(self, name: str, fn: Callable, pose: Pose, with_offset: bool) -> Tensor:
+        """``fn`` (fused) over the queries ``(D, 7, M)`` and each chunk's :meth:`chunk_layout` (without the
+        offsets unless ``with_offset``), in chunks of problems that keep the ``(problems × K × M)`` kernel
+        values cache-sized (~8 MB)."""
         d, m = self.table.shape[0], pose.p.shape[-2]
         x = torch.cat([pose.p, pose.q], -1).expand(*self.batch_shape, m, 7).reshape(d, m, 7)
         x = x.transpose(1, 2).contiguous()  # (D, 7, M): a strided view compiles ~6x slower (measured)
         evaluate = fused_function(name, fn, x.device)
-        return torch.cat([evaluate(x[a:b], *(t[a:b] for t in layout), self.delta_p, self.delta_q)
-                          for a, b in self.problem_chunks(m)], 0)
+        out = []
+        for a, b in self.problem_chunks(m):
+            table, weights, scale, offset, exponent = self.chunk_layout(a, b)
+            layout = (table, weights, scale, offset, exponent) if with_offset else (table, weights, scale, exponent)
+            out.append(evaluate(x[a:b], *layout, self.delta_p, self.delta_q))
+        return torch.cat(out, 0)
+
+    def chunk_layout(self, start: int, end: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """The table, weights, scale, offset and exponent of problems ``[start, end)``, their kernels cut
+        after the chunk's last weighted one: problems of a stacked batch are padded to the batch's largest
+        kernel count (1.4x the mean at the paper's sizes, measured), a chunk evaluates its own."""
+        table, weights = self.table[start:end], self.weights[start:end]
+        kept = max(1, max(self.kernel_counts[start:end]))
+        if kept < table.shape[1]:  # contiguous: a strided slice would fail the compiled call's stride guard
+            table, weights = table[:, :kept].contiguous(), weights[..., :kept].contiguous()
+        return table, weights, self.scale[start:end], self.offset[start:end], self.exponent[start:end]
 
     def problem_chunks(self, queries: int) -> list[tuple[int, int]]:
         """``[start, end)`` chunks of the flattened problems whose ``(problems × K × queries)`` kernel values

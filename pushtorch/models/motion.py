@@ -540,9 +540,11 @@ def anneal_motion_densities(
 
     Every condition's :meth:`MotionDensity.shared_kernels` are padded to common kernel and expert
     counts (padding kernels weigh nothing, padding experts are masked out) and stacked along a problem
-    dim, so each annealing step is one fused evaluation for all conditions
-    (:class:`pushtorch.kde.SharedKernelProduct`). Each condition's start candidates and trial rounds are
-    its own (:meth:`MotionDensity.proposal`, :meth:`MotionDensity.widen_until_supported`).
+    dim, in order of kernel count, so each annealing step is one fused evaluation per chunk of
+    conditions, each chunk up to its own largest count (:class:`pushtorch.kde.SharedKernelProduct`).
+    Each condition's start candidates and trial rounds are its own (:meth:`MotionDensity.proposal`,
+    :meth:`MotionDensity.widen_until_supported`); a batch of one anneals exactly as
+    :meth:`MotionDensity.predict`'s fast path.
 
     Returns:
         One :class:`MotionPrediction` per density, in order.
@@ -557,6 +559,10 @@ def anneal_motion_densities(
     for density in densities:
         init = density.proposal(n_candidates, generator)
         starts.append(density.widen_until_supported(init, method="fast"))
+    # problems in order of kernel count: the product's chunks of neighbouring problems then evaluate about
+    # their own counts, not the batch's largest (SharedKernelProduct.chunk_layout)
+    order = sorted(range(len(densities)), key=lambda b: densities[b].shared_kernels()[1].shape[1])
+    densities, starts = [densities[b] for b in order], [starts[b] for b in order]
     stacked = stack_products(densities)
     # its only queries are the annealing's own (finite, normalised) candidates: no per-step checks
     product = SharedKernelProduct(stacked.means, stacked.log_weights, stacked.bandwidth, stacked.trial_rounds,
@@ -564,8 +570,8 @@ def anneal_motion_densities(
     init = se3.Pose(torch.stack([s.p for s in starts]), torch.stack([s.q for s in starts]))  # (B, C)
     result = anneal(product, init, schedule, generator, record_history=record_history, method="fast")
     result = polish_candidates(result, product.mean_shift, product.log_prob, polish_steps)
-    out = []
-    for b in range(len(densities)):
+    out: list[MotionPrediction | None] = [None] * len(densities)
+    for b, original in enumerate(order):
         part = AnnealResult(
             best=se3.Pose(result.best.p[b], result.best.q[b]),
             best_log_prob=result.best_log_prob[b],
@@ -575,5 +581,5 @@ def anneal_motion_densities(
                      else se3.Pose(result.history.p[:, b], result.history.q[:, b])),
             history_log_prob=None if result.history_log_prob is None else result.history_log_prob[:, b],
         )
-        out.append(MotionPrediction(part.best, part.best_log_prob, part))
-    return out
+        out[original] = MotionPrediction(part.best, part.best_log_prob, part)
+    return out  # type: ignore[return-value]
