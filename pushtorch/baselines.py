@@ -101,7 +101,9 @@ def cloud_body(points: torch.Tensor, initial_estimate: se3.Pose,
         hull = trimesh.convex.convex_hull(np.concatenate([world, ground]))
     except Exception as exc:  # scipy's QhullError on flat or degenerate point sets
         raise ModelError(f"the observed cloud ({len(world)} points) spans no volume to simulate") from exc
-    if not hull.volume > 0:
+    with np.errstate(invalid="ignore", divide="ignore"):  # trimesh divides by a flat hull's zero volume
+        volume = hull.volume
+    if not volume > 0:
         raise ModelError(f"the observed cloud ({len(world)} points) spans no volume to simulate")
     centre = np.asarray(hull.center_mass)
     yaw = float(se3.yaw_of(initial_estimate.q.reshape(4)))
