@@ -96,21 +96,27 @@ def main() -> None:
 
 
 def print_stages(stats: pstats.Stats, seconds: float, n: int) -> None:
-    """The time of each of :data:`STAGES` per prediction, callees included, and the share of the whole."""
+    """The time of each of :data:`STAGES` (and :data:`ANNEALING_PARTS`) per prediction, callees included, and
+    its share of the whole. A stage the profile never entered is an error: a renamed function must not
+    read as a stage that costs nothing."""
     def inclusive(file_end: str, name: str) -> float:
-        return sum(total for (file, _, fn), (_, _, _, total, _) in stats.stats.items()
-                   if fn == name and file.endswith(os.path.join("pushtorch", file_end))) / n
+        found = [total for (file, _, fn), (_, _, _, total, _) in stats.stats.items()
+                 if fn == name and file.endswith(os.path.join("pushtorch", file_end))]
+        if not found:
+            raise SystemExit(f"profile_predict: no call of {name} in pushtorch/{file_end} (renamed? update STAGES)")
+        return sum(found) / n
+
+    def line(label: str, part: float) -> str:
+        return f"  {label:50s} {part * 1e3:6.1f} ms  {part / seconds:5.1%}"
 
     print("stage (per prediction, callees included)")
-    accounted = 0.0
-    for label, file_end, name in STAGES:
-        accounted += inclusive(file_end, name)
-        print(f"  {label:50s} {inclusive(file_end, name) * 1e3:6.1f} ms  {inclusive(file_end, name) / seconds:5.1%}")
-    print(f"  {'rest (dispatch, results, bookkeeping)':50s} {(seconds - accounted) * 1e3:6.1f} ms  "
-          f"{1 - accounted / seconds:5.1%}")
+    times = [inclusive(file_end, name) for _, file_end, name in STAGES]
+    for (label, _, _), part in zip(STAGES, times, strict=True):
+        print(line(label, part))
+    print(line("rest (dispatch, results, bookkeeping)", seconds - sum(times)))
     print("of the two annealings")
     for label, file_end, name in ANNEALING_PARTS:
-        print(f"  {label:50s} {inclusive(file_end, name) * 1e3:6.1f} ms  {inclusive(file_end, name) / seconds:5.1%}")
+        print(line(label, inclusive(file_end, name)))
 
 
 def split_own_time(stats: pstats.Stats) -> tuple[float, float, float]:
