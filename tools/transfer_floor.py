@@ -41,7 +41,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from pathlib import Path
+from importlib.resources import files
 
 import torch
 import yaml
@@ -61,8 +61,8 @@ from pushtorch.sim import SimSettings, make_actions, place_robot_against
 from pushtorch.sim.runner import simulate_pushes
 
 #: The paper's transfer pairs (test object: training object), read from the friction-biasing experiment.
-TRAINING_OBJECT_OF = yaml.safe_load((Path(__file__).resolve().parents[1] / "conf" / "experiment" /
-                                     "friction_biasing.yaml").read_text())["experiment"]["training_object_of"]
+TRAINING_OBJECT_OF = yaml.safe_load((files("pushtorch.conf") / "experiment" / "friction_biasing.yaml")
+                                    .read_text())["experiment"]["training_object_of"]
 ACTIONS = make_actions(3, dtype=torch.float64)  # the paper's three actions: −10, 0, +10 °/s at 0.1 m/s
 
 

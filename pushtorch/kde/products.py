@@ -278,6 +278,7 @@ class SharedKernelProduct:
         # each problem's kernels up to its last weighted one: past it a stacked batch holds only padding
         weighted = (self.weights > 0).any(1) * torch.arange(1, k + 1, device=device)  # (D, K)
         self.kernel_counts: list[int] = weighted.amax(-1).tolist() if k else [0] * d
+        self._chunk_layouts: dict[tuple[int, int], tuple[Tensor, ...]] = {}
 
     def log_prob(self, pose: Pose) -> Tensor:
         """``Σ_e (log w^P_e + γ_e log P_e(pose))`` for poses ``(*B, M)`` → ``(*B, M)``; ``-inf`` where a counted
@@ -328,20 +329,25 @@ class SharedKernelProduct:
         evaluate = fused_function(name, fn, x.device)
         out = []
         for a, b in self.problem_chunks(m):
-            table, weights, scale, offset, exponent = self.chunk_layout(a, b)
-            layout = (table, weights, scale, offset, exponent) if with_offset else (table, weights, scale, exponent)
+            layout = self.chunk_layout(a, b)
+            if not with_offset:  # the mean shift does not take the offsets
+                layout = layout[:3] + layout[4:]
             out.append(evaluate(x[a:b], *layout, self.delta_p, self.delta_q))
         return torch.cat(out, 0)
 
     def chunk_layout(self, start: int, end: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """The table, weights, scale, offset and exponent of problems ``[start, end)``, their kernels cut
         after the chunk's last weighted one: problems of a stacked batch are padded to the batch's largest
-        kernel count (1.4x the mean at the paper's sizes, measured), a chunk evaluates its own."""
-        table, weights = self.table[start:end], self.weights[start:end]
-        kept = max(1, max(self.kernel_counts[start:end]))
-        if kept < table.shape[1]:  # contiguous: a strided slice would fail the compiled call's stride guard
-            table, weights = table[:, :kept].contiguous(), weights[..., :kept].contiguous()
-        return table, weights, self.scale[start:end], self.offset[start:end], self.exponent[start:end]
+        kernel count (1.4x the mean at the paper's sizes, measured), a chunk evaluates its own. Cut once per
+        chunk: the annealing's steps, polish and scoring evaluate the same chunks again and again."""
+        if (start, end) not in self._chunk_layouts:
+            table, weights = self.table[start:end], self.weights[start:end]
+            kept = max(1, max(self.kernel_counts[start:end]))
+            if kept < table.shape[1]:  # contiguous: a strided slice would fail the compiled call's stride guard
+                table, weights = table[:, :kept].contiguous(), weights[..., :kept].contiguous()
+            self._chunk_layouts[start, end] = (table, weights, self.scale[start:end], self.offset[start:end],
+                                               self.exponent[start:end])
+        return self._chunk_layouts[start, end]  # type: ignore[return-value]
 
     def problem_chunks(self, queries: int) -> list[tuple[int, int]]:
         """``[start, end)`` chunks of the flattened problems whose ``(problems × K × queries)`` kernel values
