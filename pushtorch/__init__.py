@@ -1,10 +1,11 @@
 """pushtorch: transferable forward models for push manipulation (Howard & Zito), batched in torch.
 
 The data flow is mesh → cloud → features → models → prediction → measure; each stage is a module named
-for what it holds (see README's map and docs/method.md for the paper equation behind each function).
+for what it holds (docs/architecture.md has the map, docs/method.md the paper equation behind each function).
 
-The main entry points are importable from here; all but :class:`Pose` and :class:`PushtorchError` load on
-first use, so ``import pushtorch`` stays light (no open3d, pybullet or Hydra until they are needed).
+The main entry points are importable from here: objects and clouds, simulated pushes (plan, run, load),
+training and prediction. All but :class:`Pose` and :class:`PushtorchError` load on first use, so
+``import pushtorch`` stays light (no open3d, pybullet or Hydra until they are needed).
 """
 
 from __future__ import annotations
@@ -21,24 +22,45 @@ __version__ = "0.1.0"
 #: a submodule: once that is imported the package attribute is the module, which is callable as the function
 #: (``pushtorch.predict._CallableModule``).
 _LAZY = {
+    # objects and what a camera sees of them
     "load_object": "pushtorch.objects",
     "capture_partial_cloud": "pushtorch.perception",
+    # simulated pushes: actions, priors over mass and friction, plans, the parallel runner, records
+    "make_actions": "pushtorch.sim.push",
+    "Fixed": "pushtorch.sim.priors",
+    "Normal": "pushtorch.sim.priors",
+    "Uniform": "pushtorch.sim.priors",
+    "plan_training_pushes": "pushtorch.sim.plan",
+    "object_spec": "pushtorch.sim.world",
+    "run_plan": "pushtorch.sim.runner",
+    "simulate_pushes": "pushtorch.sim.runner",
+    "load_records": "pushtorch.sim.records",
+    # models and predictions
     "train_push_model": "pushtorch.models.library",
     "load_model": "pushtorch.models.library",
+    "ModelLibrary": "pushtorch.models.library",
     "predict": "pushtorch.predict",
     "predict_many": "pushtorch.predict",
     "FinalPoseDistribution": "pushtorch.distribution",
 }
 
-__all__ = ["FinalPoseDistribution", "Pose", "PushtorchError", "__version__", "capture_partial_cloud", "load_model",
-           "load_object", "predict", "predict_many", "train_push_model"]
+__all__ = ["Fixed", "FinalPoseDistribution", "ModelLibrary", "Normal", "Pose", "PushtorchError", "Uniform",
+           "__version__", "capture_partial_cloud", "load_model", "load_object", "load_records", "make_actions",
+           "object_spec", "plan_training_pushes", "predict", "predict_many", "run_plan", "simulate_pushes",
+           "train_push_model"]
 
 if TYPE_CHECKING:  # what type checkers and IDEs see (py.typed ships with the package)
     from pushtorch.distribution import FinalPoseDistribution
-    from pushtorch.models.library import load_model, train_push_model
+    from pushtorch.models.library import ModelLibrary, load_model, train_push_model
     from pushtorch.objects import load_object
     from pushtorch.perception import capture_partial_cloud
     from pushtorch.predict import predict, predict_many
+    from pushtorch.sim.plan import plan_training_pushes
+    from pushtorch.sim.priors import Fixed, Normal, Uniform
+    from pushtorch.sim.push import make_actions
+    from pushtorch.sim.records import load_records
+    from pushtorch.sim.runner import run_plan, simulate_pushes
+    from pushtorch.sim.world import object_spec
 
 
 def __getattr__(name: str) -> Any:

@@ -1,4 +1,4 @@
-"""pushtorch as a library (issue 23, first pieces): the public face and reproducible results by default.
+"""pushtorch as a library: the public face and reproducible results by default.
 
 The README's "Using it from your own code" example is run as written (smaller: 20 pushes per action, its
 run folders in a temporary directory) in two fresh processes, which must print identical numbers.
@@ -24,19 +24,26 @@ def _readme_example(folder: Path) -> str:
     section = readme[readme.index("## Using it from your own code"):]
     code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
     assert "make_actions(3), 100," in code and '"runs/' in code  # what the substitutions below rely on
+    assert "from pushtorch." not in code and "import pushtorch." not in code  # the top level alone
     return code.replace("make_actions(3), 100,", "make_actions(3), 20,").replace('"runs/', f'"{folder}/')
 
 
 def test_the_public_face_is_light_and_complete():
-    probe = ("import sys, pushtorch; heavy = [m for m in ('open3d', 'pybullet', 'hydra') if m in sys.modules]; "
-             "names = [pushtorch.load_object, pushtorch.capture_partial_cloud, pushtorch.train_push_model, "
-             "pushtorch.load_model, pushtorch.predict, pushtorch.predict_many, pushtorch.Pose, "
-             "pushtorch.PushtorchError]; print(heavy, all(callable(n) for n in names))")
+    probe = ("import sys, pushtorch; heavy = [m for m in ('open3d', 'pybullet', 'hydra', 'trimesh') "
+             "if m in sys.modules]; print(heavy); "
+             "print(all(callable(getattr(pushtorch, n)) for n in pushtorch.__all__ if n != '__version__'))")
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=ROOT, check=True)
-    assert result.stdout.strip() == "[] True"  # importing pushtorch loads no heavy dependency
+    assert result.stdout.split() == ["[]", "True"]  # importing pushtorch loads no heavy dependency
     import pushtorch
 
-    assert set(pushtorch._LAZY) <= set(pushtorch.__all__)
+    assert set(pushtorch._LAZY) <= set(pushtorch.__all__) <= set(pushtorch._LAZY) | {"Pose", "PushtorchError",
+                                                                                      "__version__"}
+    # the data-generation API the README's example uses, from the top level alone
+    from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_training_pushes, run_plan
+
+    assert pushtorch.Normal is Normal and pushtorch.make_actions is make_actions
+    assert pushtorch.plan_training_pushes is plan_training_pushes and pushtorch.run_plan is run_plan
+    assert pushtorch.load_records is load_records and pushtorch.object_spec is object_spec
     assert (ROOT / "pushtorch" / "py.typed").is_file()
 
 
@@ -67,7 +74,7 @@ def test_a_model_moves_to_float64_and_a_float64_cloud_predicts_as_a_float32_one(
     """``PushModel.to`` and ``load_model(dtype=, map_location=)``. A float64 cloud is cast to the model's dtype
     before its features are computed, so it predicts exactly as the float32 cloud. A float64 model draws the
     same random numbers as the float32 one (``se3.DRAW_DTYPE``), so it predicts the same poses up to
-    rounding (issue 23: within 1e-4 m; 5e-5 m at most on the quickstart's model, both methods)."""
+    rounding (within 1e-4 m; 5e-5 m at most on the quickstart's model, both methods)."""
     import torch
 
     from pushtorch import capture_partial_cloud, load_model, load_object, predict
