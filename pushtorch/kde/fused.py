@@ -107,13 +107,30 @@ def chunk_bounds(n: int, step: int) -> list[tuple[int, int]]:
     return list(zip(starts, [*starts[1:], n], strict=True))
 
 
+def _no_duck_sizing():
+    """Within this block Dynamo gives every size its own symbol (torch's shape-environment setting, read
+    when a graph is traced)."""
+    from torch.fx.experimental import _config as shape_config
+
+    return shape_config.patch(use_duck_shape=False)
+
+
 def fused_function(name: str, fn: Callable, device: torch.device | str) -> Callable:
     """``fn`` compiled with torch.compile if :func:`fast_path_compiled` allows it, else ``fn`` itself.
 
     For the fast paths' pure tensor functions (no generators, no data-dependent shapes inside). One
-    compiled function per ``name`` and device type, shared by every caller; shapes that change between
-    calls are made dynamic by torch.compile's automatic dynamic shapes. A failing compilation warns once
-    and falls back to ``fn``.
+    compiled function per ``name`` and device type, shared by every caller. What it is compiled for does
+    not depend on the data it meets, so a warm process never recompiles:
+
+    - sizes are symbolic from the first call (``dynamic=True``): kernel counts that vary with the data (a
+      float path that prunes one kernel more) do not meet a graph specialised to the warm-up's sizes; two
+      sizes that happen to be equal on the first call are not taken to be one size (no duck sizing: a
+      batch of 7 problems would otherwise be tied to the 7 rows of a pose);
+    - tensor arguments are passed contiguous, so a strided view cannot fail a stride guard;
+    - calls run under ``torch.no_grad``, so the caller's grad mode is not guarded on; an argument that
+      requires grad is evaluated eagerly instead (compiled code is for annealing, not for autograd).
+
+    A failing compilation warns once and falls back to ``fn``.
     """
     device = torch.device(device)
     if name in _compile_failed or not fast_path_compiled(device):
@@ -124,13 +141,16 @@ def fused_function(name: str, fn: Callable, device: torch.device | str) -> Calla
 
         # torch.compile refuses option names its Inductor does not know (older torch): leave those out
         options = {k: v for k, v in _INDUCTOR_OPTIONS.items() if hasattr(inductor_config, k)}
-        compiled = torch.compile(fn, dynamic=None, options=options)
+        compiled = torch.compile(fn, dynamic=True, options=options)
 
         def call(*args):
-            if name in _compile_failed:
+            if name in _compile_failed or (
+                    torch.is_grad_enabled() and any(isinstance(a, Tensor) and a.requires_grad for a in args)):
                 return fn(*args)
+            args = tuple(a.contiguous() if isinstance(a, Tensor) else a for a in args)
             try:
-                return compiled(*args)
+                with torch.no_grad(), _no_duck_sizing():
+                    return compiled(*args)
             except Exception as exc:  # a missing/broken compiler surfaces here, on first use
                 _compile_failed.add(name)
                 warnings.warn(f"torch.compile of the fast kernel path failed ({type(exc).__name__}: {exc});"
