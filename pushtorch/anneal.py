@@ -151,7 +151,7 @@ def _propose(pose: Pose, temperature: float, schedule: AnnealSchedule, generator
         # vMF on S^3 has per-axis rotation-vector std 2/√κ for large κ; rot_std = 0 means no rotation.
         kappa = 4.0 / rot_std**2 if rot_std > 0 else 1e12
         p, q = perturb(pose, p_std, kappa, generator)
-    return Pose(p, q / q.norm(dim=-1, keepdim=True))
+    return Pose.unchecked(p, q / q.norm(dim=-1, keepdim=True))
 
 
 # Steps whose proposals the fast path draws at once: few generator calls, bounded memory
@@ -296,7 +296,7 @@ def _anneal_shared_product(
     best_q = torch.cat([s[4] for s in states]).transpose(1, 2).reshape(*shape, 4)
     best_lp = torch.cat([s[5] for s in states]).reshape(shape)
     saw_nan = torch.stack([s[6] for s in states]).any()
-    return Pose(best_p, best_q), best_lp, saw_nan
+    return Pose.unchecked(best_p, best_q), best_lp, saw_nan
 
 
 def _propose_and_reach(
@@ -351,7 +351,7 @@ def _anneal_pruned_kde(
             inverse_energy = torch.tensor(1.0 / (schedule.energy_scale * temperature), dtype=dtype, device=device)
             state = accept(*state, x, accept_u[k], inverse_energy, index.table, index.scale, query_density,
                            pair_query, pair_block, index.num_blocks, log_w_max, index.delta_p, index.delta_q)
-    return Pose(state[3].reshape(*shape, 3), state[4].reshape(*shape, 4)), state[5].reshape(shape), state[6]
+    return Pose.unchecked(state[3].reshape(*shape, 3), state[4].reshape(*shape, 4)), state[5].reshape(shape), state[6]
 
 
 _Z_AXIS = torch.tensor([False, False, True])
@@ -405,7 +405,7 @@ def _anneal_fast_steps(
         for k, temperature in enumerate(chunk):
             prop_p, prop_q = propose(p, q, step_p[k], left[k], right[k])
             with torch.no_grad():
-                prop_lp = log_prob_fn(Pose(prop_p, prop_q))
+                prop_lp = log_prob_fn(Pose.unchecked(prop_p, prop_q))
             inverse_energy = torch.tensor(1.0 / (schedule.energy_scale * temperature), dtype=dtype, device=device)
             p, q, lp, best_p, best_q, best_lp, saw_nan = accept(
                 p, q, lp, best_p, best_q, best_lp, prop_p, prop_q, prop_lp, accept_u[k], inverse_energy, saw_nan)
@@ -414,7 +414,7 @@ def _anneal_fast_steps(
                 history[1].append(q)
                 history[2].append(lp)
     _raise_on_bad_values(saw_nan, best_lp)
-    return Pose(best_p, best_q), best_lp, history
+    return Pose.unchecked(best_p, best_q), best_lp, history
 
 
 def _raise_on_bad_values(saw_nan: Tensor, best_lp: Tensor) -> None:
@@ -489,8 +489,8 @@ def anneal(
     if not torch.isfinite(init.p).all():
         raise InvalidPoseError("init positions hold NaN or infinite values")
     check_unit_quaternion(init.q, name="init.q")
-    current = Pose(init.p.expand(*shape, 3).clone(), init.q.expand(*shape, 4).clone())
-    current = Pose(current.p, current.q / current.q.norm(dim=-1, keepdim=True))
+    current = Pose.unchecked(init.p.expand(*shape, 3).clone(), init.q.expand(*shape, 4).clone())
+    current = Pose.unchecked(current.p, current.q / current.q.norm(dim=-1, keepdim=True))
     evaluate = partial(log_prob_fn.log_prob, method="fast") if fast_kde else log_prob_fn
     current_lp = _evaluate(evaluate, current, shape)
     best, best_lp = current, current_lp
@@ -507,13 +507,13 @@ def anneal(
             # -inf - -inf is NaN: such a candidate compares False everywhere and keeps its pose.
             delta = proposal_lp - current_lp
             accept = (proposal_lp > current_lp) | (torch.exp(delta / (schedule.energy_scale * temperature)) > u)
-            current = Pose(
+            current = Pose.unchecked(
                 torch.where(accept.unsqueeze(-1), proposal.p, current.p),
                 torch.where(accept.unsqueeze(-1), proposal.q, current.q),
             )
             current_lp = torch.where(accept, proposal_lp, current_lp)
             improved = current_lp > best_lp
-            best = Pose(
+            best = Pose.unchecked(
                 torch.where(improved.unsqueeze(-1), current.p, best.p),
                 torch.where(improved.unsqueeze(-1), current.q, best.q),
             )
@@ -524,7 +524,7 @@ def anneal(
                 history_lp.append(current_lp)
     result = _best_of(best, best_lp)
     if record_history:
-        result.history = Pose(torch.stack(history_p), torch.stack(history_q))
+        result.history = Pose.unchecked(torch.stack(history_p), torch.stack(history_q))
         result.history_log_prob = torch.stack(history_lp)
     return result
 
@@ -549,15 +549,15 @@ def polish_candidates(
     p, q, lp = result.candidates.p, result.candidates.q, result.log_prob
     for _ in range(int(steps)):
         with torch.no_grad():
-            moved = shift_fn(Pose(p, q))
+            moved = shift_fn(Pose.unchecked(p, q))
             moved_lp = log_prob_fn(moved)
         better = moved_lp > lp  # NaN never is
         p = torch.where(better.unsqueeze(-1), moved.p, p)
         q = torch.where(better.unsqueeze(-1), moved.q, q)
         lp = torch.where(better, moved_lp, lp)
-    polished = _best_of(Pose(p, q), lp)
+    polished = _best_of(Pose.unchecked(p, q), lp)
     if result.history is not None:  # the polished candidates as one more step, for review
-        polished.history = Pose(torch.cat([result.history.p, p.unsqueeze(0)]),
+        polished.history = Pose.unchecked(torch.cat([result.history.p, p.unsqueeze(0)]),
                                 torch.cat([result.history.q, q.unsqueeze(0)]))
         polished.history_log_prob = torch.cat([result.history_log_prob, lp.unsqueeze(0)])
     return polished
@@ -567,7 +567,7 @@ def _best_of(candidates: Pose, log_prob: Tensor) -> AnnealResult:
     """The result whose best is each problem's highest candidate (an all -inf problem: its first)."""
     winner = log_prob.argmax(-1, keepdim=True)  # (*B, 1)
     return AnnealResult(
-        best=Pose(torch.gather(candidates.p, -2, winner.unsqueeze(-1).expand(*winner.shape, 3)).squeeze(-2),
+        best=Pose.unchecked(torch.gather(candidates.p, -2, winner.unsqueeze(-1).expand(*winner.shape, 3)).squeeze(-2),
                   torch.gather(candidates.q, -2, winner.unsqueeze(-1).expand(*winner.shape, 4)).squeeze(-2)),
         best_log_prob=torch.gather(log_prob, -1, winner).squeeze(-1),
         candidates=candidates,

@@ -78,7 +78,7 @@ def nearest_push_prediction(motion: MotionModel, manipulator_frame, robot_start:
     log_w = contact_log_weights(manipulator_frame, motion.manipulator, robot_start, contact_bandwidth, contact_patch)
     best = int(log_w.reshape(-1, len(motion.manipulator)).amax(0).argmax())
     chosen = motion.manipulator.m.take(best)
-    return replay_motion(se3.Pose(chosen.p.to(robot_start.p), chosen.q.to(robot_start.q)), robot_start,
+    return replay_motion(se3.Pose.unchecked(chosen.p.to(robot_start.p), chosen.q.to(robot_start.q)), robot_start,
                          initial_estimate)
 
 
@@ -121,7 +121,7 @@ def _simulate_once(obj: ObjectModel, robot_start: se3.Pose, start: se3.Pose, act
 
     records = simulate_pushes(obj, robot_start, start, action, mass, ground_friction)
     final = records.object_final
-    return se3.Pose(final.p[0].float(), final.q[0].float())
+    return se3.Pose.unchecked(final.p[0].float(), final.q[0].float())
 
 
 def physics_from_cloud_prediction(points: torch.Tensor, initial_estimate: se3.Pose, robot_start: se3.Pose,

@@ -162,7 +162,7 @@ class FinalPoseDistribution(Distribution):
         """The experts as one :class:`PoseKDE` of batch ``(E, *B)`` (the dense method; built once)."""
         if self._experts is None:
             e, shape = self.num_experts, self.means.batch_shape
-            means = se3.Pose(self.means.p.expand(e, *shape, 3), self.means.q.expand(e, *shape, 4))
+            means = se3.Pose.unchecked(self.means.p.expand(e, *shape, 3), self.means.q.expand(e, *shape, 4))
             self._experts = PoseKDE(means, self.bandwidth, self.log_weights,
                                     trial_rounds=self.trial_rounds.expand(e, *self.batch_shape, 3))
         return self._experts
@@ -181,7 +181,7 @@ class FinalPoseDistribution(Distribution):
                 counted = exponent[:, b] > 0
                 kept = torch.isfinite(log_w[counted, b]).any(0)
                 e = int(counted.sum())
-                kde = PoseKDE(se3.Pose(means.p[b, kept].expand(e, -1, 3), means.q[b, kept].expand(e, -1, 4)),
+                kde = PoseKDE(se3.Pose.unchecked(means.p[b, kept].expand(e, -1, 3), means.q[b, kept].expand(e, -1, 4)),
                               self.bandwidth, log_w[counted, b][:, kept], trial_rounds=rounds[b].expand(e, 3))
                 centres = None if self.normaliser_centres is None else \
                     self.normaliser_centres.reshape(flat_batch, -1).take(b)
@@ -254,7 +254,7 @@ class FinalPoseDistribution(Distribution):
             per_expert_draws = max(MIN_POOL_PER_EXPERT, math.ceil(4 * n / self.num_experts))
             pool, _ = experts.sample(per_expert_draws, generator)  # (E, *B, m)
             nb = len(self.batch_shape)
-            pool = se3.Pose(pool.p.movedim(0, nb).reshape(*self.batch_shape, -1, 3),
+            pool = se3.Pose.unchecked(pool.p.movedim(0, nb).reshape(*self.batch_shape, -1, 3),
                             pool.q.movedim(0, nb).reshape(*self.batch_shape, -1, 4))  # (*B, E·m)
             log_p = experts.log_prob(pool).double() - self.log_kernel_integral().unsqueeze(-1)  # (E, *B, M)
             gamma = self.exponent.double().unsqueeze(-1)

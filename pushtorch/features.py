@@ -105,7 +105,7 @@ class SurfaceFeatures:
     @property
     def pose(self) -> se3.Pose:
         """The feature poses ``v = (p, q)`` as a batched :class:`~pushtorch.se3.Pose` ``(N,)``."""
-        return se3.Pose(self.p, self.q)
+        return se3.Pose.unchecked(self.p, self.q)
 
     @property
     def frames(self) -> Tensor:

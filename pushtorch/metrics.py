@@ -102,10 +102,11 @@ def displaced(initial_estimate: se3.Pose, final_estimate: se3.Pose, truth_initia
     """
     motion = se3.compose(final_estimate, se3.inverse(initial_estimate))
     shape = torch.broadcast_shapes(motion.batch_shape, truth_initial.batch_shape)
-    truth = se3.Pose(truth_initial.p.to(motion.p).expand(*shape, 3), truth_initial.q.to(motion.q).expand(*shape, 4))
-    motion = se3.Pose(motion.p.expand(*shape, 3), motion.q.expand(*shape, 4))
+    truth = se3.Pose.unchecked(truth_initial.p.to(motion.p).expand(*shape, 3),
+                               truth_initial.q.to(motion.q).expand(*shape, 4))
+    motion = se3.Pose.unchecked(motion.p.expand(*shape, 3), motion.q.expand(*shape, 4))
     moved = se3.compose(motion, truth)
-    return se3.Pose(moved.p, moved.q / moved.q.norm(dim=-1, keepdim=True))  # float32 products drift off unit
+    return se3.Pose.unchecked(moved.p, moved.q / moved.q.norm(dim=-1, keepdim=True))  # float32 products drift off unit
 
 
 def linear_error_cm(estimate: se3.Pose, truth: se3.Pose) -> torch.Tensor:

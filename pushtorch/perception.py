@@ -220,7 +220,7 @@ class ObjectScene:
         pose = obj.resting_pose() if pose is None else pose
         _check_single_pose(pose)
         self.obj = obj
-        self.pose = se3.Pose(pose.p.detach().float().cpu(), pose.q.detach().float().cpu())
+        self.pose = se3.Pose.unchecked(pose.p.detach().float().cpu(), pose.q.detach().float().cpu())
         local = torch.as_tensor(np.asarray(obj.mesh.vertices), dtype=torch.float32)
         self.vertices = se3.apply(self.pose, local)
         faces = np.ascontiguousarray(np.asarray(obj.mesh.faces, dtype=np.uint32))

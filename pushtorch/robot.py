@@ -96,7 +96,7 @@ def _planar_pose(
     z = torch.as_tensor(z, dtype=x.dtype, device=x.device).expand_as(x)
     zeros = torch.zeros_like(yaw)
     q = torch.stack([torch.cos(yaw / 2), zeros, zeros, torch.sin(yaw / 2)], -1)
-    return se3.Pose(torch.stack([x, y, z], -1), q)
+    return se3.Pose.unchecked(torch.stack([x, y, z], -1), q)
 
 
 def urdf_text() -> str:
@@ -187,9 +187,9 @@ def bumper_pose(base: se3.Pose) -> se3.Pose:
     chain = kinematic_chain(joints.dtype, joints.device)
     flat = joints.reshape(-1, 3)
     if flat.shape[0] == 0:
-        return se3.Pose(joints.new_zeros(*shape, 3), joints.new_zeros(*shape, 4))
+        return se3.Pose.unchecked(joints.new_zeros(*shape, 3), joints.new_zeros(*shape, 4))
     pose = se3.from_matrix(chain.forward_kinematics(flat).get_matrix())
-    return se3.Pose(pose.p.reshape(*shape, 3), pose.q.reshape(*shape, 4))
+    return se3.Pose.unchecked(pose.p.reshape(*shape, 3), pose.q.reshape(*shape, 4))
 
 
 def base_pose_from_bumper(bumper: se3.Pose) -> se3.Pose:
@@ -226,7 +226,7 @@ def bumper_triangles(base: se3.Pose) -> torch.Tensor:
     shape = pose.batch_shape
     p = pose.p.reshape(*shape, 1, 1, 3)
     q = pose.q.reshape(*shape, 1, 1, 4)
-    return se3.apply(se3.Pose(p, q), local)
+    return se3.apply(se3.Pose.unchecked(p, q), local)
 
 
 def robot_mesh() -> trimesh.Trimesh:
@@ -282,7 +282,8 @@ def _points_in_boxes(robot_start: se3.Pose, points: torch.Tensor, name: str) -> 
         raise InvalidPointCloudError(f"{name}: points hold NaN or infinite values")
     se3.check_pose(robot_start, "robot_start")
     start = robot_start.to(dtype=points.dtype, device=points.device)
-    rotation = se3.to_matrix(se3.Pose(torch.zeros_like(start.p), start.q))[..., :3, :3]  # world_R_base (..., 3, 3)
+    rotation = se3.to_matrix(se3.Pose.unchecked(torch.zeros_like(start.p),
+                                                start.q))[..., :3, :3]  # world_R_base (..., 3, 3)
     local = (points - start.p.unsqueeze(-2)) @ rotation  # (..., N, 3) in the base frame: R^T (x - p) per row
     centres, halves = robot_boxes(points.dtype, points.device)
     return local.unsqueeze(-3) - centres[:, None, :], halves[:, None, :]
@@ -367,7 +368,7 @@ def backed_off(robot_start: se3.Pose, distance: torch.Tensor | float) -> se3.Pos
     """The base poses ``(...)`` moved ``distance (...)`` metres straight back along their own −x axis."""
     distance = torch.as_tensor(distance, dtype=robot_start.p.dtype, device=robot_start.p.device)
     shape = torch.broadcast_shapes(robot_start.batch_shape, distance.shape)
-    forward = se3.apply(se3.Pose(torch.zeros_like(robot_start.p), robot_start.q),
+    forward = se3.apply(se3.Pose.unchecked(torch.zeros_like(robot_start.p), robot_start.q),
                         torch.tensor([1.0, 0.0, 0.0], dtype=robot_start.p.dtype, device=robot_start.p.device))
     p = robot_start.p - distance.unsqueeze(-1) * forward
-    return se3.Pose(p.expand(*shape, 3), robot_start.q.expand(*shape, 4))
+    return se3.Pose.unchecked(p.expand(*shape, 3), robot_start.q.expand(*shape, 4))

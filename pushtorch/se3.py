@@ -13,9 +13,10 @@ Conventions (the whole library):
     * pybullet and Rerun use x, y, z, w: convert only at those boundaries with :func:`wxyz_to_xyzw`.
     * The group operations (:func:`compose`, :func:`apply`, ...) assume unit quaternions and do not check
       them: they run inside every hot loop (a non-unit q scales, ``apply`` with |q| = 2 maps (1, 0, 0) to
-      (4, 0, 0)). Public entries that take poses from a caller validate them once with
-      :func:`check_pose` / :func:`check_unit_quaternion`, following ``torch.distributions``'
-      ``validate_args`` convention: checks on by default, turned off only for the annealing's own queries.
+      (4, 0, 0)). A caller's poses are validated once: ``Pose(p, q)`` checks what it is given (finite, unit
+      q within 1e-4), public entries that take tensors check them with :func:`check_pose` /
+      :func:`check_unit_quaternion` (``torch.distributions``' ``validate_args`` convention), and the library
+      builds the poses it computes with ``Pose.unchecked``.
 """
 
 from __future__ import annotations
@@ -29,6 +30,9 @@ from pytorch_kinematics import transforms as pkt
 from pushtorch.errors import InvalidPoseError
 
 Tensor = torch.Tensor
+
+#: How far from 1 the norm of a caller's quaternion may be in ``Pose(p, q)``.
+USER_QUATERNION_ATOL = 1e-4
 
 __all__ = [
     "Pose",
@@ -62,15 +66,36 @@ __all__ = [
 ]
 
 
-class Pose(NamedTuple):
+class _PoseFields(NamedTuple):
+    p: Tensor
+    q: Tensor
+
+
+class Pose(_PoseFields):
     """A batch of rigid poses: translation ``p (..., 3)`` and unit quaternion ``q (..., 4)`` wxyz.
 
     A ``NamedTuple`` so that it unpacks as ``p, q = pose`` and crosses process boundaries cheaply;
     the methods are thin wrappers of the module functions of the same name.
+
+    ``Pose(p, q)`` validates what a caller builds (:func:`check_pose` with ``atol=1e-4``: floating
+    tensors of shapes ``(..., 3)`` and ``(..., 4)``, every entry finite, ``|q|`` within 1e-4 of 1) and
+    raises :class:`~pushtorch.errors.InvalidPoseError` otherwise. The library builds the poses it
+    computes with :meth:`unchecked`, which checks nothing: hot loops and compiled regions stay free of
+    synchronising checks and guards.
     """
 
-    p: Tensor
-    q: Tensor
+    __slots__ = ()
+
+    def __new__(cls, p: Tensor, q: Tensor) -> Pose:
+        return check_pose(tuple.__new__(cls, (p, q)), atol=USER_QUATERNION_ATOL)
+
+    @classmethod
+    def unchecked(cls, p: Tensor, q: Tensor) -> Pose:
+        """The pose ``(p, q)`` as given, without any check (for poses the library computed itself)."""
+        return tuple.__new__(cls, (p, q))
+
+    def __reduce__(self):
+        return (_unchecked_pose, (self.p, self.q))  # unpickled as it was pickled: checked once, when built
 
     @property
     def batch_shape(self) -> torch.Size:
@@ -86,24 +111,24 @@ class Pose(NamedTuple):
         return apply(self, points)
 
     def to(self, *args, **kwargs) -> Pose:
-        return Pose(self.p.to(*args, **kwargs), self.q.to(*args, **kwargs))
+        return Pose.unchecked(self.p.to(*args, **kwargs), self.q.to(*args, **kwargs))
 
     def take(self, index) -> Pose:
         """Index the batch dims, e.g. ``pose.take(0)`` or ``pose.take(mask)``."""
         shape = self.batch_shape
-        return Pose(self.p.expand(*shape, 3)[index], self.q.expand(*shape, 4)[index])
+        return Pose.unchecked(self.p.expand(*shape, 3)[index], self.q.expand(*shape, 4)[index])
 
     def expand(self, *shape: int) -> Pose:
-        return Pose(self.p.expand(*shape, 3), self.q.expand(*shape, 4))
+        return Pose.unchecked(self.p.expand(*shape, 3), self.q.expand(*shape, 4))
 
     def reshape(self, *shape: int) -> Pose:
         full = self.batch_shape
-        return Pose(self.p.expand(*full, 3).reshape(*shape, 3), self.q.expand(*full, 4).reshape(*shape, 4))
+        return Pose.unchecked(self.p.expand(*full, 3).reshape(*shape, 3), self.q.expand(*full, 4).reshape(*shape, 4))
 
     def unsqueeze(self, dim: int) -> Pose:
         """Insert a batch dim (``dim`` counts batch dims only; negative counts from the last one)."""
         d = dim if dim >= 0 else dim - 1
-        return Pose(self.p.unsqueeze(d), self.q.unsqueeze(d))
+        return Pose.unchecked(self.p.unsqueeze(d), self.q.unsqueeze(d))
 
     def vector(self) -> Tensor:
         """``(..., 7)`` as ``[p, q_wxyz]``: the event layout of a prediction's distribution."""
@@ -115,17 +140,21 @@ class Pose(NamedTuple):
         """The pose ``(...)`` of ``[p, q_wxyz]`` vectors ``(..., 7)`` (views, no copy)."""
         if x.shape[-1:] != (7,):
             raise InvalidPoseError(f"pose vectors must have shape (..., 7) as [p, q_wxyz], got {tuple(x.shape)}")
-        return Pose(x[..., :3], x[..., 3:])
+        return Pose.unchecked(x[..., :3], x[..., 3:])
 
     @staticmethod
     def cat(poses: list[Pose], dim: int = 0) -> Pose:
         d = dim if dim >= 0 else dim - 1
-        return Pose(torch.cat([x.p for x in poses], d), torch.cat([x.q for x in poses], d))
+        return Pose.unchecked(torch.cat([x.p for x in poses], d), torch.cat([x.q for x in poses], d))
 
     @staticmethod
     def stack(poses: list[Pose], dim: int = 0) -> Pose:
         d = dim if dim >= 0 else dim - 1
-        return Pose(torch.stack([x.p for x in poses], d), torch.stack([x.q for x in poses], d))
+        return Pose.unchecked(torch.stack([x.p for x in poses], d), torch.stack([x.q for x in poses], d))
+
+
+def _unchecked_pose(p: Tensor, q: Tensor) -> Pose:
+    return Pose.unchecked(p, q)
 
 
 def identity(shape: tuple[int, ...] = (), dtype: torch.dtype = torch.float32, device=None) -> Pose:
@@ -133,7 +162,7 @@ def identity(shape: tuple[int, ...] = (), dtype: torch.dtype = torch.float32, de
     p = torch.zeros(*shape, 3, dtype=dtype, device=device)
     q = torch.zeros(*shape, 4, dtype=dtype, device=device)
     q[..., 0] = 1.0
-    return Pose(p, q)
+    return Pose.unchecked(p, q)
 
 
 def quat_normalize(q: Tensor) -> Tensor:
@@ -187,13 +216,13 @@ _check_pose = check_pose  # the former private name
 
 def compose(a: Pose, b: Pose) -> Pose:
     """``a ∘ b``: the pose of frame b expressed through a (``T_a @ T_b``). Batch dims broadcast."""
-    return Pose(a.p + pkt.quaternion_apply(a.q, b.p), pkt.quaternion_raw_multiply(a.q, b.q))
+    return Pose.unchecked(a.p + pkt.quaternion_apply(a.q, b.p), pkt.quaternion_raw_multiply(a.q, b.q))
 
 
 def inverse(a: Pose) -> Pose:
     """``a^-1 = (-q^-1 p, q^-1)`` (paper, Rigid Body Motions)."""
     q_inv = pkt.quaternion_invert(a.q)
-    return Pose(-pkt.quaternion_apply(q_inv, a.p), q_inv)
+    return Pose.unchecked(-pkt.quaternion_apply(q_inv, a.p), q_inv)
 
 
 def relative(a: Pose, b: Pose) -> Pose:
@@ -372,7 +401,7 @@ def perturb(
         kappa,
         generator,
     )
-    return Pose(p + sigma * noise, pkt.quaternion_raw_multiply(pose.q.expand(*shape, 4), delta))
+    return Pose.unchecked(p + sigma * noise, pkt.quaternion_raw_multiply(pose.q.expand(*shape, 4), delta))
 
 
 def mean_pose(poses: Pose, dim: int = -1) -> Pose:
@@ -384,7 +413,7 @@ def mean_pose(poses: Pose, dim: int = -1) -> Pose:
     scatter = q.transpose(-1, -2) @ q  # (..., 4, 4)
     _, vectors = torch.linalg.eigh(scatter.double())
     mean_q = vectors[..., -1].to(q.dtype)
-    return Pose(p, torch.where(mean_q[..., :1] < 0, -mean_q, mean_q))
+    return Pose.unchecked(p, torch.where(mean_q[..., :1] < 0, -mean_q, mean_q))
 
 
 def to_matrix(pose: Pose) -> Tensor:
@@ -401,7 +430,7 @@ def from_matrix(m: Tensor) -> Pose:
     """Poses from homogeneous matrices ``(..., 4, 4)``; the rotation block must be orthonormal."""
     if m.shape[-2:] != (4, 4):
         raise InvalidPoseError(f"expected (..., 4, 4) matrices, got {tuple(m.shape)}")
-    return Pose(m[..., :3, 3].clone(), pkt.matrix_to_quaternion(m[..., :3, :3]))
+    return Pose.unchecked(m[..., :3, 3].clone(), pkt.matrix_to_quaternion(m[..., :3, :3]))
 
 
 #: Reorder quaternions from the library's w,x,y,z to pybullet/Rerun's x,y,z,w (pytorch_kinematics' own).
@@ -421,7 +450,7 @@ def from_pybullet(position, orientation_xyzw, dtype: torch.dtype = torch.float32
     """A pose from pybullet's position and x,y,z,w orientation (any sequences or arrays)."""
     p = torch.as_tensor(position, dtype=dtype)
     q = xyzw_to_wxyz(torch.as_tensor(orientation_xyzw, dtype=dtype))
-    return Pose(p, q)
+    return Pose.unchecked(p, q)
 
 
 def yaw_quaternion(yaw: Tensor) -> Tensor:
@@ -434,7 +463,7 @@ def yaw_quaternion(yaw: Tensor) -> Tensor:
 def from_xy_yaw(x: Tensor | float, y: Tensor | float, yaw: Tensor | float, z: Tensor | float = 0.0) -> Pose:
     """Planar poses: position (x, y, z) and a rotation of ``yaw`` rad about the world z axis (float32)."""
     x, y, z, yaw = torch.broadcast_tensors(*(torch.as_tensor(v, dtype=torch.float32) for v in (x, y, z, yaw)))
-    return Pose(torch.stack([x, y, z], -1), yaw_quaternion(yaw))
+    return Pose.unchecked(torch.stack([x, y, z], -1), yaw_quaternion(yaw))
 
 
 def yaw_of(q: Tensor) -> Tensor:

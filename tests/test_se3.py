@@ -202,3 +202,38 @@ def test_mean_pose_rotation_is_scipys_rotation_mean():
     ours = se3.mean_pose(se3.Pose(torch.zeros(200, 3, dtype=torch.float64), q), dim=0).q
     theirs = torch.from_numpy(Rotation.from_quat(se3.wxyz_to_xyzw(q).numpy()).mean().as_quat())
     assert float(se3.angle_between(ours, se3.xyzw_to_wxyz(theirs))) < 1e-9
+
+
+@given(st.floats(0.0, 3.0, allow_nan=False), st.sampled_from([torch.float32, torch.float64]))
+def test_a_pose_built_from_user_values_refuses_a_quaternion_off_unit_norm(norm, dtype):
+    """``Pose(p, q)`` accepts |q| within 1e-4 of 1 and refuses anything further (a norm of 2 would double
+    every point ``apply`` maps); ``Pose.unchecked`` takes it as given, for the library's own poses."""
+    q = torch.tensor([0.5, 0.5, 0.5, 0.5], dtype=dtype) * norm
+    p = torch.zeros(3, dtype=dtype)
+    if abs(norm - 1.0) <= 0.9e-4:
+        assert torch.equal(se3.Pose(p, q).q, q)
+    elif abs(norm - 1.0) > 1.1e-4:
+        with pytest.raises(InvalidPoseError, match="unit quaternion"):
+            se3.Pose(p, q)
+    assert torch.equal(se3.Pose.unchecked(p, q).q, q)
+
+
+@pytest.mark.parametrize("where", ["p", "q"])
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_a_pose_built_from_user_values_refuses_non_finite_entries(where, bad):
+    p, q = torch.zeros(2, 3), torch.tensor([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
+    (p if where == "p" else q)[1, 2] = bad
+    with pytest.raises(InvalidPoseError, match="NaN or infinite"):
+        se3.Pose(p, q)
+    with pytest.raises(InvalidPoseError, match="shape"):
+        se3.Pose(torch.zeros(3), torch.zeros(3))
+
+
+def test_poses_the_library_builds_survive_pickling_unchecked():
+    import pickle
+
+    pose = se3.Pose(torch.zeros(2, 3), torch.tensor([[1.0, 0, 0, 0], [0, 1.0, 0, 0]]))
+    back = pickle.loads(pickle.dumps(pose))
+    assert type(back) is se3.Pose and torch.equal(back.p, pose.p) and torch.equal(back.q, pose.q)
+    drifted = se3.Pose.unchecked(torch.zeros(3), torch.tensor([2.0, 0, 0, 0]))  # as a hot loop may hold it
+    assert torch.equal(pickle.loads(pickle.dumps(drifted)).q, drifted.q)

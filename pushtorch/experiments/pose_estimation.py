@@ -18,7 +18,7 @@ Run: ``python -m pushtorch experiment=pose_estimation`` (``experiment.runs=...``
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -83,7 +83,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
                 generator = torch.Generator().manual_seed(stable_seed(ctx.seed, name, obj.name, r))
                 estimates.append(estimate_pose(position, observed, ctx.settings, generator).pose)
                 bar.update(1)
-            estimated = se3.Pose.stack([se3.Pose(e.p.float(), e.q.float()) for e in estimates])
+            estimated = se3.Pose.stack([se3.Pose.unchecked(e.p.float(), e.q.float()) for e in estimates])
             save_arrays(path, {"p": estimated.p, "q": estimated.q}, {"fingerprint": made_from})
         else:
             bar.update(runs)
@@ -119,7 +119,7 @@ def _cached_estimates(path: Path, made_from: str) -> se3.Pose | None:
         return None
     if meta.get("fingerprint") != made_from or not {"p", "q"} <= set(arrays):
         return None
-    return se3.Pose(arrays["p"], arrays["q"])
+    return se3.Pose.unchecked(arrays["p"], arrays["q"])
 
 
 def _log_pose_example(ctx: ExperimentContext, obj, truth: se3.Pose, points: torch.Tensor, estimates: se3.Pose,
@@ -145,8 +145,8 @@ def _log_pose_example(ctx: ExperimentContext, obj, truth: se3.Pose, points: torc
                    static=True)
 
 
-def run(cfg, out_dir: Path) -> dict:
+def run(cfg, out_dir: Path, overrides: Sequence[str] = ()) -> dict:
     """``python -m pushtorch experiment=pose_estimation``: the experiment alone, with its report."""
     from pushtorch.experiments.suite import run_suite
 
-    return run_suite(cfg, out_dir, [("pose_estimation", cfg.experiment, cfg.model)])
+    return run_suite(cfg, out_dir, [("pose_estimation", cfg.experiment, cfg.model)], overrides)

@@ -241,7 +241,7 @@ class PoseKDE:
     @property
     def means(self) -> Pose:
         """Kernel means, ``p (*B, N, 3)``, ``q (*B, N, 4)``."""
-        return Pose(self._p, self._q)
+        return Pose.unchecked(self._p, self._q)
 
     @property
     def descriptors(self) -> Tensor | None:
@@ -351,7 +351,7 @@ class PoseKDE:
         log_w = torch.stack([pad(k._log_w.unsqueeze(-1), k.num_kernels, -math.inf).squeeze(-1) for k in kdes])
         r = None if first._r is None else torch.stack([pad(k._r, k.num_kernels, 0.0) for k in kdes])
         return PoseKDE(
-            Pose(p, torch.stack(q_parts)),
+            Pose.unchecked(p, torch.stack(q_parts)),
             first.bandwidth,
             log_w,
             r,
@@ -618,7 +618,7 @@ class PoseKDE:
             moved_q = moved_q / moved_q.norm(dim=-1, keepdim=True).clamp_min(1e-30)
             new_p.append(torch.where(alive, moved_p, p.expand_as(moved_p)))
             new_q.append(torch.where(alive, moved_q, q.expand_as(moved_q)))
-        return Pose(torch.cat(new_p, -2), torch.cat(new_q, -2))
+        return Pose.unchecked(torch.cat(new_p, -2), torch.cat(new_q, -2))
 
     def fast_index(self) -> _FastIndex:
         """The fast path's leaf blocks of this density (built on first use, then cached)."""
@@ -769,7 +769,7 @@ class PoseKDE:
         """Gather kernel means at ``index (*B, n)`` → Pose ``(*B, n)``."""
         p = torch.gather(self._p, -2, index.unsqueeze(-1).expand(*index.shape, 3))
         q = torch.gather(self._q, -2, index.unsqueeze(-1).expand(*index.shape, 4))
-        return Pose(p, q)
+        return Pose.unchecked(p, q)
 
     def sample(self, n: int, generator: torch.Generator | None = None) -> tuple[Pose, Tensor]:
         """Draw ``n`` poses per batch element from the (cut-off) density over SE(3).
@@ -799,7 +799,7 @@ class PoseKDE:
         p = mean.p + offset.to(self.dtype)
         q = pkt.quaternion_raw_multiply(mean.q.double(), around_identity)
         q = q / q.norm(dim=-1, keepdim=True)
-        return Pose(p, q.to(self.dtype)), index
+        return Pose.unchecked(p, q.to(self.dtype)), index
 
 
 def _needs_grad(pose: Pose, descriptors: Tensor | None) -> bool:

@@ -182,11 +182,11 @@ class _FastIndex:
         x, density, own, batch = self._queries(p, q)
         m = x.shape[1]
         if m == 0 or x.shape[0] == 0:
-            return Pose(p.expand(*batch, m, 3), q.expand(*batch, m, 4))
+            return Pose.unchecked(p.expand(*batch, m, 3), q.expand(*batch, m, 4))
         moments = self._pair_sums("block_moments", _block_moments, x, density, own, (8,)).reshape(*batch, m, 8)
         p, q = p.expand(*batch, m, 3), q.expand(*batch, m, 4)
         alive = moments[..., :1] > 0
         moved_q = moments[..., 4:]
         moved_q = moved_q / moved_q.norm(dim=-1, keepdim=True).clamp_min(1e-30)
-        return Pose(torch.where(alive, moments[..., 1:4] / moments[..., :1].clamp_min(1e-30), p),
+        return Pose.unchecked(torch.where(alive, moments[..., 1:4] / moments[..., :1].clamp_min(1e-30), p),
                     torch.where(alive, moved_q, q))

@@ -297,7 +297,7 @@ class SharedKernelProduct:
         self._check_queries(pose)
         out = self._per_problem("shared_kernel_shift", _shared_kernel_shift, pose, with_offset=False)
         out = out.transpose(1, 2).reshape(*self.batch_shape, pose.p.shape[-2], 7)
-        return Pose(out[..., :3], out[..., 3:])
+        return Pose.unchecked(out[..., :3], out[..., 3:])
 
     def _check_queries(self, pose: Pose) -> None:
         """The checks :meth:`PoseKDE.log_prob` makes of its queries (when ``validate_args``)."""

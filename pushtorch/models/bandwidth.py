@@ -124,8 +124,8 @@ def _kernel_terms(man: MotionKernels, env: MotionKernels, man_push: Tensor, env_
                   n_env_frames: int, folds: int, settings) -> _Terms:
     """The distance terms for held-out pushes ``queries`` (push indices) of one action."""
     kernels = MotionKernels(
-        torch.cat([man.r, env.r]), se3.Pose(torch.cat([man.u.p, env.u.p]), torch.cat([man.u.q, env.u.q])),
-        se3.Pose(torch.cat([man.m.p, env.m.p]), torch.cat([man.m.q, env.m.q])),
+        torch.cat([man.r, env.r]), se3.Pose.unchecked(torch.cat([man.u.p, env.u.p]), torch.cat([man.u.q, env.u.q])),
+        se3.Pose.unchecked(torch.cat([man.m.p, env.m.p]), torch.cat([man.m.q, env.m.q])),
         torch.cat([man.g, env.g]), torch.cat([man.patch, env.patch]),
     )
     push = torch.cat([man_push, env_push])

@@ -74,7 +74,7 @@ def bumper_contacts(bumper: trimesh.Trimesh, points: Tensor, normals: Tensor, cu
 
 def feature_frames(features: SurfaceFeatures) -> se3.Pose:
     """The poses ``v = (p, q)`` of surface features, ``(N,)``."""
-    return se3.Pose(features.p, features.q)
+    return se3.Pose.unchecked(features.p, features.q)
 
 
 @dataclass
@@ -123,7 +123,7 @@ def fit_manipulator_contact_model(
             f"only {int(keep.sum())} surface features lie within {cutoff} m of the bumper "
             f"(need {min_contacts}): is the robot placed against the object?"
         )
-    v_world = se3.Pose(features.p[keep], features.q[keep])
+    v_world = se3.Pose.unchecked(features.p[keep], features.q[keep])
     u = se3.relative(v_world, robot_pose)
     weight = torch.exp(-drop_off * dist[keep] ** 2)
     v_object = se3.compose(se3.inverse(object_pose), v_world)
@@ -176,7 +176,7 @@ def floor_relations(v: se3.Pose) -> se3.Pose:
     The paper writes ``u^e = (0, 0, -z)``: the closest point of the floor is z below the feature. As a
     full relative pose it also holds the feature's orientation relative to the (level) floor.
     """
-    floor = se3.Pose(torch.cat([v.p[..., :2], torch.zeros_like(v.p[..., :1])], -1), torch.zeros_like(v.q))
+    floor = se3.Pose.unchecked(torch.cat([v.p[..., :2], torch.zeros_like(v.p[..., :1])], -1), torch.zeros_like(v.q))
     floor.q[..., 0] = 1.0
     return se3.relative(v, floor)
 
@@ -257,7 +257,7 @@ def place_environment_contacts(
         raise InvalidParameterError(f"need at least one contact and one sample, got {count}, {samples}")
     density = PoseKDE(kernels_u, bandwidth, descriptors=embed_descriptors(kernels_r))
     pick = torch.randint(len(features), (count, samples), generator=generator, device=features.p.device)
-    v = se3.Pose(features.p[pick], features.q[pick])  # (count, samples)
+    v = se3.Pose.unchecked(features.p[pick], features.q[pick])  # (count, samples)
     u = floor_relations(v)
     r = embed_descriptors(features.r[pick])
     log_p = density.log_prob(u, r, method="fast")  # (count, samples)
@@ -267,5 +267,5 @@ def place_environment_contacts(
     best = log_p.argmax(-1)
     rows = torch.arange(count, device=best.device)
     chosen = pick[rows, best]
-    frames_v = se3.Pose(features.p[chosen], features.q[chosen])
+    frames_v = se3.Pose.unchecked(features.p[chosen], features.q[chosen])
     return ContactFrames(frames_v, features.r[chosen], floor_relations(frames_v), log_p[rows, best].exp())

@@ -62,9 +62,9 @@ class ContactFrames:
     def select(self, index) -> ContactFrames:
         """Frames at ``index`` of the last batch dim (a tensor of indices or a mask)."""
         return ContactFrames(
-            se3.Pose(self.v.p[..., index, :], self.v.q[..., index, :]),
+            se3.Pose.unchecked(self.v.p[..., index, :], self.v.q[..., index, :]),
             self.r[..., index, :],
-            se3.Pose(self.u.p[..., index, :], self.u.q[..., index, :]),
+            se3.Pose.unchecked(self.u.p[..., index, :], self.u.q[..., index, :]),
             self.weight[..., index],
         )
 
@@ -88,8 +88,8 @@ class ContactFrames:
     @staticmethod
     def from_arrays(arrays: dict[str, Tensor], prefix: str) -> ContactFrames:
         return ContactFrames(
-            se3.Pose(arrays[f"{prefix}.v_p"], arrays[f"{prefix}.v_q"]),
+            se3.Pose.unchecked(arrays[f"{prefix}.v_p"], arrays[f"{prefix}.v_q"]),
             arrays[f"{prefix}.r"],
-            se3.Pose(arrays[f"{prefix}.u_p"], arrays[f"{prefix}.u_q"]),
+            se3.Pose.unchecked(arrays[f"{prefix}.u_p"], arrays[f"{prefix}.u_q"]),
             arrays[f"{prefix}.weight"],
         )

@@ -445,7 +445,7 @@ def _model_from(header: dict, arrays: dict[str, np.ndarray], dtype: torch.dtype)
             t[f"motion{i}.action"],
             MotionKernels.from_arrays(t, f"motion{i}.manipulator"),
             MotionKernels.from_arrays(t, f"motion{i}.environment"),
-            se3.Pose(t[f"motion{i}.mean_motion_p"], t[f"motion{i}.mean_motion_q"]),
+            se3.Pose.unchecked(t[f"motion{i}.mean_motion_p"], t[f"motion{i}.mean_motion_q"]),
         )
         for i in range(n_actions)
     ]
@@ -473,7 +473,7 @@ def training_features(obj: ObjectModel, settings: ModelSettings) -> tuple[se3.Po
 def _in_object_frame(features: SurfaceFeatures, pose: se3.Pose) -> SurfaceFeatures:
     """The same features expressed in the frame of ``pose`` (the training object's ``B^O``)."""
     inv = se3.inverse(pose)
-    rotate = se3.Pose(torch.zeros_like(inv.p), inv.q)
+    rotate = se3.Pose.unchecked(torch.zeros_like(inv.p), inv.q)
     frames = se3.compose(inv, features.pose)
     return SurfaceFeatures(
         p=frames.p, q=frames.q, r=features.r, normal=se3.apply(rotate, features.normal),

@@ -129,8 +129,8 @@ class MotionKernels:
     def from_arrays(arrays: dict[str, Tensor], prefix: str) -> MotionKernels:
         return MotionKernels(
             arrays[f"{prefix}.r"],
-            se3.Pose(arrays[f"{prefix}.u_p"], arrays[f"{prefix}.u_q"]),
-            se3.Pose(arrays[f"{prefix}.m_p"], arrays[f"{prefix}.m_q"]),
+            se3.Pose.unchecked(arrays[f"{prefix}.u_p"], arrays[f"{prefix}.u_q"]),
+            se3.Pose.unchecked(arrays[f"{prefix}.m_p"], arrays[f"{prefix}.m_q"]),
             arrays[f"{prefix}.g"],
             arrays[f"{prefix}.patch"],
         )
@@ -165,7 +165,7 @@ def motion_frames(points: Tensor, robot_start: se3.Pose) -> se3.Pose:
     """The frames the motions of contacts at ``points (*P, 3)`` are expressed in: the robot's start pose
     (broadcast to ``*P``), see the module docstring."""
     shape = torch.broadcast_shapes(points.shape[:-1], robot_start.batch_shape)
-    return se3.Pose(robot_start.p.expand(*shape, 3), robot_start.q.expand(*shape, 4))
+    return se3.Pose.unchecked(robot_start.p.expand(*shape, 3), robot_start.q.expand(*shape, 4))
 
 
 def fit_motion_model(
@@ -197,14 +197,14 @@ def fit_motion_model(
     n_push = initial.p.shape[0]
     if n_push == 0:
         raise InvalidParameterError("a motion model needs at least one push record")
-    x = se3.Pose(features_object.p, features_object.q)  # (N,)
+    x = se3.Pose.unchecked(features_object.p, features_object.q)  # (N,)
     world_motion = se3.compose(final, se3.inverse(initial))  # W = B1 ∘ B0^-1, (P,)
 
     # Manipulator frames: features within the cut-off of the bumper at each push's start pose.
     robot_in_object = se3.relative(initial, robot_start)  # (P,)
     points_robot = se3.apply(se3.inverse(robot_in_object).unsqueeze(-1), x.p)  # (P, N, 3)
     normals_robot = se3.apply(
-        se3.Pose(torch.zeros_like(robot_in_object.p), se3.inverse(robot_in_object).q).unsqueeze(-1),
+        se3.Pose.unchecked(torch.zeros_like(robot_in_object.p), se3.inverse(robot_in_object).q).unsqueeze(-1),
         features_object.normal,
     )
     dist, touching = bumper_contacts(bumper_mesh_robot, points_robot.reshape(-1, 3), normals_robot.reshape(-1, 3),
@@ -221,7 +221,7 @@ def fit_motion_model(
     pick = torch.multinomial(weight[rows], manipulator_kernels_per_push, replacement=True, generator=generator)
     rows = rows.unsqueeze(-1).expand_as(pick).reshape(-1)
     pick = pick.reshape(-1)
-    xm = se3.Pose(x.p[pick], x.q[pick])
+    xm = se3.Pose.unchecked(x.p[pick], x.q[pick])
     manipulator = MotionKernels(
         features_object.r[pick],
         se3.relative(xm, robot_in_object.take(rows)),  # u^m = v^-1 ∘ robot, frame-invariant form
@@ -237,7 +237,7 @@ def fit_motion_model(
     world_points = se3.apply(initial.unsqueeze(-1), x.p)  # (P, N, 3)
     env_idx = sample_environment_contacts(world_points, environment_contacts, generator).reshape(-1)
     env_rows = torch.arange(n_push, device=env_idx.device).repeat_interleave(environment_contacts)
-    xe = se3.Pose(x.p[env_idx], x.q[env_idx])
+    xe = se3.Pose.unchecked(x.p[env_idx], x.q[env_idx])
     v_world = se3.compose(initial.take(env_rows), xe)
     environment = MotionKernels(
         features_object.r[env_idx],
@@ -286,12 +286,12 @@ def contact_log_weights(frames: ContactFrames, kernels: MotionKernels, robot_sta
     n_frames, n_kernels = frames.r.reshape(-1, 2).shape[0], len(kernels)
     dim = CONTACT_DESCRIPTOR_DIM
     contact_kde = PoseKDE(
-        se3.Pose(kernels.u.p.expand(n_frames, n_kernels, 3), kernels.u.q.expand(n_frames, n_kernels, 4)),
+        se3.Pose.unchecked(kernels.u.p.expand(n_frames, n_kernels, 3), kernels.u.q.expand(n_frames, n_kernels, 4)),
         contact_bandwidth,
         descriptors=torch.cat([embed_descriptors(kernels.r), kernels.g, kernels.patch], -1).expand(
             n_frames, n_kernels, dim),
     )
-    query_u = se3.Pose(frames.u.p.reshape(-1, 1, 3), frames.u.q.reshape(-1, 1, 4))
+    query_u = se3.Pose.unchecked(frames.u.p.reshape(-1, 1, 3), frames.u.q.reshape(-1, 1, 4))
     frame_g = se3.apply(se3.inverse(robot_start), frames.v.p.reshape(-1, 3))
     frame_patch = torch.as_tensor(patch, dtype=frame_g.dtype, device=frame_g.device).reshape(1, 3)
     query_r = torch.cat([embed_descriptors(frames.r.reshape(-1, 2)), frame_g, frame_patch.expand(len(frame_g), 3)],
@@ -379,7 +379,8 @@ class MotionDensity:
             shared_means.append(finals.take(used))
             shared_weights.append(torch.where(keep, log_w, -math.inf)[:, used])
         self.experts = PoseKDE.stack(experts)
-        self._shared_means = se3.Pose(torch.cat([m.p for m in shared_means]), torch.cat([m.q for m in shared_means]))
+        self._shared_means = se3.Pose.unchecked(torch.cat([m.p for m in shared_means]),
+                                                torch.cat([m.q for m in shared_means]))
         self._shared_log_weights = _block_diagonal(shared_weights, -math.inf)  # (1 + E, K)
         self._shared_product: SharedKernelProduct | None = None
         self.expert_exponent = expert_exponents(len(model.manipulator), len(model.environment), len(experts) - 1,
@@ -421,7 +422,7 @@ class MotionDensity:
             raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
         se3.check_pose(final_pose, "final pose")
         if method == "fast":
-            flat = se3.Pose(final_pose.p.reshape(-1, 3), final_pose.q.reshape(-1, 4))
+            flat = se3.Pose.unchecked(final_pose.p.reshape(-1, 3), final_pose.q.reshape(-1, 4))
             return self.shared_product().log_prob(flat).reshape(final_pose.p.shape[:-1])
         return ProductOfExperts(self.experts, expert_exponent=self.expert_exponent).log_prob(final_pose,
                                                                                              method=method)
@@ -451,9 +452,9 @@ class MotionDensity:
     def mean_shift(self, final_pose: se3.Pose) -> se3.Pose:
         """One mean-shift step of poses ``(..., M)`` towards a local mode of the product
         (:meth:`pushtorch.kde.SharedKernelProduct.mean_shift`)."""
-        flat = se3.Pose(final_pose.p.reshape(-1, 3), final_pose.q.reshape(-1, 4))
+        flat = se3.Pose.unchecked(final_pose.p.reshape(-1, 3), final_pose.q.reshape(-1, 4))
         moved = self.shared_product().mean_shift(flat)
-        return se3.Pose(moved.p.reshape(final_pose.p.shape), moved.q.reshape(final_pose.q.shape))
+        return se3.Pose.unchecked(moved.p.reshape(final_pose.p.shape), moved.q.reshape(final_pose.q.shape))
 
     def predict(
         self,
@@ -524,7 +525,7 @@ def stack_products(densities: list[MotionDensity]) -> StackedProducts:
         log_w[e:, b, :n] = weights[0]
         rounds[b] = density.shared_product().rounds
         exponent[:e, b] = density.expert_exponent.to(dtype)
-    return StackedProducts(se3.Pose(p, q), log_w, exponent, rounds, first.bandwidth)
+    return StackedProducts(se3.Pose.unchecked(p, q), log_w, exponent, rounds, first.bandwidth)
 
 
 def anneal_motion_densities(
@@ -567,18 +568,18 @@ def anneal_motion_densities(
     # its only queries are the annealing's own (finite, normalised) candidates: no per-step checks
     product = SharedKernelProduct(stacked.means, stacked.log_weights, stacked.bandwidth, stacked.trial_rounds,
                                   validate_args=False, expert_exponent=stacked.exponent)
-    init = se3.Pose(torch.stack([s.p for s in starts]), torch.stack([s.q for s in starts]))  # (B, C)
+    init = se3.Pose.unchecked(torch.stack([s.p for s in starts]), torch.stack([s.q for s in starts]))  # (B, C)
     result = anneal(product, init, schedule, generator, record_history=record_history, method="fast")
     result = polish_candidates(result, product.mean_shift, product.log_prob, polish_steps)
     out: list[MotionPrediction | None] = [None] * len(densities)
     for b, original in enumerate(order):
         part = AnnealResult(
-            best=se3.Pose(result.best.p[b], result.best.q[b]),
+            best=se3.Pose.unchecked(result.best.p[b], result.best.q[b]),
             best_log_prob=result.best_log_prob[b],
-            candidates=se3.Pose(result.candidates.p[b], result.candidates.q[b]),
+            candidates=se3.Pose.unchecked(result.candidates.p[b], result.candidates.q[b]),
             log_prob=result.log_prob[b],
             history=(None if result.history is None
-                     else se3.Pose(result.history.p[:, b], result.history.q[:, b])),
+                     else se3.Pose.unchecked(result.history.p[:, b], result.history.q[:, b])),
             history_log_prob=None if result.history_log_prob is None else result.history_log_prob[:, b],
         )
         out[original] = MotionPrediction(part.best, part.best_log_prob, part)

@@ -85,7 +85,7 @@ def fit_position_model(
     """
     if len(features) < 2:
         raise InvalidPointCloudError("a position model needs at least 2 surface features")
-    v = se3.Pose(features.p, features.q)
+    v = se3.Pose.unchecked(features.p, features.q)
     u = se3.relative(v, object_pose)
     r = features.r
     embedded = embed_descriptors(r, descriptor_scale)
@@ -105,7 +105,7 @@ def centroid_pose(points: Tensor) -> se3.Pose:
         raise InvalidPointCloudError("the centroid of an empty cloud is undefined")
     q = torch.zeros(4, dtype=points.dtype, device=points.device)
     q[0] = 1.0
-    return se3.Pose(points.mean(0), q)
+    return se3.Pose.unchecked(points.mean(0), q)
 
 
 def _nearest_model_search(model_points: Tensor):

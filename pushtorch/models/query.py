@@ -121,7 +121,7 @@ def planar(pose: se3.Pose) -> se3.Pose:
     half = yaw / 2
     zeros = torch.zeros_like(half)
     q = torch.stack([torch.cos(half), zeros, zeros, torch.sin(half)], -1)
-    return se3.Pose(torch.cat([pose.p[..., :2], torch.zeros_like(pose.p[..., :1])], -1), q)
+    return se3.Pose.unchecked(torch.cat([pose.p[..., :2], torch.zeros_like(pose.p[..., :1])], -1), q)
 
 
 @dataclass
@@ -277,8 +277,8 @@ def build_query_density(
     else:
         pick, frame_idx, kernel_log_w, rounds = _dense_kernel_draws(
             e_features, e_frames, frames, r_std, r_cutoff_std, alpha_t, max_rounds, n_kernels, generator)
-    v = se3.Pose(features.p[pick], features.q[pick])
-    u = se3.Pose(frames.u.p[frame_idx], frames.u.q[frame_idx])
+    v = se3.Pose.unchecked(features.p[pick], features.q[pick])
+    u = se3.Pose.unchecked(frames.u.p[frame_idx], frames.u.q[frame_idx])
     kernels = ContactFrames(v, features.r[pick], u, kernel_log_w.exp())
     entity = se3.compose(v, u)
     if project_planar:
@@ -390,11 +390,11 @@ def optimise_query_densities(
     result = polish_candidates(result, partial(kde.mean_shift, method="fast"), log_prob, polish_steps)
     out = []
     for i, density in enumerate(densities):
-        history = None if result.history is None else se3.Pose(result.history.p[:, i], result.history.q[:, i])
+        history = None if result.history is None else se3.Pose.unchecked(result.history.p[:, i], result.history.q[:, i])
         part = AnnealResult(
-            best=se3.Pose(result.best.p[i], result.best.q[i]),
+            best=se3.Pose.unchecked(result.best.p[i], result.best.q[i]),
             best_log_prob=result.best_log_prob[i],
-            candidates=se3.Pose(result.candidates.p[i], result.candidates.q[i]),
+            candidates=se3.Pose.unchecked(result.candidates.p[i], result.candidates.q[i]),
             log_prob=result.log_prob[i],
             history=history,
             history_log_prob=None if result.history_log_prob is None else result.history_log_prob[:, i],

@@ -96,11 +96,11 @@ class PushPlan:
         self.mass = _as_f64(self.mass, (n,), "mass")
         self.ground_friction = _as_f64(self.ground_friction, (n,), "ground_friction")
         self.action = _as_f64(self.action, (n, 2), "action")
-        self.robot_start = se3.Pose(
+        self.robot_start = se3.Pose.unchecked(
             _as_f64(self.robot_start.p, (n, 3), "robot_start.p"),
             _as_f64(self.robot_start.q, (n, 4), "robot_start.q"),
         )
-        self.object_initial = se3.Pose(
+        self.object_initial = se3.Pose.unchecked(
             _as_f64(self.object_initial.p, (n, 3), "object_initial.p"),
             _as_f64(self.object_initial.q, (n, 4), "object_initial.q"),
         )

@@ -170,7 +170,7 @@ class PushRecords:
             elif f.name == "time":
                 values[f.name] = value
             elif isinstance(value, se3.Pose):
-                values[f.name] = se3.Pose(value.p[selection], value.q[selection])
+                values[f.name] = se3.Pose.unchecked(value.p[selection], value.q[selection])
             else:
                 values[f.name] = value[selection]
         return PushRecords(**values)
@@ -449,7 +449,7 @@ def records_from_arrays(
         return torch.as_tensor(np.asarray(arrays[name], dtype=np.float64), device=device).to(dtype)
 
     def pose(prefix: str) -> se3.Pose:
-        return se3.Pose(f(prefix + "_p"), f(prefix + "_q"))
+        return se3.Pose.unchecked(f(prefix + "_p"), f(prefix + "_q"))
 
     return PushRecords(
         object_name=tuple(str(n) for n in np.asarray(arrays["object_name"]).tolist()),

@@ -182,7 +182,7 @@ def simulate_pushes(
     n = int(np.prod(shape)) if len(shape) else 1
 
     def flat(pose: se3.Pose) -> se3.Pose:
-        return se3.Pose(pose.p.double().expand(*shape, 3).reshape(n, 3),
+        return se3.Pose.unchecked(pose.p.double().expand(*shape, 3).reshape(n, 3),
                         pose.q.double().expand(*shape, 4).reshape(n, 4))
 
     plan = PushPlan(
