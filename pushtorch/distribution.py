@@ -245,9 +245,24 @@ class FinalPoseDistribution(Distribution):
 
     def sample(self, sample_shape: torch.Size | tuple = (), generator: torch.Generator | None = None) -> Tensor:
         """Poses ``(*sample_shape, *B, 7)`` drawn by importance resampling (module docstring); without a
-        ``generator`` one seeded with DEFAULT_SEED (the same draws every call)."""
-        sample_shape = torch.Size(sample_shape)
-        n = max(1, sample_shape.numel())
+        ``generator`` one seeded with DEFAULT_SEED (the same draws every call).
+
+        As torch's distributions: a ``sample_shape`` with a 0 gives an empty tensor of that shape, a
+        negative size is a ``ValueError``. The draws are not reparameterised (``has_rsample`` is False, so
+        ``rsample`` raises ``NotImplementedError``): gradients reach ``log_prob``'s queries, not samples.
+
+        Raises:
+            ValueError: a negative size in ``sample_shape``.
+        """
+        try:
+            sample_shape = torch.Size(sample_shape)
+        except TypeError as exc:
+            raise ValueError(f"sample_shape must be a tuple of sizes, got {sample_shape!r}") from exc
+        if any(size < 0 for size in sample_shape):
+            raise ValueError(f"sample_shape must not hold a negative size, got {tuple(sample_shape)}")
+        if sample_shape.numel() == 0:
+            return self.means.p.new_empty(*sample_shape, *self.batch_shape, 7)
+        n = sample_shape.numel()
         generator = as_generator(generator, self.means.p.device)
         with torch.no_grad():
             experts = self.experts()

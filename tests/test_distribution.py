@@ -153,6 +153,23 @@ def test_bad_values_are_refused_by_torch_convention(predictions):
     assert density.log_prob(torch.tensor([1.0, 2, 3, 1, 0, 0, 0])) == -math.inf
 
 
+def test_sample_shapes_follow_torch_distributions(predictions):
+    """An empty sample shape gives an empty tensor, a negative one is refused, and there is no rsample: as
+    torch.distributions.Normal does."""
+    density = predictions[0].density
+    reference = torch.distributions.Normal(torch.zeros(7), torch.ones(7))
+    for shape in [(0,), (3, 0), (0, 2)]:
+        assert density.sample(shape).shape == reference.sample(shape).shape == (*shape, 7)
+    assert density.sample((2, 3)).shape == (2, 3, 7)
+    with pytest.raises(ValueError, match="negative"):
+        density.sample((-1,))
+    with pytest.raises(RuntimeError):  # torch refuses it too, with a RuntimeError from expand
+        reference.sample((-1,))
+    assert not density.has_rsample
+    with pytest.raises(NotImplementedError):
+        density.rsample((2,))
+
+
 def test_a_distribution_moves_to_float64(predictions):
     density = predictions[0].density
     values = density.sample((20,))
