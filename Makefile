@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 TORCH_SPEC ?= torch==2.13.0
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: demo test test-slow check-install bench lint clean system-deps install
+.PHONY: demo test test-float-paths test-slow check-install bench lint clean system-deps install
 
 install: $(STAMP)
 
@@ -43,3 +43,4 @@ lint: $(STAMP)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis
+	$(VENV)/bin/lint-imports

@@ -15,7 +15,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from pushtorch.cli import CONFIG_PATH, compose_or_exit, run_stage
+from pushtorch.cli import CONFIG_PATH, compose_or_exit, current_overrides, run_stage
 from pushtorch.errors import PushtorchError
 from pushtorch.kde import declare_long_run
 
@@ -29,7 +29,7 @@ def _run_experiment(cfg: DictConfig, out_dir: Path) -> dict:
     except ModuleNotFoundError as exc:
         raise PushtorchError(f"no experiment module pushtorch.experiments.{name}") from exc
     log.info("experiment %s → %s", name, out_dir)
-    return module.run(cfg, out_dir)
+    return module.run(cfg, out_dir, current_overrides())
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")

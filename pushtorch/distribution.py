@@ -8,9 +8,9 @@ clouds (``()`` for one). Decisions (docs/method.md, "The prediction as a distrib
 * **Normalised.** ``log_prob`` is a log density with respect to Lebesgue measure on positions (m³) times
   the uniform *probability* measure on unit quaternions with q ≡ −q (so in nats, like
   :func:`pushtorch.likelihood.nll`). Each expert is its normalised mixture of the model's *cut-off*
-  kernels — each kernel's integral inside its cut-off (:func:`pushtorch.likelihood.log_kernel_normaliser`)
+  kernels — each kernel's integral inside its cut-off (:func:`pushtorch.kde.normaliser.log_kernel_normaliser`)
   included — and the product's normaliser ``Z = ∫ Π_e p_e^γ_e`` is estimated once, on first use, by
-  importance sampling (:func:`pushtorch.likelihood.log_normaliser`, seeded: the same value every time).
+  importance sampling (:func:`pushtorch.kde.normaliser.log_normaliser`, seeded: the same value every time).
   Outside every kernel's cut-off the density is 0 and ``log_prob`` −inf.
 * **Evaluation methods.** ``method="fast"`` (default) evaluates the shared-kernel product
   (:class:`pushtorch.kde.SharedKernelProduct`), ``"dense"`` every expert's kernels densely
@@ -35,7 +35,7 @@ from torch.distributions import Distribution, constraints
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.kde import KernelBandwidth, PoseKDE, SharedKernelProduct
-from pushtorch.likelihood import log_kernel_normaliser, log_normaliser
+from pushtorch.kde.normaliser import log_kernel_normaliser, log_normaliser
 from pushtorch.models.library import as_generator
 from pushtorch.models.motion import stack_products
 
@@ -43,7 +43,7 @@ Tensor = torch.Tensor
 
 __all__ = ["FinalPoseDistribution"]
 
-#: Proposals per expert and part of the normaliser's importance sampler (``likelihood.log_normaliser``): on
+#: Proposals per expert and part of the normaliser's importance sampler (``kde.normaliser.log_normaliser``): on
 #: the quickstart's cube predictions (6 experts, ~450 kernels) log Z varies by ~0.005 nats between seeds
 #: and costs ~0.1 s, once per distribution (the scoring's 64 vary by ~0.02).
 NORMALISER_SAMPLES = 1024

@@ -806,7 +806,7 @@ def convex_decomposition(mesh: trimesh.Trimesh, cache_dir: str | Path | None = N
             _run_vhacd(source, result, Path(folder) / "vhacd.log")
             parts = _obj_parts(result)
             if cached is not None:
-                from pushtorch.sim.records import atomic_write_bytes
+                from pushtorch.io import atomic_write_bytes
 
                 atomic_write_bytes(cached, result.read_bytes())
     if not parts:

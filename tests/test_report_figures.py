@@ -22,6 +22,7 @@ from pushtorch import se3
 from pushtorch.experiments import report
 from pushtorch.experiments.common import compare, summarise
 from pushtorch.objects import load_object
+from pushtorch.viz import colours
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "docs" / "results" / "paper"
@@ -43,9 +44,9 @@ def test_every_method_and_prior_has_its_own_colour():
         report.PRIOR_COLOURS["low"]
     # spares for unknown names: none of them is a known method's or prior's colour
     known = set(report.METHOD_COLOURS.values()) | set(report.PRIOR_COLOURS.values())
-    spares = set(report._SPARE_METHOD_COLOURS) | set(report._SPARE_PRIOR_COLOURS)
+    spares = set(colours._SPARE_METHOD_COLOURS) | set(colours._SPARE_PRIOR_COLOURS)
     assert not spares & known
-    assert not set(report._SPARE_METHOD_COLOURS) & set(report._SPARE_PRIOR_COLOURS)
+    assert not set(colours._SPARE_METHOD_COLOURS) & set(colours._SPARE_PRIOR_COLOURS)
     with pytest.raises(ValueError):
         report.colour_of("pushtorch", "model")
 
@@ -53,9 +54,9 @@ def test_every_method_and_prior_has_its_own_colour():
 def test_unknown_names_get_a_stable_colour_of_their_kind():
     method = report.colour_of("some_future_method", "method")
     prior = report.colour_of("friction:very_high", "prior")
-    spare = report._SPARE_METHOD_COLOURS
+    spare = colours._SPARE_METHOD_COLOURS
     assert method == spare[zlib.crc32(b"some_future_method") % len(spare)]
-    assert prior in report._SPARE_PRIOR_COLOURS
+    assert prior in colours._SPARE_PRIOR_COLOURS
     # the same in another interpreter with another string-hash seed (Python's hash() would not be)
     code = ("import importlib.util as u, sys; spec = u.spec_from_file_location('report', sys.argv[1]); "
             "m = u.module_from_spec(spec); spec.loader.exec_module(m); "  # the module alone: no torch import

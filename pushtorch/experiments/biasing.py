@@ -27,7 +27,7 @@ hydra/launcher=joblib``.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -171,11 +171,11 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
                      "thrown": thrown, "hacc_samples": hacc_samples}
 
 
-def run(cfg, out_dir: Path) -> dict:
+def run(cfg, out_dir: Path, overrides: Sequence[str] = ()) -> dict:
     """``python -m pushtorch experiment=friction_biasing`` (or ``mass_biasing``) with its report.
 
     Returns the summary :func:`pushtorch.experiments.suite.run_suite` gives.
     """
     from pushtorch.experiments.suite import run_suite
 
-    return run_suite(cfg, out_dir, [("biasing", cfg.experiment, cfg.model)])
+    return run_suite(cfg, out_dir, [("biasing", cfg.experiment, cfg.model)], overrides)

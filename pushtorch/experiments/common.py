@@ -396,7 +396,7 @@ def observe(obj: ObjectModel, pose: se3.Pose, settings: ModelSettings) -> tuple[
 
 def save_arrays(path: Path, arrays: Mapping[str, torch.Tensor], meta: Mapping[str, Any]) -> None:
     """Write tensors and a JSON-able ``meta`` atomically as one plain ``.npz`` (read without pickle)."""
-    from pushtorch.sim.records import atomic_write_bytes
+    from pushtorch.io import atomic_write_bytes
 
     buffer = io.BytesIO()
     np.savez(buffer, __meta__=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),

@@ -18,7 +18,7 @@ Run: ``python -m pushtorch experiment=model_selection`` (sizes: ``experiment.tes
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -134,8 +134,8 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     return records, {"thrown": thrown, "hacc_samples": hacc_samples}
 
 
-def run(cfg, out_dir: Path) -> dict:
+def run(cfg, out_dir: Path, overrides: Sequence[str] = ()) -> dict:
     """``python -m pushtorch experiment=model_selection``: the experiment alone, with its report."""
     from pushtorch.experiments.suite import run_suite
 
-    return run_suite(cfg, out_dir, [("model_selection", cfg.experiment, cfg.model)])
+    return run_suite(cfg, out_dir, [("model_selection", cfg.experiment, cfg.model)], overrides)

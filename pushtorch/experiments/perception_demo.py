@@ -8,6 +8,7 @@ blueprint (:func:`pushtorch.viz.blueprint.perception_blueprint`) shows all objec
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
@@ -54,8 +55,9 @@ def log_object_perception(
     return {"full_points": len(features), "partial_points": len(partial_features)}
 
 
-def run(cfg, out_dir: Path) -> dict:
-    """Log every configured object; returns where the recording is and the cloud sizes."""
+def run(cfg, out_dir: Path, overrides: Sequence[str] = ()) -> dict:
+    """Log every configured object; returns where the recording is and the cloud sizes (``overrides``: unused,
+    as every experiment's ``run`` takes them)."""
     exp = cfg.experiment
     generator = torch.Generator().manual_seed(int(cfg.seed))
     recording = out_dir / "recording.rrd"

@@ -12,6 +12,7 @@ parts can be dropped, e.g. ``~experiment.parts.mass_biasing``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 from pushtorch.errors import InvalidParameterError
@@ -21,7 +22,7 @@ from pushtorch.experiments.suite import KINDS, run_suite
 __all__ = ["run"]
 
 
-def run(cfg, out_dir: Path) -> dict:
+def run(cfg, out_dir: Path, overrides: Sequence[str] = ()) -> dict:
     """Run every part in ``experiment.parts`` (in order) into ``out_dir``; see :func:`run_suite`."""
     parts = []
     for name, part in (plain(cfg.experiment).get("parts") or {}).items():
@@ -35,4 +36,4 @@ def run(cfg, out_dir: Path) -> dict:
         parts.append((kind, {"name": name, **part}, merged_model_config(cfg.model, part.get("model"))))
     if not parts:
         raise InvalidParameterError("quickstart has no parts to run (experiment.parts is empty)")
-    return run_suite(cfg, out_dir, parts)
+    return run_suite(cfg, out_dir, parts, overrides)

@@ -18,8 +18,6 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pushtorch.cli import current_overrides
-from pushtorch.config_check import check_config
 from pushtorch.errors import InvalidParameterError
 from pushtorch.experiments.common import ExperimentContext, context_from_config, entity_label, plain
 
@@ -70,13 +68,16 @@ def _log_part(ctx: ExperimentContext, kind: str, name: str, records: list[dict],
                      summary=part_summary_path(name), hacc=hacc_root(name))
 
 
-def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]]) -> dict[str, Any]:
+def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]],
+              overrides: Sequence[str] = ()) -> dict[str, Any]:
     """Run ``parts`` in order and write the run's outputs.
 
     Args:
-        cfg: the composed config (``seed``, ``model``, ``priors``, ``sim``, ``experiment``, ``object``).
+        cfg: the composed config (``seed``, ``model``, ``priors``, ``sim``, ``experiment``, ``object``), as
+            the app checked it (:func:`pushtorch.config_check.check_config`).
         out_dir: the run directory (outputs and caches).
         parts: ``(kind, part config, model config)`` per part.
+        overrides: the command line's overrides, recorded in results.json (the app passes them).
 
     Returns:
         The summary the CLI prints: where results.json, report.md and recording.rrd are, the wall time,
@@ -92,7 +93,6 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]]) -
     start = time.perf_counter()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    check_config(cfg, "config")  # types and bounds first, as the command line does
     name = str(plain(cfg)["experiment"].get("name", "experiment"))
     ctx = context_from_config(cfg, out_dir)
     recording_path = out_dir / "recording.rrd"
@@ -120,7 +120,7 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]]) -
     extras["model_bandwidths"] = {m.name: m.meta["bandwidths"] for m in ctx._models.values()
                                   if "bandwidths" in m.meta}
     wall = time.perf_counter() - start
-    outputs = write_outputs(out_dir, name, plain(cfg), wall, records, extras, overrides=current_overrides())
+    outputs = write_outputs(out_dir, name, plain(cfg), wall, records, extras, overrides=list(overrides))
     passed = sum(c["passed"] for c in outputs["checks"])
     return {
         "report": str(outputs["report"]),

@@ -4,7 +4,8 @@ One module per concern: :mod:`~pushtorch.kde.bandwidth` (bandwidths, trial round
 :mod:`~pushtorch.kde.density` (:class:`PoseKDE`: the dense reference, the textbook evaluation, mean shift,
 sampling), :mod:`~pushtorch.kde.sampling` (one kernel factor's exact draws), :mod:`~pushtorch.kde.fused`
 (the fast path's fused functions and when they compile), :mod:`~pushtorch.kde.fast_index` (kernels laid out
-for the fast path) and :mod:`~pushtorch.kde.products` (products of experts). This package re-exports the
+for the fast path), :mod:`~pushtorch.kde.products` (products of experts) and :mod:`~pushtorch.kde.normaliser`
+(the normalising constants of kernels and of products of experts). This package re-exports the
 public names.
 
 Paper, Background → Kernel Density Estimation: the surface-feature kernel (Eq. surface_feature_kernel)

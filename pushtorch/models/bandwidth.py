@@ -36,7 +36,7 @@ import torch
 
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError
-from pushtorch.likelihood import log_rotation_normaliser
+from pushtorch.kde.normaliser import log_rotation_normaliser
 from pushtorch.models.frames import embed_descriptors
 from pushtorch.models.motion import MotionKernels, expert_exponents
 

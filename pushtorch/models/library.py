@@ -233,7 +233,8 @@ class PushModel:
         Saves to one folder are serialised by a lock on the folder, under which the temporaries a
         killed save to ``path`` left behind are removed.
         """
-        from pushtorch.sim.records import atomic_write_bytes, folder_lock, temporary_files
+        from pushtorch.io import atomic_write_bytes, temporary_files
+        from pushtorch.sim.records import folder_lock
 
         arrays = {k: v.detach().cpu().numpy() for k, v in self.arrays().items()}
         header = {

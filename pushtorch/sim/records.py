@@ -27,14 +27,12 @@ unfinished run is refused with what is missing and how to resume it, unless ``al
 
 from __future__ import annotations
 
-import glob
 import hashlib
 import io
 import json
 import os
 import re
 import shlex
-import uuid
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
@@ -45,6 +43,7 @@ import torch
 
 from pushtorch import se3
 from pushtorch.errors import FolderInUseError, IncompleteRunError, RecordFormatError
+from pushtorch.io import atomic_write_bytes, temporary_files  # re-exported: their former home
 
 __all__ = [
     "ARRAYS",
@@ -62,6 +61,7 @@ __all__ = [
     "records_from_arrays",
     "run_status",
     "shard_stem",
+    "temporary_files",
     "write_shard",
 ]
 
@@ -223,35 +223,6 @@ class PushRecords:
 def shard_stem(shard_id: int) -> str:
     """File stem of a shard: ``shard-000042``."""
     return f"shard-{int(shard_id):06d}"
-
-
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically: temporary file in the same folder, fsync, ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    try:  # make the rename itself durable
-        fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-    except OSError:  # some filesystems cannot fsync a directory
-        pass
-
-
-def temporary_files(folder: str | Path, name: str) -> list[Path]:
-    """The temporaries :func:`atomic_write_bytes` leaves for ``folder/name`` when killed mid-write."""
-    return sorted(Path(folder).glob(f".{glob.escape(name)}.tmp-*"))
 
 
 @contextmanager

@@ -56,10 +56,10 @@ def part_summary_path(part: str) -> str:
 
 
 def _method_colours(records: Sequence[Mapping[str, Any]]) -> dict[str, tuple[int, int, int]]:
-    """Each method's colour as in the report's figures (:func:`pushtorch.experiments.report.colour_of`)."""
+    """Each method's colour as in the report's figures (:func:`pushtorch.viz.colours.colour_of`)."""
     from matplotlib.colors import to_rgb
 
-    from pushtorch.experiments.report import colour_of
+    from pushtorch.viz.colours import colour_of
 
     return {m: tuple(round(255 * c) for c in to_rgb(colour_of(m))) for m in {str(r["method"]) for r in records}}
 

@@ -417,7 +417,7 @@ def manipulator_frame_at(features: SurfaceFeatures, robot_start: se3.Pose, cutof
             touch the object where the camera saw it).
     """
     robot_start = _check_start(robot_start)
-    robot_start = se3.Pose(robot_start.p.detach().cpu().to(features.p.dtype),
+    robot_start = se3.Pose.unchecked(robot_start.p.detach().cpu().to(features.p.dtype),
                            robot_start.q.detach().cpu().to(features.p.dtype))
     inside = float(backoff_distance(robot_start, clearance_points(features).cpu(), 0.0))
     if inside > GIVEN_START_OVERLAP:
@@ -427,7 +427,8 @@ def manipulator_frame_at(features: SurfaceFeatures, robot_start: se3.Pose, cutof
             "bumper in front of the side the camera saw"
         )
     points = se3.apply(se3.inverse(robot_start), features.p.cpu())
-    normals = se3.apply(se3.Pose(torch.zeros(3, dtype=points.dtype), se3.inverse(robot_start).q), features.normal.cpu())
+    normals = se3.apply(se3.Pose.unchecked(torch.zeros(3, dtype=points.dtype),
+                                           se3.inverse(robot_start).q), features.normal.cpu())
     dist, touching = bumper_contacts(bumper_mesh(se3.identity()), points, normals, cutoff)
     if not bool(touching.any()):
         raise ModelError(
@@ -437,8 +438,9 @@ def manipulator_frame_at(features: SurfaceFeatures, robot_start: se3.Pose, cutof
     weight = torch.where(touching, torch.exp(-drop_off * dist**2), torch.zeros_like(dist))
     best = int(weight.argmax())
     device = features.p.device
-    v = se3.Pose(features.p[best : best + 1], features.q[best : best + 1])
-    u = se3.relative(v, se3.Pose(robot_start.p.to(device).unsqueeze(0), robot_start.q.to(device).unsqueeze(0)))
+    v = se3.Pose.unchecked(features.p[best : best + 1], features.q[best : best + 1])
+    u = se3.relative(v, se3.Pose.unchecked(robot_start.p.to(device).unsqueeze(0),
+                                           robot_start.q.to(device).unsqueeze(0)))
     return ContactFrames(v, features.r[best : best + 1], u, weight[best : best + 1].to(device))
 
 
@@ -453,7 +455,7 @@ def _given_start_frame(start: se3.Pose | None, features: SurfaceFeatures, model:
 def _given_start_condition(start: se3.Pose, frame: ContactFrames, environment: ContactFrames, pose: QueryResult,
                            features: SurfaceFeatures, model: PushModel) -> PushCondition:
     """The push condition of a start the caller gave: used as it is (no back-off; the caller owns it)."""
-    start = se3.Pose(start.p.to(features.p), start.q.to(features.p))
+    start = se3.Pose.unchecked(start.p.to(features.p), start.q.to(features.p))
     return PushCondition(start, frame, environment, pose.pose, None, pose, features, model, 0.0)
 
 
@@ -659,7 +661,8 @@ def predict_many(
     Raises:
         InvalidParameterError: an unknown method, a batch size < 1, actions or starts that do not match.
 
-    Every condition's robot start is cleared of its cloud as in :func:`predict`.
+    Every condition's robot start is cleared of its cloud as in :func:`predict`. An empty list of clouds
+    gives an empty list of predictions.
     """
     _check_method(method)
     if isinstance(batch_size, bool) or not isinstance(batch_size, int | float) or int(batch_size) != batch_size \
@@ -671,6 +674,8 @@ def predict_many(
     if isinstance(clouds, PointCloud | SurfaceFeatures | torch.Tensor):
         raise InvalidParameterError("clouds must be a list of clouds (use predict for one cloud)")
     clouds = list(clouds)
+    if not clouds:  # an empty batch predicts nothing, as map() over nothing
+        return []
     actions = _check_actions(actions, len(clouds))
     if robot_starts is None:
         robot_starts = [None] * len(clouds)
@@ -751,8 +756,3 @@ class _CallableModule(types.ModuleType):
 
 
 sys.modules[__name__].__class__ = _CallableModule
-
-if __name__ == "__main__":  # `python -m pushtorch.predict`: the prediction stage app
-    from pushtorch.predict_cli import main
-
-    main()
