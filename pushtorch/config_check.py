@@ -76,6 +76,7 @@ _RULES: list[tuple[str, Rule]] = [
     ("object.path", Rule("str", nullable=True)),
     ("object.scale", _float(1e-6, 1e3)),
     ("sim.time_step", _float(1e-4, 0.05)),
+    ("object.up", Rule("str", choices=("z", "y"))),  # pushtorch.objects.UP_AXES
     ("sim.solver_iterations", _int(1, 1000)),
     ("sim.control_every", _int(1, 1000)),
     ("sim.record_rate", _float(1e-3, 1000.0)),

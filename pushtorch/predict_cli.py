@@ -77,7 +77,8 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
     try:
         paths = as_names(c.get("models"))
         obj_cfg = c["object"]
-        obj = load_object(obj_cfg["name"], obj_cfg.get("path"), float(obj_cfg.get("scale", 1.0)))
+        obj = load_object(obj_cfg["name"], obj_cfg.get("path"), float(obj_cfg.get("scale", 1.0)),
+                          up=obj_cfg.get("up", "z"))
         truth_initial = obj.resting_pose(float(c.get("x", 0.0)), float(c.get("y", 0.0)),
                                          math.radians(float(c.get("yaw_deg", 0.0))))
         samples = int(c.get("truth_samples", 3))

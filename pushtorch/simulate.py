@@ -69,7 +69,8 @@ def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Pat
     out_dir = Path(out_dir)
     try:
         obj_cfg, actions_cfg = c["object"], c["actions"]
-        model = load_object(obj_cfg["name"], obj_cfg.get("path"), float(obj_cfg.get("scale", 1.0)))
+        model = load_object(obj_cfg["name"], obj_cfg.get("path"), float(obj_cfg.get("scale", 1.0)),
+                            up=obj_cfg.get("up", "z"))
         actions = make_actions(
             int(actions_cfg["count"]), tuple(actions_cfg["angle_range_deg"]), float(actions_cfg["speed"])
         )

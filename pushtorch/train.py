@@ -67,7 +67,8 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
     out_dir.mkdir(parents=True, exist_ok=True)
     try:
         obj_cfg = c["object"]
-        obj = load_object(obj_cfg["name"], obj_cfg.get("path"), float(obj_cfg.get("scale", 1.0)))
+        obj = load_object(obj_cfg["name"], obj_cfg.get("path"), float(obj_cfg.get("scale", 1.0)),
+                          up=obj_cfg.get("up", "z"))
         settings = ModelSettings.from_mapping((c.get("model") or {}).get("settings") or {})
         folders = [Path(p) for p in as_names(c.get("data"))]
     except (KeyError, TypeError) as exc:

@@ -157,6 +157,29 @@ def _two_cubes(env: Env) -> Path:
     return path
 
 
+def _two_boxes(env: Env, gap: float) -> Path:
+    """Two 0.1 m boxes ``gap`` m apart in one file."""
+    a = trimesh.creation.box((0.1, 0.1, 0.1))
+    b = a.copy()
+    b.apply_translation([0.1 + gap, 0.0, 0.0])
+    path = env.tmp / "apart.obj"
+    trimesh.util.concatenate([a, b]).export(path)
+    return path
+
+
+def _loose_triangles(env: Env, count: int = 300) -> Path:
+    """``count`` separate triangles (a soup, not a solid) within 0.3 m."""
+    corners = np.random.default_rng(0).uniform(0.0, 0.3, (count, 1, 3)) + [[0, 0, 0], [0.005, 0, 0], [0, 0.005, 0]]
+    return _write_obj(env.tmp / "soup.obj", corners.reshape(-1, 3), np.arange(3 * count).reshape(-1, 3))
+
+
+def _cube_mm(env: Env) -> Path:
+    """A 0.2 m cube written in millimetres."""
+    path = env.tmp / "cube_mm.stl"
+    trimesh.creation.box((200.0, 200.0, 200.0)).export(path)
+    return path
+
+
 def _nan_mesh(env: Env) -> Path:
     box = trimesh.creation.box((0.1, 0.1, 0.1))
     vertices = np.array(box.vertices)
@@ -196,6 +219,16 @@ BAD = [
      "mesh"),
     ("mesh_nan_vertex", lambda e: load_mesh_file(_nan_mesh(e)), InvalidMeshError, "NaN"),
     ("mesh_two_bodies", lambda e: load_mesh_file(_two_cubes(e)), InvalidMeshError, "2 disjoint bodies"),
+    ("mesh_bodies_5cm_apart", lambda e: load_mesh_file(_two_boxes(e, 0.05)), InvalidMeshError,
+     "2 disjoint bodies 50.0 mm apart"),
+    ("mesh_in_millimetres", lambda e: load_mesh_file(_cube_mm(e)), InvalidMeshError,
+     "object.scale=0.001 would make it 0.2 m (0.001 if the file is in millimetres)"),
+    ("mesh_scaled_too_small", lambda e: load_object("mesh", _cube_mm(e), scale=1e-6), InvalidMeshError,
+     "0.2 mm across"),
+    ("mesh_loose_triangles", lambda e: load_mesh_file(_loose_triangles(e)), InvalidMeshError,
+     "holds 300 separate parts; at most 256"),
+    ("mesh_up_x", lambda e: load_object("mesh", _l_shape(e), up="x"), InvalidParameterError,
+     "object.up must be one of z, y"),
     ("mesh_open_flat", lambda e: load_mesh_file(_write_obj(e.tmp / "flat.obj", [[0, 0, 0], [1, 0, 0], [0, 1, 0]],
                                                            [[0, 1, 2]])), InvalidMeshError, "open and flat"),
     ("mesh_scale_zero", lambda e: load_mesh_file(_l_shape(e), scale=0), InvalidParameterError, "scale"),

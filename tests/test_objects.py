@@ -243,3 +243,163 @@ def test_unknown_catalogue_name_and_missing_path_raise():
 def test_errors_are_pushtorch_errors():
     assert issubclass(InvalidMeshError, PushtorchError)
     assert issubclass(InvalidParameterError, PushtorchError)
+
+
+# --- meshes of several parts, up axis, units -------------------------------------------------------------------
+
+
+def _pybullet_mesh(relative: str):
+    import pybullet_data
+
+    return pybullet_data.getDataPath() + "/" + relative
+
+
+def _write_boxes(path, *boxes: tuple[tuple[float, float, float], tuple[float, float, float]]):
+    """One mesh file of several separate box components, each ``(extents, centre)`` in file units."""
+    meshes = []
+    for extents, centre in boxes:
+        box = trimesh.creation.box(extents=extents)
+        box.apply_translation(centre)
+        meshes.append(box)
+    trimesh.util.concatenate(meshes).export(path)
+    return path
+
+
+@pytest.mark.parametrize("relative", ["duck_vhacd.obj", "objects/mug_col.obj"])
+def test_pybullet_meshes_of_several_parts_load_as_one_body(relative):
+    """pybullet_data's V-HACD duck (5 hulls, 0.003 mm apart) and the mug's collision mesh (a cylinder and 5
+    handle pieces that overlap it and each other), scaled to 0.2 m: one watertight body of convex parts."""
+    import time
+
+    path = _pybullet_mesh(relative)
+    raw = trimesh.load(path, force="mesh", process=False)
+    scale = 0.2 / float(np.max(trimesh.Trimesh(raw.vertices, raw.faces).extents))
+    start = time.perf_counter()
+    obj = load_mesh_file(path, scale=scale)
+    assert time.perf_counter() - start < 30.0  # decomposition included (0.6 s measured)
+    assert obj.collision_source.startswith("convex parts") and len(obj.collision_parts) >= 5
+    assert all(part.is_convex for part in obj.collision_parts)
+    assert obj.mesh.is_watertight and obj.mesh.volume > 0
+    assert float(obj.dimensions.max()) == pytest.approx(0.2, rel=1e-6)
+    assert np.allclose(obj.mesh.center_mass, 0.0, atol=1e-9)
+    union = trimesh.boolean.union(obj.collision_parts, engine="manifold")
+    assert obj.mesh.volume == pytest.approx(union.volume, rel=0.01)
+
+
+@pytest.mark.parametrize("suffix", ["obj", "stl"])
+def test_an_l_of_two_overlapping_boxes_is_one_body_with_its_true_volume(tmp_path, suffix):
+    # 0.2 x 0.1 x 0.1 and 0.1 x 0.1 x 0.1, overlapping by 0.1 x 0.025 x 0.1 (their top faces coplanar)
+    path = _write_boxes(tmp_path / f"l.{suffix}", ((0.2, 0.1, 0.1), (0.0, 0.0, 0.0)),
+                        ((0.1, 0.1, 0.1), (0.05, 0.075, 0.0)))
+    obj = load_mesh_file(path)
+    assert obj.mesh.is_watertight
+    assert obj.mesh.volume == pytest.approx(0.002 + 0.001 - 0.00025, rel=1e-6)  # the union, not the sum
+    assert obj.collision_source == "convex parts"
+    assert sorted(round(p.volume, 9) for p in obj.collision_parts) == [0.001, 0.002]
+    assert torch.allclose(obj.dimensions, torch.tensor([0.2, 0.175, 0.1]), atol=1e-6)
+    assert np.allclose(obj.mesh.center_mass, 0.0, atol=1e-9)
+    assert obj.symmetry.order == 1
+
+
+def test_boxes_half_a_millimetre_apart_are_one_body(tmp_path):
+    path = _write_boxes(tmp_path / "near.obj", ((0.1, 0.1, 0.1), (0.0, 0.0, 0.0)),
+                        ((0.1, 0.1, 0.1), (0.1005, 0.0, 0.0)))
+    obj = load_mesh_file(path)
+    assert len(obj.collision_parts) == 2 and obj.mesh.is_watertight
+    assert obj.mesh.volume == pytest.approx(0.002, rel=1e-6)
+    assert float(obj.dimensions[0]) == pytest.approx(0.2005, rel=1e-6)
+
+
+def test_boxes_crossing_edge_to_edge_are_one_body(tmp_path):
+    """Two boxes turned 45° whose edges cross 0.2 mm apart: no vertex is near the other box, the edges are."""
+    a = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    a.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 4, [1, 0, 0]))
+    b = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    b.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 4, [0, 1, 0]))
+    half_diagonal = 0.05 * np.sqrt(2)
+    b.apply_translation([0.0, 0.0, 2 * half_diagonal + 0.0002])
+    path = tmp_path / "edges.stl"
+    trimesh.util.concatenate([a, b]).export(path)
+    assert len(load_mesh_file(path).collision_parts) == 2
+    b.apply_translation([0.0, 0.0, 0.0018])  # 2 mm apart
+    trimesh.util.concatenate([a, b]).export(path)
+    with pytest.raises(InvalidMeshError, match=r"2 disjoint bodies 2\.0 mm apart"):
+        load_mesh_file(path)
+
+
+def test_boxes_five_centimetres_apart_are_refused_naming_the_gap(tmp_path):
+    path = _write_boxes(tmp_path / "apart.obj", ((0.1, 0.1, 0.1), (0.0, 0.0, 0.0)),
+                        ((0.1, 0.1, 0.1), (0.15, 0.0, 0.0)))
+    with pytest.raises(InvalidMeshError, match=r"2 disjoint bodies 50\.0 mm apart; parts 1 mm apart or closer"):
+        load_mesh_file(path)
+    with pytest.raises(InvalidMeshError, match=r"50\.0 mm"):
+        load_object("mesh", path=path)
+    three = _write_boxes(tmp_path / "three.stl", ((0.1, 0.1, 0.1), (0.0, 0.0, 0.0)),
+                         ((0.1, 0.1, 0.1), (0.15, 0.0, 0.0)), ((0.1, 0.1, 0.1), (0.27, 0.0, 0.0)))
+    with pytest.raises(InvalidMeshError, match=r"3 disjoint bodies, the nearest two 20\.0 mm apart"):
+        load_mesh_file(three)
+
+
+def test_a_millimetre_file_at_scale_one_is_refused_with_the_scale_that_fits(tmp_path):
+    path = tmp_path / "cube_mm.stl"
+    trimesh.creation.box(extents=(200.0, 200.0, 200.0)).export(path)
+    for load in (lambda: load_mesh_file(path), lambda: load_object("mesh", path=path)):
+        with pytest.raises(InvalidMeshError, match=r"is 200 m across .*object\.scale=0\.001 would make it 0\.2 m "
+                                                   r"\(0\.001 if the file is in millimetres\)"):
+            load()
+    assert load_mesh_file(path, scale=0.001).mesh.volume == pytest.approx(0.008, rel=1e-6)
+
+
+def test_a_fifth_of_a_millimetre_object_is_refused_too(tmp_path):
+    path = tmp_path / "speck.stl"
+    trimesh.creation.box(extents=(0.0002, 0.0002, 0.0002)).export(path)
+    with pytest.raises(InvalidMeshError, match=r"is 0\.2 mm across .*object\.scale=1000 would make it 0\.2 m"):
+        load_mesh_file(path)
+    metres = tmp_path / "cube.stl"
+    trimesh.creation.box(extents=(0.2, 0.2, 0.2)).export(metres)
+    with pytest.raises(InvalidMeshError, match=r"is 0\.2 mm across .*object\.scale=1 would make it 0\.2 m "
+                                               r"\(1 if the file is in metres\)"):
+        load_mesh_file(metres, scale=0.001)  # a file in metres given a millimetre scale
+
+
+def test_up_y_turns_a_y_up_file_so_its_tall_axis_is_z(tmp_path):
+    path = _write_boxes(tmp_path / "tall.obj", ((0.05, 0.2, 0.08), (0.0, 0.1, 0.0)))  # standing along +y
+    assert torch.allclose(load_mesh_file(path).dimensions, torch.tensor([0.05, 0.2, 0.08]), atol=1e-6)
+    turned = load_object("mesh", path=path, up="y")
+    assert torch.allclose(turned.dimensions, torch.tensor([0.05, 0.08, 0.2]), atol=1e-6)
+    assert turned.rest_height == pytest.approx(0.1, abs=1e-7)
+    # +90° about x, right-handed: the file's +z becomes -y
+    trimesh.creation.cone(0.05, 0.2).export(tmp_path / "cone.stl")  # tip at the file's +z
+    cone = load_mesh_file(tmp_path / "cone.stl", up="y")
+    tip = cone.mesh.vertices[np.argmax(np.linalg.norm(cone.mesh.vertices, axis=1))]
+    assert tip[1] < -0.1 and abs(tip[0]) < 1e-9 and abs(tip[2]) < 1e-9
+
+
+@pytest.mark.parametrize("up", ["x", "Y", "-y", "", None, 1])
+def test_unknown_up_axis_raises_naming_the_choices(tmp_path, up):
+    path = tmp_path / "part.stl"
+    _off_centre_box_mm().export(path)
+    with pytest.raises(InvalidParameterError, match="object.up must be one of z, y"):
+        load_mesh_file(path, scale=0.001, up=up)
+    with pytest.raises(InvalidParameterError, match="object.up must be one of z, y"):
+        load_object("mesh", path=path, scale=0.001, up=up)
+
+
+def test_the_command_line_refuses_a_millimetre_mesh_in_one_line_without_a_run_folder(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    path = tmp_path / "cube_mm.stl"
+    trimesh.creation.box(extents=(200.0, 200.0, 200.0)).export(path)
+    run = tmp_path / "run"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HYDRA_")}
+    result = subprocess.run(
+        [sys.executable, "-m", "pushtorch.simulate", "object=mesh", f"object.path={path}", "samples_per_action=2",
+         "workers=1", "rerun_pushes=0", "progress=false", f"hydra.run.dir={run}"],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "object.scale=0.001 would make it 0.2 m" in lines[0], result.stderr
+    assert "Traceback" not in result.stderr and not run.exists()

@@ -5,7 +5,8 @@ no traceback and no half-made run folder. The maintainers keep their own battery
 each case the way a new user would (``python -m <app> <overrides...>`` in a fresh empty folder, without any
 ``HYDRA_*`` variable, with a timeout) against real fixtures it makes once at the start (a tiny simulation run
 and a model trained from it, then copies of them made bad: a missing shard, a tampered shard, a flipped byte,
-a truncated file, junk; meshes with two disjoint parts, a NaN vertex, no bytes at all). Every case is an
+a truncated file, junk; meshes with two disjoint parts, two boxes 5 cm apart, a cube written in millimetres, a NaN
+vertex, no bytes at all). Every case is an
 input the apps must refuse, so each outcome is one of
 
     clear error   exit status 2, exactly one non-empty stderr line, no "Traceback"
@@ -68,6 +69,7 @@ class Fixtures:
             "mesh_two_cubes": "meshes/two_cubes.obj", "mesh_nan": "meshes/nan_vertex.obj",
             "mesh_empty": "meshes/part.stl", "mesh_garbage": "meshes/garbage.obj",
             "mesh_missing": "meshes/no_such_part.stl", "mesh_dir": "meshes",
+            "mesh_apart": "meshes/boxes_50mm_apart.obj", "mesh_mm": "meshes/cube_mm.obj",
             "empty_dir": "empty", "a_file": "a_file.txt", "nowhere": "nowhere",
             "locked": "locked", "junk_results": "junk_results", "min_results": "min_results",
         }
@@ -178,8 +180,12 @@ def cases(fx: Fixtures) -> list[Case]:
                               ("mesh-empty-stl", fx.mesh_empty, "part.stl"),
                               ("mesh-garbage-obj", fx.mesh_garbage, "garbage.obj"),
                               ("mesh-missing-path", fx.mesh_missing, "no_such_part"),
-                              ("mesh-directory", fx.mesh_dir, "meshes")):
+                              ("mesh-directory", fx.mesh_dir, "meshes"),
+                              ("mesh-boxes-50mm-apart", fx.mesh_apart, "50.0 mm apart"),
+                              ("mesh-millimetres-at-scale-1", fx.mesh_mm, "object.scale=0.001")):
         add(id_, "meshes", sim, ["object=mesh", f"object.path={path}", *SIM_SMALL], expect)
+    add("mesh-up-x", "meshes", sim, ["object=mesh", f"object.path={fx.mesh_mm}", "object.scale=0.001", "object.up=x",
+                                     *SIM_SMALL], "object.up")
     add("mesh-predict-two-cubes", "meshes", pred,
         [model, "object=mesh", f"object.path={fx.mesh_two_cubes}", *PRED_SMALL], "two_cubes")
     # model files
@@ -281,6 +287,11 @@ def make_fixtures(root: Path) -> tuple[Fixtures, object]:
     v, f = _cube((0.0, 0.0, 0.05), 0.05, 1)
     v[3] = "v nan 0.05 0.1"
     fx.mesh_nan.write_text("# a cube with one NaN vertex\n" + "\n".join(v + f) + "\n")
+    v1, f1 = _cube((0.0, 0.0, 0.05), 0.05, 1)
+    v2, f2 = _cube((0.15, 0.0, 0.05), 0.05, 9)
+    fx.mesh_apart.write_text("# two 0.1 m cubes, 5 cm apart\n" + "\n".join(v1 + v2 + f1 + f2) + "\n")
+    v, f = _cube((0.0, 0.0, 100.0), 100.0, 1)
+    fx.mesh_mm.write_text("# a 0.2 m cube written in millimetres\n" + "\n".join(v + f) + "\n")
     fx.mesh_empty.write_bytes(b"")
     fx.mesh_garbage.write_text("hello, this is not a mesh\nv 1 2\nf 1 2 3 4 5\n")
     # folders and files

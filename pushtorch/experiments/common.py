@@ -270,7 +270,8 @@ def load_test_objects(cfg: DictConfig | Mapping[str, Any], default: Sequence[str
     c = plain(cfg)
     chosen = c.get("object")
     if chosen:
-        return [load_object(chosen["name"], chosen.get("path"), float(chosen.get("scale", 1.0)))]
+        return [load_object(chosen["name"], chosen.get("path"), float(chosen.get("scale", 1.0)),
+                            up=chosen.get("up", "z"))]
     return [load_object(name) for name in default]
 
 
