@@ -484,7 +484,7 @@ class PredictionSet:
         """``{method: (start, final)}`` of every method in the set, each ``(N, A)``: the displacement from
         start to final is what the method predicts (oracle physics starts at the true pose)."""
         n, a = self.final.batch_shape
-        truth = se3.Pose(self.truth_initial.p.unsqueeze(1).expand(n, a, 3),
+        truth = se3.Pose.unchecked(self.truth_initial.p.unsqueeze(1).expand(n, a, 3),
                          self.truth_initial.q.unsqueeze(1).expand(n, a, 4))
         out = {"pushtorch": (self.estimate, self.final), "no_motion": (self.estimate, self.estimate),
                "mean_motion": (self.estimate, self.mean_motion), "nearest_push": (self.estimate, self.nearest)}
@@ -512,7 +512,7 @@ class PredictionSet:
         """
         arrays, meta = load_arrays(path)
         try:
-            poses = {n: se3.Pose(arrays[f"{n}_p"], arrays[f"{n}_q"]) if f"{n}_p" in arrays else None
+            poses = {n: se3.Pose.unchecked(arrays[f"{n}_p"], arrays[f"{n}_q"]) if f"{n}_p" in arrays else None
                      for n in _POSE_FIELDS}
             return PredictionSet(**poses, backoff=arrays["backoff"], selected=arrays["selected"],
                                  model_names=list(meta["model_names"]), fingerprint=str(meta["fingerprint"]))
@@ -721,11 +721,11 @@ def predict_set(
     def stacked(items: list[se3.Pose]) -> se3.Pose | None:
         if not items:
             return None
-        flat = [se3.Pose(p.p.reshape(3).float().cpu(), p.q.reshape(4).float().cpu()) for p in items]
+        flat = [se3.Pose.unchecked(p.p.reshape(3).float().cpu(), p.q.reshape(4).float().cpu()) for p in items]
         return se3.Pose.stack(flat).reshape(n, a_count)
 
     result = PredictionSet(
-        truth_initial=se3.Pose(poses.p.float(), poses.q.float()),
+        truth_initial=se3.Pose.unchecked(poses.p.float(), poses.q.float()),
         **{name: stacked(fields[name]) for name in names},
         backoff=backoff,
         selected=selected,
@@ -770,7 +770,8 @@ def likelihood_scores(ctx: ExperimentContext, key: str, obj: ObjectModel, predic
             for j in range(a_count):
                 density = predictions.densities[i][j].get(method) or point_density(final.take((i, j)), p_std,
                                                                                   rot_std)
-                truths = se3.Pose(truth_final.p[:, i, j].reshape(-1, 3), truth_final.q[:, i, j].reshape(-1, 4))
+                truths = se3.Pose.unchecked(truth_final.p[:, i, j].reshape(-1, 3),
+                                            truth_final.q[:, i, j].reshape(-1, 4))
                 values = nll(density, truths, predictions.truth_initial.take(i), start.take((i, j)),
                              obj.symmetry)
                 out[:, i, j] = values.reshape(c_count, samples).float()
@@ -820,7 +821,7 @@ def simulate_truth(
         frictions.append(ctx.prior("friction", friction).sample((n, a_count, samples), generator))
 
     def spread(pose: se3.Pose, dims: tuple[int, ...]) -> se3.Pose:
-        return se3.Pose(pose.p.double().reshape(*dims, 3).expand(*shape, 3).reshape(-1, 3),
+        return se3.Pose.unchecked(pose.p.double().reshape(*dims, 3).expand(*shape, 3).reshape(-1, 3),
                         pose.q.double().reshape(*dims, 4).expand(*shape, 4).reshape(-1, 4))
 
     action_index = torch.arange(a_count).reshape(1, 1, a_count, 1).expand(shape).reshape(-1)
@@ -843,7 +844,7 @@ def simulate_truth(
     run_plan(object_spec(obj), plan, folder, ctx.sim, workers=workers, shard_size=ctx.shard_size,
              progress=False)
     records = load_records(folder)
-    final = se3.Pose(records.object_final.p.reshape(*shape, 3), records.object_final.q.reshape(*shape, 4))
+    final = se3.Pose.unchecked(records.object_final.p.reshape(*shape, 3), records.object_final.q.reshape(*shape, 4))
     return final, (records.tipped | records.left_ground).reshape(shape)
 
 
@@ -864,7 +865,7 @@ def compare_displacement(initial_estimate: se3.Pose, final_estimate: se3.Pose, t
 def compare(estimate: se3.Pose, truth: se3.Pose, obj: ObjectModel) -> Accuracy:
     """Accuracy of estimates ``(...)`` against ground truths ``(..., S)`` (each estimate vs each sample)."""
     shape = truth.batch_shape
-    est = se3.Pose(estimate.p.unsqueeze(-2).expand(*shape, 3), estimate.q.unsqueeze(-2).expand(*shape, 4))
+    est = se3.Pose.unchecked(estimate.p.unsqueeze(-2).expand(*shape, 3), estimate.q.unsqueeze(-2).expand(*shape, 4))
     flat = int(np.prod(shape))
     return accuracy(est.reshape(flat), truth.reshape(flat), obj)
 
@@ -932,8 +933,8 @@ def _one_push(plan, k: int):
     one = slice(k, k + 1)
     return PushPlan(
         object_name=plan.object_name,
-        robot_start=se3.Pose(plan.robot_start.p[one], plan.robot_start.q[one]),
-        object_initial=se3.Pose(plan.object_initial.p[one], plan.object_initial.q[one]),
+        robot_start=se3.Pose.unchecked(plan.robot_start.p[one], plan.robot_start.q[one]),
+        object_initial=se3.Pose.unchecked(plan.object_initial.p[one], plan.object_initial.q[one]),
         action=plan.action[one], mass=plan.mass[one], ground_friction=plan.ground_friction[one],
         action_index=plan.action_index[one], index=plan.index[one], seed=plan.seed, duration=plan.duration,
     )

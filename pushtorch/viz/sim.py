@@ -88,7 +88,7 @@ def log_push(
     log_mesh(rec, f"{root}/robot/bumper/mesh", bumper_mesh(), color=_BUMPER_COLOUR)
 
     if with_final_pose:
-        final = se3.Pose(records.object_final.p[i], records.object_final.q[i])
+        final = se3.Pose.unchecked(records.object_final.p[i], records.object_final.q[i])
         log_pose(rec, f"{root}/object_final", final, static=True)
         if object_mesh is not None:
             log_mesh(rec, f"{root}/object_final/mesh", object_mesh, color=_FINAL_COLOUR)
