@@ -215,8 +215,10 @@ def test_capsule_in_any_orientation_is_continuous_with_the_half_turn_across_its_
     assert abs(float(symmetry.continuous_axis.double() @ torch.as_tensor(axis))) > 1 - 1e-6
     assert symmetry.discrete.shape == (2, 4)
     flip = symmetry.discrete[1]
-    # (the object's z is kept as the axis when as good: a capsule 1e-6 rad off z is reported about z)
-    assert abs(float(flip[0])) < 1e-6 and abs(float(flip[1:].double() @ torch.as_tensor(axis))) < 1e-4
+    # (the object's z is kept as the axis when as good: a capsule slightly off z is reported about z, so the
+    # half turn is perpendicular to the reported axis, which the check above allows 1.4e-3 rad off the true one;
+    # hypothesis found a capsule 2e-4 rad off z whose half turn is 2e-4 off perpendicular to the true axis)
+    assert abs(float(flip[0])) < 1e-6 and abs(float(flip[1:].double() @ torch.as_tensor(axis))) < 1.5e-3
     # the ends swapped and turned by any angle: the same look
     element = pkt.quaternion_raw_multiply(_turn(axis, angle), flip)
     assert _angle_deg(symmetry, TILT.float(), element) < 0.01
