@@ -7,7 +7,7 @@ clouds (``()`` for one). Decisions (docs/method.md, "The prediction as a distrib
 
 * **Normalised.** ``log_prob`` is a log density with respect to Lebesgue measure on positions (m³) times
   the uniform *probability* measure on unit quaternions with q ≡ −q (so in nats, like
-  :func:`pushtorch.likelihood.nll`). Each expert is its normalised mixture of the model's *cut-off*
+  :func:`pushtorch.evaluation.likelihood.nll`). Each expert is its normalised mixture of the model's *cut-off*
   kernels — each kernel's integral inside its cut-off (:func:`pushtorch.kde.normaliser.log_kernel_normaliser`)
   included — and the product's normaliser ``Z = ∫ Π_e p_e^γ_e`` is estimated once, on first use, by
   importance sampling (:func:`pushtorch.kde.normaliser.log_normaliser`, seeded: the same value every time).

@@ -180,7 +180,7 @@ def test_a_distribution_moves_to_float64(predictions):
 
 def test_the_uncut_kernels_scored_by_nll_are_normalised_too():
     """likelihood.PoseDensity (the nll score) uses the same kernel normaliser with the cut-offs removed."""
-    from pushtorch.likelihood import log_kernel_normaliser
+    from pushtorch.evaluation.likelihood import log_kernel_normaliser
 
     kde = PoseKDE(se3.identity((1,)), KernelBandwidth(0.01, 0.05, cutoff_std=(math.inf, math.inf, math.inf)))
     cut = PoseKDE(se3.identity((1,)), KernelBandwidth(0.01, 0.05, cutoff_std=(3.0, 3.0, 5.0)))

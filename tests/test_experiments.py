@@ -19,10 +19,10 @@ from omegaconf import OmegaConf
 
 from pushtorch import viz
 from pushtorch.errors import InvalidParameterError, PushtorchError
+from pushtorch.evaluation.metrics import Accuracy
 from pushtorch.experiments import quickstart
 from pushtorch.experiments.common import sample_test_poses, summarise
 from pushtorch.experiments.report import PAPER_LINEAR_CM, acceptance_checks, pool, primary
-from pushtorch.metrics import Accuracy
 from pushtorch.models.library import ModelSettings, load_model
 from pushtorch.objects import load_object
 from pushtorch.predict_cli import predict_from_config

@@ -12,15 +12,14 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pushtorch import se3
-from pushtorch.baselines import (
+from pushtorch.errors import ModelError
+from pushtorch.evaluation.baselines import (
     cloud_body,
     nearest_push_prediction,
     oracle_physics_prediction,
     physics_from_cloud_prediction,
 )
-from pushtorch.errors import ModelError
-from pushtorch.features import compute_surface_features
-from pushtorch.likelihood import (
+from pushtorch.evaluation.likelihood import (
     log_rotation_normaliser,
     mean_motion_density,
     motion_product_density,
@@ -28,6 +27,7 @@ from pushtorch.likelihood import (
     point_density,
     product_density,
 )
+from pushtorch.features import compute_surface_features
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.predict import contact_bandwidth, predict

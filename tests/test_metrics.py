@@ -1,4 +1,4 @@
-"""H_acc (Eq. pam) and raw errors on the catalogue objects' symmetries (pushtorch.metrics)."""
+"""H_acc (Eq. pam) and raw errors on the catalogue objects' symmetries (pushtorch.evaluation.metrics)."""
 
 import math
 
@@ -7,8 +7,9 @@ import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
-from pushtorch import metrics, se3
+from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError
+from pushtorch.evaluation import metrics
 from pushtorch.objects import load_object
 
 

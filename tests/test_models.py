@@ -12,9 +12,10 @@ from dataclasses import replace
 import pytest
 import torch
 
-from pushtorch import metrics, se3
-from pushtorch.baselines import mean_motion_prediction, no_motion_prediction
+from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, PushtorchError, RecordFormatError
+from pushtorch.evaluation import metrics
+from pushtorch.evaluation.baselines import mean_motion_prediction, no_motion_prediction
 from pushtorch.features import compute_surface_features
 from pushtorch.models.contact import (
     bumper_contact_patch,

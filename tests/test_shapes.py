@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pushtorch.errors import InvalidParameterError
-from pushtorch.shapes import SHAPE_KINDS, held_out_shapes, random_shape
+from pushtorch.objects.shapes import SHAPE_KINDS, held_out_shapes, random_shape
 from pushtorch.sim import place_robot_against
 from pushtorch.sim.runner import simulate_pushes
 

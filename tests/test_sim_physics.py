@@ -337,7 +337,7 @@ def test_a_thin_prism_does_not_follow_the_cubes_motion_from_the_same_placement()
     (bumper centred on the 0.2 m face, 2 mm short) with the same turning action, the cube and the 0.1 m prism
     both turn with the bumper, but the prism slides farther along it. The cube's motion in the robot's start
     frame, moved to the prism's start, misses the prism by centimetres; a straight push transfers exactly."""
-    from pushtorch.baselines import replay_motion
+    from pushtorch.evaluation.baselines import replay_motion
     from pushtorch.models.motion import local_motions
     from pushtorch.sim.runner import simulate_pushes
 

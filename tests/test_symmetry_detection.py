@@ -13,8 +13,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pytorch_kinematics import transforms as pkt
 
-from pushtorch import metrics, se3
+from pushtorch import se3
 from pushtorch.errors import InvalidMeshError, InvalidParameterError, PushtorchError
+from pushtorch.evaluation import metrics
 from pushtorch.objects import Symmetry, catalogue_names, detect_symmetry, load_mesh_file, load_object
 
 #: The catalogue's group orders, recorded before symmetry detection learnt axes other than the 24

@@ -63,8 +63,9 @@ from pathlib import Path
 
 import torch
 
-from pushtorch import metrics, se3
+from pushtorch import se3
 from pushtorch.errors import RecordFormatError
+from pushtorch.evaluation import metrics
 from pushtorch.features import compute_surface_features
 from pushtorch.kde import declare_long_run, fast_path_compiled, straightforward_evaluation
 from pushtorch.models.library import ModelSettings, PushModel, load_model, train_push_model

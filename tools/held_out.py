@@ -1,6 +1,6 @@
 """Transfer to shapes nobody tuned on: the quickstart's friction-biasing part on the held-out random shapes.
 
-For each shape of :func:`pushtorch.shapes.held_out_shapes` (seeds from 1000: never used while tuning) this
+For each shape of :func:`pushtorch.objects.shapes.held_out_shapes` (seeds from 1000: never used while tuning) this
 writes the mesh to an STL file and runs
 
     python -m pushtorch experiment=quickstart object=mesh object.path=<stl> <only friction biasing, the
@@ -26,7 +26,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from pushtorch.shapes import held_out_shapes
+from pushtorch.objects.shapes import held_out_shapes
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINES = ("mean_motion", "nearest_push", "physics_from_cloud")

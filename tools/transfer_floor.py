@@ -48,15 +48,15 @@ import yaml
 from bench_predict import cpu_name  # tools/ is on sys.path when a tool runs as a script
 
 from pushtorch import se3
-from pushtorch.baselines import replay_motion
+from pushtorch.evaluation.baselines import replay_motion
+from pushtorch.evaluation.metrics import accuracy, displaced
 from pushtorch.experiments.common import observe
 from pushtorch.experiments.report import PAPER_LINEAR_CM
-from pushtorch.metrics import accuracy, displaced
 from pushtorch.models.library import ModelLibrary, PushModel, load_model
 from pushtorch.models.motion import local_motions
 from pushtorch.objects import ObjectModel, load_object
+from pushtorch.objects.shapes import held_out_shapes
 from pushtorch.predict import predict_many
-from pushtorch.shapes import held_out_shapes
 from pushtorch.sim import SimSettings, make_actions, place_robot_against
 from pushtorch.sim.runner import simulate_pushes
 

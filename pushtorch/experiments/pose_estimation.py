@@ -27,6 +27,7 @@ import torch
 
 from pushtorch import se3
 from pushtorch.errors import RecordFormatError
+from pushtorch.evaluation.metrics import accuracy
 from pushtorch.experiments.common import (
     ExperimentContext,
     as_names,
@@ -40,7 +41,6 @@ from pushtorch.experiments.common import (
     stable_seed,
     summarise,
 )
-from pushtorch.metrics import accuracy
 from pushtorch.paths import contained_path
 
 __all__ = ["run", "run_part"]

@@ -12,7 +12,7 @@ Procedure (:func:`select_bandwidths`, docs/method.md "Bandwidths from data"):
   kernels' and its contact patch on the bumper.
 * **Score.** The log of the experts' pool at the held-out push's true motion (robot start frame; the Haar
   measure makes that the final pose's log density): ``Σ_e γ_e log p_e(m_i)``, each expert a normalised
-  mixture of uncut Gaussian × folded-vMF kernels (:mod:`pushtorch.likelihood`) weighted by the uncut contact
+  mixture of uncut Gaussian × folded-vMF kernels (:mod:`pushtorch.evaluation.likelihood`) weighted by the uncut contact
   kernel. With ``Σγ = 1`` (the default pool) the pool's normaliser is at most 1 (Hölder), so the score is a
   lower bound of the held-out log-likelihood of the normalised pool, exact when the experts agree.
 * **Search.** Coordinate ascent from the configured values over a ×2 ladder per parameter (motion position

@@ -1,0 +1,143 @@
+"""Baselines the paper's predictor is measured against (paper, §Pose Estimation Accuracy; issue 15, item 3).
+
+Each prediction baseline sees what the method sees — the single-shot cloud, the push condition the model
+chose, the training pushes — unless it is labelled an oracle:
+
+* centroid (pose): :func:`pushtorch.models.position.centroid_pose`, the approach of the authors' earlier work;
+* no motion: the object stays where it was estimated to be;
+* mean motion: the training pushes' average object motion, taken in the robot's start frame and applied
+  from the predicted robot start pose to the estimated initial pose;
+* nearest push: the one training push whose manipulator contact frame best matches the test's, by the
+  model's own contact kernel ``K^c`` over ``(u, r, g)``, replayed from the estimated pose
+  (:func:`nearest_push_prediction`);
+* physics from the cloud: pybullet pushing a body reconstructed from the observed cloud — the visible
+  surface's convex hull swept down to the ground (:func:`cloud_body`) — with the training prior's mean
+  mass and friction (:func:`physics_from_cloud_prediction`);
+* oracle physics: pybullet pushing the *true* mesh from the *true* initial pose with the prior's mean mass
+  and friction (:func:`oracle_physics_prediction`). It knows what the method cannot (the hidden geometry
+  and the exact pose), so reports label it an oracle and leave it out of "beats the baselines" claims.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import trimesh
+
+from pushtorch import se3
+from pushtorch.errors import ModelError
+from pushtorch.models.motion import MotionModel, contact_log_weights
+from pushtorch.models.position import centroid_pose
+from pushtorch.objects import ObjectModel, Symmetry
+
+__all__ = [
+    "centroid_pose",
+    "cloud_body",
+    "mean_motion_prediction",
+    "nearest_push_prediction",
+    "no_motion_prediction",
+    "oracle_physics_prediction",
+    "physics_from_cloud_prediction",
+    "replay_motion",
+]
+
+
+def no_motion_prediction(initial_estimate: se3.Pose) -> se3.Pose:
+    """The final pose predicted by a model that expects nothing to move."""
+    return initial_estimate
+
+
+def replay_motion(motion: se3.Pose, robot_start: se3.Pose, initial_estimate: se3.Pose) -> se3.Pose:
+    """``R0 ∘ M ∘ R0⁻¹ ∘ B0'``: a motion ``M`` of the robot's start frame (as
+    :func:`pushtorch.models.motion.local_motions` expresses it) replayed from the start ``R0`` on the object
+    at ``B0'``; batch dims broadcast."""
+    world_motion = se3.compose(robot_start, se3.compose(motion, se3.inverse(robot_start)))
+    return se3.compose(world_motion, initial_estimate)
+
+
+def mean_motion_prediction(motion: MotionModel, robot_start: se3.Pose, initial_estimate: se3.Pose) -> se3.Pose:
+    """``B1 = R0 ∘ M̄ ∘ R0⁻¹ ∘ B0'``: the average training motion (robot frame) applied to this push."""
+    return replay_motion(motion.mean_motion, robot_start, initial_estimate)
+
+
+def nearest_push_prediction(motion: MotionModel, manipulator_frame, robot_start: se3.Pose,
+                            initial_estimate: se3.Pose, contact_bandwidth, contact_patch) -> se3.Pose:
+    """The training push whose manipulator contact best matches this push's, replayed (module docstring).
+
+    Args:
+        motion: the action's motion model (its manipulator kernels: one per training push and feature).
+        manipulator_frame: the push condition's manipulator contact frame (world).
+        robot_start, initial_estimate: the push condition's robot start and estimated object pose ``B0'``.
+        contact_bandwidth: the model's contact-frame kernel (:func:`pushtorch.predict.contact_bandwidth`).
+        contact_patch: ``(3,)`` the push condition's contact patch on the bumper
+            (``PushCondition.contact_patch``).
+
+    Returns:
+        ``R0 ∘ m_j ∘ R0⁻¹ ∘ B0'`` for the kernel ``j`` of largest ``K^c`` (the first on ties).
+    """
+    log_w = contact_log_weights(manipulator_frame, motion.manipulator, robot_start, contact_bandwidth, contact_patch)
+    best = int(log_w.reshape(-1, len(motion.manipulator)).amax(0).argmax())
+    chosen = motion.manipulator.m.take(best)
+    return replay_motion(se3.Pose.unchecked(chosen.p.to(robot_start.p), chosen.q.to(robot_start.q)), robot_start,
+                         initial_estimate)
+
+
+def cloud_body(points: torch.Tensor, initial_estimate: se3.Pose,
+               name: str = "cloud_hull") -> tuple[ObjectModel, se3.Pose]:
+    """A rigid body reconstructed from an observed cloud, and its pose: the convex hull of the points and of
+    their projections onto the ground (z = 0), i.e. the visible surface swept down to the floor.
+
+    The body frame sits at the hull's centre of mass with the estimate's heading (the frame only names the
+    body: the displacement a push gives does not depend on it). Hidden parts the camera could not see and
+    concavities are filled or missing exactly as the sweep makes them.
+
+    Raises:
+        ModelError: the cloud spans no volume (fewer than 4 points off one plane).
+    """
+    world = points.detach().double().cpu().numpy().reshape(-1, 3)
+    ground = world.copy()
+    ground[:, 2] = 0.0
+    try:
+        hull = trimesh.convex.convex_hull(np.concatenate([world, ground]))
+    except Exception as exc:  # scipy's QhullError on flat or degenerate point sets
+        raise ModelError(f"the observed cloud ({len(world)} points) spans no volume to simulate") from exc
+    with np.errstate(invalid="ignore", divide="ignore"):  # trimesh divides by a flat hull's zero volume
+        volume = hull.volume
+    if not volume > 0:
+        raise ModelError(f"the observed cloud ({len(world)} points) spans no volume to simulate")
+    centre = np.asarray(hull.center_mass)
+    yaw = float(se3.yaw_of(initial_estimate.q.reshape(4)))
+    pose = se3.from_xy_yaw(float(centre[0]), float(centre[1]), yaw, z=float(centre[2])).to(torch.float64)
+    to_body = np.linalg.inv(se3.to_matrix(pose).numpy())
+    body = hull.copy()
+    body.apply_transform(to_body)
+    identity = Symmetry(torch.tensor([[1.0, 0.0, 0.0, 0.0]]))
+    return ObjectModel(name, body, identity), pose
+
+
+def _simulate_once(obj: ObjectModel, robot_start: se3.Pose, start: se3.Pose, action: torch.Tensor, mass: float,
+                   ground_friction: float) -> se3.Pose:
+    from pushtorch.sim.runner import simulate_pushes
+
+    records = simulate_pushes(obj, robot_start, start, action, mass, ground_friction)
+    final = records.object_final
+    return se3.Pose.unchecked(final.p[0].float(), final.q[0].float())
+
+
+def physics_from_cloud_prediction(points: torch.Tensor, initial_estimate: se3.Pose, robot_start: se3.Pose,
+                                  action: torch.Tensor, mass: float,
+                                  ground_friction: float) -> tuple[se3.Pose, se3.Pose]:
+    """Simulate the push once on the body :func:`cloud_body` reconstructs from the observed ``points``.
+
+    Returns:
+        ``(start, final)``: the reconstructed body's pose before and after the push (score the displacement
+        between them).
+    """
+    body, start = cloud_body(points, initial_estimate)
+    return start.to(torch.float32), _simulate_once(body, robot_start, start, action, mass, ground_friction)
+
+
+def oracle_physics_prediction(obj: ObjectModel, robot_start: se3.Pose, truth_initial: se3.Pose,
+                              action: torch.Tensor, mass: float, ground_friction: float) -> se3.Pose:
+    """An oracle: the true mesh pushed from the true initial pose, once, with the prior's mean parameters."""
+    return _simulate_once(obj, robot_start, truth_initial, action, mass, ground_friction)
