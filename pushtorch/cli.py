@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import functools
 import hashlib
-import os
 import re
 import sys
 from collections.abc import Callable, Iterator, Sequence
@@ -23,6 +22,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from pushtorch.errors import PushtorchError
+from pushtorch.io import lock_file
 
 __all__ = ["CONFIG_PATH", "RUN_ONLY_KEYS", "compose_or_exit", "current_overrides", "job_dir_name", "run_stage"]
 
@@ -88,36 +88,29 @@ def current_overrides() -> list[str]:
     return list(HydraConfig.get().overrides.task)
 
 
+#: The lock file of a run folder, held while its stage runs.
+RUN_LOCK = ".pushtorch.lock"
+
+
 @contextmanager
 def _claimed(out_dir: Path) -> Iterator[None]:
-    """Hold an exclusive lock on the run folder while the stage runs.
+    """Hold the run folder's lock (:data:`RUN_LOCK`, :func:`pushtorch.io.lock_file`) while the stage runs.
 
-    Two live processes never share a run folder: the second stops with a clear error. The lock goes with
-    the process, so a killed run's folder can be resumed (``hydra.run.dir=<folder>``).
+    Two live processes never share a run folder, on one machine or on several nodes of a shared
+    filesystem: the second stops with a clear error. A killed run's folder can be resumed
+    (``hydra.run.dir=<folder>``): at once on the same machine, and on another node once the dead run's
+    lock has expired (:data:`pushtorch.io.STALE_AFTER_S` after its last heartbeat).
     """
-    try:
-        import fcntl
-    except ImportError:  # Windows: no advisory locks; run folders are still unique by time
-        yield
-        return
-    lock_path = out_dir / ".pushtorch.lock"
-    with open(lock_path, "a+") as handle:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            handle.seek(0)
-            holder = handle.read().strip() or "another process"
-            raise PushtorchError(f"run folder {out_dir} is in use by {holder}; give this run its own folder "
-                                 f"(hydra.run.dir=<new folder>) or wait for that run to end") from None
-        handle.seek(0)
-        handle.truncate()
-        handle.write(f"pid {os.getpid()}")
-        handle.flush()
+    def refuse(who: str) -> str:
+        return (f"run folder {out_dir} is in use by {who}; give this run its own folder "
+                f"(hydra.run.dir=<new folder>) or wait for that run to end")
+
+    with lock_file(Path(out_dir) / RUN_LOCK, wait=False, refuse=refuse):
         yield
 
 
 #: What a run folder holds before its stage has written anything of its own.
-_BOOKKEEPING = frozenset({".hydra", ".pushtorch.lock", "resolved_config.yaml"})
+_BOOKKEEPING = frozenset({".hydra", RUN_LOCK, "resolved_config.yaml"})
 
 
 def _discard_if_empty(out_dir: Path) -> None:
@@ -126,6 +119,8 @@ def _discard_if_empty(out_dir: Path) -> None:
     import shutil
 
     try:
+        if (out_dir / RUN_LOCK).exists():  # another run holds it (this run's lock is released by now)
+            return
         entries = list(out_dir.iterdir())
         if any(e.name not in _BOOKKEEPING and e.suffix != ".log" for e in entries):
             return

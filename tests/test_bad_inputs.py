@@ -42,8 +42,9 @@ from pushtorch.errors import (
     RecordFormatError,
     UnsafeNameError,
 )
+from pushtorch.io import sealed_archive
 from pushtorch.kde import KernelBandwidth, PoseKDE, ProductOfExperts, SharedKernelProduct
-from pushtorch.models.library import FORMAT, ModelSettings, _sealed_archive, load_model, train_push_model
+from pushtorch.models.library import FORMAT, ModelSettings, load_model, train_push_model
 from pushtorch.objects import load_mesh_file, load_object
 from pushtorch.paths import contained_path, safe_name
 from pushtorch.perception import PointCloud, capture_partial_cloud
@@ -114,6 +115,13 @@ def _header_bytes(header: Any) -> np.ndarray:
     return np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
 
 
+def _sealed(header: Any, arrays: dict[str, np.ndarray]) -> bytes:
+    """A model file's bytes as the library writes them: ``np.savez`` of the header and arrays, sealed."""
+    buffer = io.BytesIO()
+    np.savez(buffer, __header__=_header_bytes(header), **arrays)
+    return sealed_archive(buffer.getvalue())
+
+
 def _resaved(env: Env, edit, sealed: bool = True) -> Path:
     """The model file with ``edit(header, arrays)`` applied, written sealed (as by an author who knows the
     format: checks beyond the seal) or as ``np.savez`` writes it (as a user editing the file would)."""
@@ -121,7 +129,7 @@ def _resaved(env: Env, edit, sealed: bool = True) -> Path:
     header = edit(header, arrays) or header
     out = env.tmp / "edited.npz"
     if sealed:
-        out.write_bytes(_sealed_archive(header, arrays))
+        out.write_bytes(_sealed(header, arrays))
     else:
         np.savez(out, __header__=_header_bytes(header), **arrays)
     return out
@@ -523,7 +531,7 @@ def test_a_model_file_of_another_format_is_named(env):
     header, arrays = _model_parts(env.model_path)
     header["format"] = "someone.else"
     path = env.tmp / "other.npz"
-    path.write_bytes(_sealed_archive(header, arrays))
+    path.write_bytes(_sealed(header, arrays))
     with pytest.raises(RecordFormatError, match=f"not a {FORMAT}"):
         load_model(path)
 

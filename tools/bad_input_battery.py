@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
-import fcntl
+import contextlib
 import os
 import shutil
 import signal
@@ -42,6 +42,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bench_predict import cpu_name  # tools/ is on sys.path when a tool runs as a script
+
+from pushtorch.cli import RUN_LOCK
+from pushtorch.io import lock_file
 
 PYTHON = sys.executable
 #: Overrides that keep a simulation small if a case is (wrongly) accepted.
@@ -302,10 +305,8 @@ def make_fixtures(root: Path) -> tuple[Fixtures, object]:
     fx.min_results.mkdir()
     (fx.min_results / "results.json").write_text('{"experiment": "quickstart", "overrides": [], "records": []}\n')
     fx.locked.mkdir()
-    handle = open(fx.locked / ".pushtorch.lock", "a+")  # held open for the whole battery
-    fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    handle.write(f"pid {os.getpid()} (bad_input_battery)")
-    handle.flush()
+    handle = contextlib.ExitStack()  # the run folder's lock, held (with its heartbeat) for the whole battery
+    handle.enter_context(lock_file(fx.locked / RUN_LOCK, wait=False))
     return fx, handle
 
 

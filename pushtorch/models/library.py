@@ -8,11 +8,12 @@ the one whose manipulator contact model has the lowest feature-distance heuristi
 
 Model files are ``.npz`` archives read with ``allow_pickle=False``: tensors plus one JSON header
 (format name, version, settings, SHA-256 of every array), sealed by one SHA-256 over every byte of the
-archive before it, kept as the archive's 64-character zip comment. Any edited byte (an array, the header's
-action count or a setting, the zip structure) breaks the seal. A file of another version, a corrupt,
-edited or malformed file, or one whose settings construction would refuse is refused with
-:class:`~pushtorch.errors.RecordFormatError`. Saving is atomic; the temporaries a killed save leaves are
-removed by the next save to the same path.
+archive before it, kept as the archive's 64-character zip comment (:func:`pushtorch.io.sealed_archive`).
+Any edited byte (an array, the header's action count or a setting, the zip structure) breaks the seal. A
+file of another version, a corrupt, edited or malformed file, or one whose settings construction would
+refuse is refused with :class:`~pushtorch.errors.RecordFormatError`. Saving is atomic; the temporaries a
+killed save leaves are removed by the next save to the same path, under the folder's lock
+(:func:`pushtorch.io.folder_lock`).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import torch
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, RecordFormatError
 from pushtorch.features import SurfaceFeatures, compute_surface_features
+from pushtorch.io import atomic_write_bytes, folder_lock, read_sealed_archive, sealed_archive, temporary_files
 from pushtorch.models.contact import ManipulatorContactModel, fit_manipulator_contact_model
 from pushtorch.models.frames import ContactFrames
 from pushtorch.models.motion import MotionKernels, MotionModel, fit_motion_model
@@ -56,7 +58,6 @@ FORMAT = "pushtorch.push_model"
 # partial_data header field (2: only the arrays were checksummed; motion kernels in the robot's start
 # frame since 2, at the contact point in 1)
 VERSION = 4
-_SEAL_BYTES = 64  # hex SHA-256 of the archive before it, stored as the zip comment
 
 
 @dataclass(frozen=True)
@@ -233,9 +234,6 @@ class PushModel:
         Saves to one folder are serialised by a lock on the folder, under which the temporaries a
         killed save to ``path`` left behind are removed.
         """
-        from pushtorch.io import atomic_write_bytes, temporary_files
-        from pushtorch.sim.records import folder_lock
-
         arrays = {k: v.detach().cpu().numpy() for k, v in self.arrays().items()}
         header = {
             "format": FORMAT,
@@ -249,7 +247,7 @@ class PushModel:
             "partial_data": self.partial_data,
             "sha256": {k: _digest(v) for k, v in arrays.items()},
         }
-        data = _sealed_archive(header, arrays)
+        data = _model_archive(header, arrays)
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         with folder_lock(path.parent):  # no other save to this folder is mid-write now
@@ -279,27 +277,11 @@ def check_action(action) -> torch.Tensor:
     return a
 
 
-def _sealed_archive(header: dict, arrays: dict[str, np.ndarray]) -> bytes:
-    """The ``.npz`` bytes of ``header`` and ``arrays``, sealed: the zip comment is the hex SHA-256 of
-    every byte before it (the comment length in the end record included)."""
+def _model_archive(header: dict, arrays: dict[str, np.ndarray]) -> bytes:
+    """The sealed ``.npz`` bytes of a model file: ``header`` (JSON) and ``arrays``."""
     buffer = io.BytesIO()
     np.savez(buffer, __header__=np.frombuffer(json.dumps(header).encode(), dtype=np.uint8), **arrays)
-    data = buffer.getvalue()
-    # numpy writes no zip comment: the archive ends with the 22-byte end record, comment length 0
-    if data[-22:-18] != b"PK\x05\x06" or data[-2:] != b"\x00\x00":
-        raise RecordFormatError("numpy wrote an archive without the expected zip end record")
-    body = data[:-2] + _SEAL_BYTES.to_bytes(2, "little")
-    return body + hashlib.sha256(body).hexdigest().encode()
-
-
-def _unsealed(path: Path, data: bytes) -> None:
-    """Raise unless ``data`` ends with the seal of everything before it."""
-    body, seal = data[:-_SEAL_BYTES], data[-_SEAL_BYTES:]
-    if len(data) <= _SEAL_BYTES or hashlib.sha256(body).hexdigest().encode() != seal:
-        raise RecordFormatError(
-            f"{path} fails its checksum: the file was edited or is corrupt (its SHA-256 seal over the header"
-            " and every array does not match); retrain or restore the model"
-        )
+    return sealed_archive(buffer.getvalue())
 
 
 #: The seed of the generator a function that draws random numbers uses when given none: results never depend
@@ -358,9 +340,10 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32,
             f"{path} is model format version {version}, this pushtorch reads version {VERSION}: "
             "retrain the model with this version (python -m pushtorch.train ...)"
         )
-    _unsealed(path, data)
+    archive_bytes = read_sealed_archive(data, path, sealed="the header and every array",
+                                        remedy="retrain or restore the model")
     try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as archive:
+        with np.load(io.BytesIO(archive_bytes), allow_pickle=False) as archive:
             arrays = {k: archive[k] for k in archive.files}
     except Exception as exc:  # zipfile, numpy format and pickle refusals alike
         raise RecordFormatError(f"{path} is not a readable pushtorch model file: {exc}") from exc

@@ -22,7 +22,9 @@ A run's shard folder also holds ``manifest.json`` (written by :mod:`pushtorch.si
 count, shard size, seed and digests of its push indices and actions (:func:`plan_digests`). Loading a
 folder checks its records against it (:func:`run_status`, :func:`load_records`): exactly the shards and
 push indices it promises, each push's action, no duplicates, finite poses and unit quaternions. An
-unfinished run is refused with what is missing and how to resume it, unless ``allow_partial``.
+unfinished run is refused with what is missing and how to resume it, unless ``allow_partial``. While a run
+writes the folder it holds the folder's lock, the file ``.pushtorch-writer.lock``
+(:func:`pushtorch.io.folder_lock`, re-exported here).
 """
 
 from __future__ import annotations
@@ -30,11 +32,9 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
 import re
 import shlex
-from collections.abc import Iterable, Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -42,8 +42,8 @@ import numpy as np
 import torch
 
 from pushtorch import se3
-from pushtorch.errors import FolderInUseError, IncompleteRunError, RecordFormatError
-from pushtorch.io import atomic_write_bytes, temporary_files  # re-exported: their former home
+from pushtorch.errors import IncompleteRunError, RecordFormatError
+from pushtorch.io import atomic_write_bytes, folder_lock, temporary_files  # re-exported: their former home
 
 __all__ = [
     "ARRAYS",
@@ -223,38 +223,6 @@ class PushRecords:
 def shard_stem(shard_id: int) -> str:
     """File stem of a shard: ``shard-000042``."""
     return f"shard-{int(shard_id):06d}"
-
-
-@contextmanager
-def folder_lock(folder: str | Path, wait: bool = True, holder: str = "another process") -> Iterator[None]:
-    """Hold an exclusive ``fcntl.flock`` on ``folder`` itself (no lock file is left behind).
-
-    The lock belongs to this open descriptor: it is released when the block ends or the process dies
-    (a killed run never leaves a stale lock). Processes forked while it is held inherit the descriptor,
-    so take it after starting worker pools. Only processes that take the lock are excluded; local
-    filesystems honour it (NFS may not).
-
-    Args:
-        folder: an existing folder.
-        wait: block until the lock is free; False raises at once when another process holds it.
-        holder: who holds the lock, for the message.
-
-    Raises:
-        FolderInUseError: ``wait`` is False and the folder is locked.
-    """
-    import fcntl
-
-    fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
-        except BlockingIOError as exc:
-            raise FolderInUseError(
-                f"{folder} is being written by {holder}; wait for it to finish or use another folder"
-            ) from exc
-        yield
-    finally:
-        os.close(fd)  # closing the descriptor releases the lock
 
 
 def _check_arrays(arrays: Mapping[str, np.ndarray], where: str) -> tuple[int, int]:

@@ -8,11 +8,12 @@ inputs are fixed by the plan and a world keeps no state from one push to the nex
 depend on the number of workers or on their order, and a run that was killed resumes by simulating only
 the shards that have no finished manifest.
 
-A run claims its shard folder for as long as it runs: it holds an exclusive ``flock`` on the folder
-(:func:`pushtorch.sim.records.folder_lock`) while it checks or writes ``manifest.json`` and simulates, so a
-second run into the same folder is refused at once (:class:`~pushtorch.errors.FolderInUseError`) and two
-runs with different plans can never both pass the manifest check. The lock dies with its process: a
-killed run leaves none behind.
+A run claims its shard folder for as long as it runs: it holds the folder's lock
+(:func:`pushtorch.io.folder_lock`, a lock file that holds across the nodes of a shared filesystem) while it
+checks or writes ``manifest.json`` and simulates, so a second run into the same folder, on this machine or
+another, is refused at once (:class:`~pushtorch.errors.FolderInUseError`) and two runs with different plans
+can never both pass the manifest check. A killed run's lock is broken at once by the next run on the same
+machine, and expires a minute after its last heartbeat on any other.
 """
 
 from __future__ import annotations
