@@ -27,6 +27,7 @@ clouds (``()`` for one). Decisions (docs/method.md, "The prediction as a distrib
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import torch
@@ -35,13 +36,16 @@ from torch.distributions import Distribution, constraints
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.kde import KernelBandwidth, PoseKDE, SharedKernelProduct
-from pushtorch.kde.normaliser import log_kernel_normaliser, log_normaliser
+from pushtorch.kde.normaliser import NO_CUTOFF, expert_log_probs, log_kernel_normaliser, log_normaliser
 from pushtorch.models.library import as_generator
 from pushtorch.models.motion import stack_products
 
 Tensor = torch.Tensor
 
-__all__ = ["FinalPoseDistribution"]
+__all__ = ["KERNELS", "FinalPoseDistribution"]
+
+#: The kernels a distribution evaluates: the model's cut-off kernels, or the full ones they approximate.
+KERNELS = ("cut", "full")
 
 #: Proposals per expert and part of the normaliser's importance sampler (``kde.normaliser.log_normaliser``): on
 #: the quickstart's cube predictions (6 experts, ~450 kernels) log Z varies by ~0.005 nats between seeds
@@ -74,21 +78,27 @@ class FinalPoseDistribution(Distribution):
     has_rsample = False
 
     def __init__(self, means: se3.Pose, log_weights: Tensor, bandwidth: KernelBandwidth, trial_rounds: Tensor,
-                 exponent: Tensor, mode: Tensor, method: str = "fast", normaliser_centres: se3.Pose | None = None,
-                 validate_args: bool | None = None) -> None:
+                 exponent: Tensor, mode: Tensor | None, method: str = "fast",
+                 normaliser_centres: se3.Pose | None = None, validate_args: bool | None = None, *,
+                 kernels: str = "cut", frame: tuple[se3.Pose, se3.Pose] | None = None,
+                 log_z: Tensor | None = None) -> None:
         if method not in ("dense", "fast"):
             raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
+        if kernels not in KERNELS:
+            raise InvalidParameterError(f"kernels must be one of {', '.join(map(repr, KERNELS))}, got {kernels!r}")
         batch = means.batch_shape[:-1]
         if log_weights.shape[1:] != means.batch_shape or exponent.shape != log_weights.shape[:-1]:
             raise InvalidParameterError(
                 f"log_weights (E, *B, K) and exponent (E, *B) must match means {tuple(means.batch_shape)}; got "
                 f"{tuple(log_weights.shape)} and {tuple(exponent.shape)}")
+        if kernels == "full":
+            bandwidth = dataclasses.replace(bandwidth, cutoff_std=NO_CUTOFF)
         self.means, self.log_weights, self.bandwidth = means, log_weights, bandwidth
         self.trial_rounds = trial_rounds.expand(*batch, 3)
-        self.exponent, self.method = exponent, method
+        self.exponent, self.method, self.kernels, self.frame = exponent, method, kernels, frame
         self._mode = mode
         self.normaliser_centres = normaliser_centres
-        self._log_z: Tensor | None = None
+        self._log_z: Tensor | None = log_z
         self._log_kernel: Tensor | None = None
         self._experts: PoseKDE | None = None
         self._product: SharedKernelProduct | None = None
@@ -142,16 +152,20 @@ class FinalPoseDistribution(Distribution):
         arguments = dict(means=self.means, log_weights=self.log_weights, bandwidth=self.bandwidth,
                          trial_rounds=self.trial_rounds, exponent=self.exponent, mode=self._mode,
                          method=self.method, normaliser_centres=self.normaliser_centres,
-                         validate_args=self._validate_args)
-        out = FinalPoseDistribution(**(arguments | changes))
-        out._log_z = log_z
-        return out
+                         validate_args=self._validate_args, kernels=self.kernels, frame=self.frame)
+        return FinalPoseDistribution(**(arguments | changes), log_z=log_z)
 
     # ------------------------------------------------------------------------------------------ properties
 
     @property
     def mode(self) -> Tensor:
-        """``(*B, 7)`` the annealed prediction (``Prediction.final_pose`` as ``[p, q_wxyz]``)."""
+        """``(*B, 7)`` the annealed prediction (``Prediction.final_pose`` as ``[p, q_wxyz]``).
+
+        Raises:
+            NotImplementedError: a density built without one (a baseline's scoring density).
+        """
+        if self._mode is None:
+            raise NotImplementedError("this density was built without an annealed mode")
         return self._mode
 
     @property
@@ -232,11 +246,30 @@ class FinalPoseDistribution(Distribution):
         gamma = self.exponent.unsqueeze(-1)
         return torch.where(gamma > 0, gamma * per_expert, torch.zeros_like(per_expert)).sum(0)
 
+    def _full_log_prob(self, value: Tensor) -> Tensor:
+        """``log_prob`` with the full (uncut) kernels: poses moved out of ``frame`` and the experts' logs summed
+        in float64, the kernels evaluated densely in the model's dtype (there is no cut-off to prune)."""
+        nb = len(self.batch_shape)
+        shape = torch.broadcast_shapes(value.shape[:-1], self.batch_shape)
+        sample_shape = shape[: len(shape) - nb]
+        flat = value.double().expand(*shape, 7).reshape(-1, *self.batch_shape, 7).movedim(0, nb)  # (*B, M, 7)
+        y = se3.Pose.from_vector(flat)
+        if self.frame is not None:
+            left, right = self.frame
+            y = se3.compose(se3.compose(se3.inverse(left), y), se3.inverse(right))
+        gamma = self.exponent.double().unsqueeze(-1)  # (E, *B, 1)
+        per_expert = expert_log_probs(self.experts(), y)  # (E, *B, M), each expert normalised
+        weighted = torch.where(gamma > 0, gamma * per_expert, torch.zeros_like(per_expert))
+        out = weighted.sum(0) - self.log_normaliser().unsqueeze(-1)
+        return out.movedim(-1, 0).reshape(torch.Size([*sample_shape, *self.batch_shape]))
+
     def log_prob(self, value: Tensor) -> Tensor:
         """Normalised log density (nats; module docstring) at poses ``(..., *B, 7)`` → ``(..., *B)``;
         −inf outside the kernels' cut-offs. Differentiable with respect to ``value``."""
         if self._validate_args:
             self._validate_sample(value)
+        if self.kernels == "full":
+            return self._full_log_prob(value)
         queries, sample_shape = self._as_queries(value)
         constant = (self.exponent.double().sum(0) * self.log_kernel_integral() + self.log_normaliser()
                     ).to(queries.dtype)
@@ -284,6 +317,10 @@ class FinalPoseDistribution(Distribution):
             flat = pool.vector().reshape(-1, pool.p.shape[-2], 7)
             drawn = torch.gather(flat, 1, index.unsqueeze(-1).expand(-1, n, 7))  # (prod B, n, 7)
         drawn = drawn.reshape(*self.batch_shape, n, 7).movedim(nb, 0)
+        if self.frame is not None:
+            left, right = self.frame
+            moved = se3.compose(se3.compose(left, se3.Pose.from_vector(drawn.double())), right)
+            drawn = moved.vector().to(drawn.dtype)
         return drawn.reshape(*sample_shape, *self.batch_shape, 7)
 
     def to(self, device=None, dtype=None) -> FinalPoseDistribution:
@@ -292,15 +329,24 @@ class FinalPoseDistribution(Distribution):
             return t.to(device=device, dtype=dtype if t.is_floating_point() else None)
 
         centres = None if self.normaliser_centres is None else self.normaliser_centres.to(device=device, dtype=dtype)
+        frame = None if self.frame is None else tuple(f.to(device=device) for f in self.frame)
         return self._replace(means=self.means.to(device=device, dtype=dtype), log_weights=move(self.log_weights),
                              trial_rounds=self.trial_rounds.to(device), exponent=move(self.exponent),
-                             mode=move(self._mode), normaliser_centres=centres,
-                             log_z=None if self._log_z is None else self._log_z.to(device))
+                             mode=None if self._mode is None else move(self._mode), normaliser_centres=centres,
+                             frame=frame, log_z=None if self._log_z is None else self._log_z.to(device))
 
     def with_method(self, method: str) -> FinalPoseDistribution:
         """The same distribution evaluated by ``method`` (``"fast"`` or ``"dense"``)."""
         return self._replace(method=method, log_z=self._log_z)
 
+    def with_kernels(self, kernels: str) -> FinalPoseDistribution:
+        """The same prediction with ``kernels="cut"`` (the model's cut-off kernels: 0 beyond their reach) or
+        ``"full"`` (the Gaussian × folded vMF kernels the cut-offs approximate: finite everywhere, as a
+        planner's gradients or a likelihood score need); normalised anew."""
+        if kernels == self.kernels:
+            return self
+        return self._replace(kernels=kernels)
+
     def __repr__(self) -> str:
         return (f"FinalPoseDistribution(batch_shape={tuple(self.batch_shape)}, experts={self.num_experts}, "
-                f"kernels={self.means.p.shape[-2]}, method={self.method!r})")
+                f"kernels={self.means.p.shape[-2]} {self.kernels}, method={self.method!r})")

@@ -18,7 +18,7 @@ from pytorch_kinematics import transforms as pkt
 
 from pushtorch import se3
 from pushtorch.distribution import FinalPoseDistribution
-from pushtorch.errors import InvalidPoseError
+from pushtorch.errors import InvalidParameterError, InvalidPoseError
 from pushtorch.kde import KernelBandwidth, PoseKDE
 
 METHODS = ("fast", "dense")
@@ -88,6 +88,25 @@ def test_the_density_integrates_to_one(predictions, method):
     mass, error = _monte_carlo_mass(density, 40_000, seed=7)
     assert abs(mass - 1.0) < max(0.05, 3 * error), (mass, error)
     assert error < 0.03
+
+
+def test_full_kernels_integrate_to_one_and_are_finite_with_gradients_everywhere(predictions):
+    """``with_kernels("full")``: the kernels the cut-offs approximate, normalised anew; what a planner needs
+    (a goal 1 m away still has a finite log density and gradient) and what nll scores."""
+    cut = predictions[0].density
+    full = cut.with_kernels("full")
+    assert full.kernels == "full" and cut.kernels == "cut" and full.with_kernels("cut").kernels == "cut"
+    mass, error = _monte_carlo_mass(full, 40_000, seed=11)
+    assert abs(mass - 1.0) < max(0.05, 3 * error), (mass, error)
+    goal = (cut.mode + torch.tensor([1.0, 0.5, 0, 0, 0, 0, 0])).requires_grad_(True)
+    assert cut.log_prob(goal.detach()) == -math.inf
+    value = full.log_prob(goal)
+    value.backward()
+    assert torch.isfinite(value) and torch.isfinite(goal.grad).all() and goal.grad[:2].abs().sum() > 0
+    near = cut.sample((64,), generator=torch.Generator().manual_seed(3))
+    assert torch.isfinite(full.log_prob(near)).all()  # the full density covers the cut one's support
+    with pytest.raises(InvalidParameterError, match="kernels"):
+        cut.with_kernels("wide")
 
 
 def test_one_cut_off_expert_integrates_to_one_without_the_importance_sampler():
@@ -179,7 +198,7 @@ def test_a_distribution_moves_to_float64(predictions):
 
 
 def test_the_uncut_kernels_scored_by_nll_are_normalised_too():
-    """likelihood.PoseDensity (the nll score) uses the same kernel normaliser with the cut-offs removed."""
+    """The full kernels (kernels="full", what nll scores) use the same kernel normaliser without the cut-offs."""
     from pushtorch.evaluation.likelihood import log_kernel_normaliser
 
     kde = PoseKDE(se3.identity((1,)), KernelBandwidth(0.01, 0.05, cutoff_std=(math.inf, math.inf, math.inf)))

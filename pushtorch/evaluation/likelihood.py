@@ -31,19 +31,16 @@ that is wrong but says it is unsure. Decisions (docs/method.md, "Likelihood scor
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 from pytorch_kinematics import transforms as pkt
 
 from pushtorch import se3
+from pushtorch.distribution import FinalPoseDistribution
 from pushtorch.errors import InvalidParameterError
-from pushtorch.kde import KernelBandwidth, PoseKDE
+from pushtorch.kde import KernelBandwidth
 from pushtorch.kde.normaliser import (
     IMPORTANCE_SAMPLES,
-    NO_CUTOFF,
-    expert_exponents,
-    expert_log_probs,
     log_kernel_normaliser,
     log_normaliser,
     log_rotation_normaliser,
@@ -57,7 +54,6 @@ __all__ = [
     "IMPORTANCE_SAMPLES",
     "MIN_P_STD",
     "MIN_ROT_STD",
-    "PoseDensity",
     "log_kernel_normaliser",
     "log_normaliser",
     "log_rotation_normaliser",
@@ -77,72 +73,54 @@ _CONTINUOUS_STEPS = 120  # a 3° grid about a continuous symmetry axis
 _REFINE = torch.linspace(-1.5, 1.5, 37, dtype=torch.float64)  # ±1.5 grid steps (±4.5°) in 0.25° steps
 
 
-@dataclass
-class PoseDensity:
-    """A normalised density over poses ``x = left ∘ y ∘ right`` with ``y`` distributed as the product of the
-    experts ``kde`` (uncut kernels, float32 like the model's; poses are moved and logs summed in float64).
-
-    Attributes:
-        kde: the experts, batch ``(E,)``.
-        log_z: ``log ∫ Π_e p_e^γ_e`` (:func:`log_normaliser`), ``()``.
-        left, right: poses ``()``; the identity for a density over final poses itself.
-        exponent: ``(E,)`` the experts' exponents ``γ_e`` (None: 1 each, the paper's product).
-    """
-
-    kde: PoseKDE
-    log_z: Tensor
-    left: se3.Pose
-    right: se3.Pose
-    exponent: Tensor | None = None
-
-    def log_prob(self, pose: se3.Pose) -> Tensor:
-        """Normalised log density at poses ``(...)`` → ``(...)`` (float64)."""
-        se3.check_pose(pose, "pose")
-        shape = pose.p.shape[:-1]
-        x = se3.Pose.unchecked(pose.p.reshape(-1, 3).double(), pose.q.reshape(-1, 4).double())
-        y = se3.compose(se3.compose(se3.inverse(self.left), x), se3.inverse(self.right))
-        gamma = expert_exponents(self.kde, self.exponent).unsqueeze(-1)
-        per_expert = expert_log_probs(self.kde, y)
-        weighted = torch.where(gamma > 0, gamma * per_expert, torch.zeros_like(per_expert))
-        return (weighted.sum(0) - self.log_z).reshape(shape)
-
-
-def _identity() -> se3.Pose:
-    return se3.identity(dtype=torch.float64)
-
-
-def _experts(means: se3.Pose, log_weights: Tensor, p_std: float, rot_std: float,
-             trial_rounds: Tensor | None = None, alpha_t: float = 2.0) -> PoseKDE:
-    bandwidth = KernelBandwidth(p_std=p_std, rot_std=rot_std, cutoff_std=NO_CUTOFF, alpha_t=alpha_t)
+def _full_density(means: se3.Pose, log_weights: Tensor, p_std: float, rot_std: float,
+                  trial_rounds: Tensor | None = None, alpha_t: float = 2.0, exponent: Tensor | None = None,
+                  frame: tuple[se3.Pose, se3.Pose] | None = None) -> FinalPoseDistribution:
+    """Experts ``(E,)`` with uncut kernels at the shared ``means (K,)`` (float32, unit q), normaliser not set."""
     e, k = log_weights.shape
-    p = means.p.float().reshape(-1, k, 3).expand(e, k, 3)
-    q = unit_quaternions(means.q.float().reshape(-1, k, 4).expand(e, k, 4))
-    return PoseKDE(se3.Pose.unchecked(p, q), bandwidth, log_weights.float(), trial_rounds=trial_rounds)
+    if means.batch_shape != (k,):
+        raise InvalidParameterError(f"the experts share their kernel means: means (K,) = ({k},), got "
+                                    f"{tuple(means.batch_shape)}")
+    bandwidth = KernelBandwidth(p_std=p_std, rot_std=rot_std, alpha_t=alpha_t)
+    shared = se3.Pose.unchecked(means.p.float(), unit_quaternions(means.q.float()))
+    rounds = torch.zeros(3, dtype=torch.int64) if trial_rounds is None else torch.as_tensor(trial_rounds)
+    gamma = torch.ones(e, dtype=torch.float64) if exponent is None else _exponents_of(e, exponent)
+    return FinalPoseDistribution(shared, log_weights.float(), bandwidth, rounds.reshape(-1, 3)[0], gamma, None,
+                                 method="dense", kernels="full", frame=frame)
+
+
+def _exponents_of(experts: int, exponent: Tensor) -> Tensor:
+    """``(E,)`` float64 exponents, checked (finite, >= 0, one per expert)."""
+    g = torch.as_tensor(exponent, dtype=torch.float64).reshape(-1)
+    if g.shape[0] != experts or not torch.isfinite(g).all() or (g < 0).any():
+        raise InvalidParameterError(f"expert exponents must be {experts} finite numbers >= 0, got {g.tolist()}")
+    return g
 
 
 def product_density(means: se3.Pose, log_weights: Tensor, p_std: float, rot_std: float,
                     trial_rounds: Tensor | None = None, alpha_t: float = 2.0,
                     generator: torch.Generator | None = None, centres: se3.Pose | None = None,
-                    samples: int = IMPORTANCE_SAMPLES, exponent: Tensor | None = None) -> PoseDensity:
-    """The normalised product of experts whose kernels sit at ``means`` (``(K,)``, or ``(E, K)``), each
-    expert raised to its ``exponent`` ``γ_e`` (``(E,)``, default 1).
+                    samples: int = IMPORTANCE_SAMPLES, exponent: Tensor | None = None) -> FinalPoseDistribution:
+    """The normalised product of experts whose kernels sit at the shared ``means`` (``(K,)``), each expert
+    raised to its ``exponent`` ``γ_e`` (``(E,)``, default 1): a :class:`FinalPoseDistribution` with
+    ``kernels="full"``.
 
     Args:
         log_weights: ``(E, K)`` each expert's kernel log-weights (normalised here; ``-inf``: not in it).
-        p_std, rot_std: the kernels' bandwidth before trial rounds; trial_rounds ``(3,)`` or ``(E, 3)``.
+        p_std, rot_std: the kernels' bandwidth before trial rounds; trial_rounds ``(3,)``.
         generator: the importance sampler's random stream; centres: where the product's modes are
             believed to be; samples: proposals per expert and part (:func:`log_normaliser`).
 
     Raises:
         InvalidParameterError: an expert without kernels, or malformed kernels (as :class:`PoseKDE`).
     """
-    kde = _experts(means, log_weights, p_std, rot_std, trial_rounds, alpha_t)
-    return PoseDensity(kde, log_normaliser(kde, generator, samples, centres, exponent), _identity(), _identity(),
-                       exponent)
+    density = _full_density(means, log_weights, p_std, rot_std, trial_rounds, alpha_t, exponent)
+    density._log_z = log_normaliser(density.experts(), generator, samples, centres, exponent)
+    return density
 
 
 def motion_product_density(density, generator: torch.Generator | None = None,
-                           candidates: se3.Pose | None = None) -> PoseDensity:
+                           candidates: se3.Pose | None = None) -> FinalPoseDistribution:
     """The normalised, uncut form of a prediction's product of experts
     (:class:`pushtorch.models.motion.MotionDensity`), with its bandwidth and trial rounds; ``candidates``:
     the prediction's annealed candidates (``Prediction.candidates``), where the product's modes are."""
@@ -153,15 +131,16 @@ def motion_product_density(density, generator: torch.Generator | None = None,
                            generator, candidates, exponent=density.expert_exponent)
 
 
-def point_density(pose: se3.Pose, p_std: float, rot_std: float) -> PoseDensity:
+def point_density(pose: se3.Pose, p_std: float, rot_std: float) -> FinalPoseDistribution:
     """One kernel of bandwidth (p_std, rot_std) at ``pose`` ``()``: how a point prediction is scored."""
     one = se3.Pose.unchecked(pose.p.reshape(1, 3), pose.q.reshape(1, 4))
-    return PoseDensity(_experts(one, torch.zeros(1, 1), p_std, rot_std), torch.zeros((), dtype=torch.float64),
-                       _identity(), _identity())
+    density = _full_density(one, torch.zeros(1, 1), p_std, rot_std)
+    density._log_z = torch.zeros((), dtype=torch.float64)
+    return density
 
 
 def mean_motion_density(motions: se3.Pose, mean_motion: se3.Pose, robot_start: se3.Pose,
-                        object_pose: se3.Pose) -> PoseDensity:
+                        object_pose: se3.Pose) -> FinalPoseDistribution:
     """The mean-motion baseline's density: ``B1 = R0 ∘ M ∘ R0⁻¹ ∘ B̂0`` with ``M`` an isotropic Gaussian ×
     folded vMF around ``mean_motion`` fitted to the training ``motions`` ``(N,)`` (robot start frame).
 
@@ -180,8 +159,10 @@ def mean_motion_density(motions: se3.Pose, mean_motion: se3.Pose, robot_start: s
     centre = se3.Pose.unchecked(centre_p.reshape(1, 3), centre_q.reshape(1, 4))
     robot = se3.Pose.unchecked(robot_start.p.double().reshape(3), robot_start.q.double().reshape(4))
     start = se3.Pose.unchecked(object_pose.p.double().reshape(3), object_pose.q.double().reshape(4))
-    return PoseDensity(_experts(centre, torch.zeros(1, 1), p_std, rot_std), torch.zeros((), dtype=torch.float64),
-                       robot, se3.compose(se3.inverse(robot), start))
+    density = _full_density(centre, torch.zeros(1, 1), p_std, rot_std,
+                            frame=(robot, se3.compose(se3.inverse(robot), start)))
+    density._log_z = torch.zeros((), dtype=torch.float64)
+    return density
 
 
 def _axis_turns(axis: Tensor, angles: Tensor) -> Tensor:
@@ -200,7 +181,7 @@ def symmetric_truths(truth_final: se3.Pose, truth_start: se3.Pose, estimate_star
     return se3.Pose.unchecked(moved.p, se3.quat_normalize(moved.q))
 
 
-def nll(density: PoseDensity, truth_final: se3.Pose, truth_start: se3.Pose, estimate_start: se3.Pose,
+def nll(density: FinalPoseDistribution, truth_final: se3.Pose, truth_start: se3.Pose, estimate_start: se3.Pose,
         symmetry: Symmetry) -> Tensor:
     """Negative log-likelihood (nats) of true final poses ``(T,)`` under a prediction made from the estimated
     start ``estimate_start`` (the truth moved from ``truth_start``), nearest symmetric copy (module docstring).
@@ -214,17 +195,18 @@ def nll(density: PoseDensity, truth_final: se3.Pose, truth_start: se3.Pose, esti
     discrete = symmetry.discrete.double()
     if symmetry.continuous_axis is None:
         copies = symmetric_truths(final, truth0, est0, discrete.expand(final.p.shape[0], *discrete.shape))
-        return -density.log_prob(copies).amax(-1)
+        return -density.log_prob(copies.vector()).amax(-1)
     axis = symmetry.continuous_axis.double()
     step = 2.0 * math.pi / _CONTINUOUS_STEPS
     angles = torch.arange(_CONTINUOUS_STEPS, dtype=torch.float64) * step
     turns = _axis_turns(axis, angles)  # (M, 4)
     grid = pkt.quaternion_raw_multiply(discrete.unsqueeze(1), turns.unsqueeze(0)).reshape(-1, 4)  # (K·M, 4)
-    coarse = density.log_prob(symmetric_truths(final, truth0, est0, grid.expand(final.p.shape[0], *grid.shape)))
+    coarse = density.log_prob(
+        symmetric_truths(final, truth0, est0, grid.expand(final.p.shape[0], *grid.shape)).vector())
     best = coarse.argmax(-1)
     k, m = best // _CONTINUOUS_STEPS, best % _CONTINUOUS_STEPS
     fine_angles = angles[m].unsqueeze(-1) + _REFINE * step  # (T, R)
     fine = pkt.quaternion_raw_multiply(discrete[k].unsqueeze(1).expand(-1, _REFINE.numel(), 4),
                                        _axis_turns(axis, fine_angles))
-    refined = density.log_prob(symmetric_truths(final, truth0, est0, fine))
+    refined = density.log_prob(symmetric_truths(final, truth0, est0, fine).vector())
     return -torch.maximum(coarse.amax(-1), refined.amax(-1))
