@@ -35,5 +35,6 @@ def test_an_old_module_path_imports_the_new_module_and_warns_where_it_is_importe
 def test_the_library_itself_imports_no_old_path():
     probe = ("import warnings; warnings.simplefilter('error', DeprecationWarning); "
              "import pushtorch.objects, pushtorch.evaluation.metrics, pushtorch.evaluation.likelihood, "
-             "pushtorch.evaluation.baselines, pushtorch.objects.shapes, pushtorch.distribution, pushtorch.models.motion")
+             "pushtorch.evaluation.baselines, pushtorch.objects.shapes, pushtorch.distribution, "
+             "pushtorch.models.motion")
     subprocess.run([sys.executable, "-c", probe], check=True)
