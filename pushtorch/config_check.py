@@ -49,7 +49,8 @@ class ConfigError(InvalidParameterError):
 
 @dataclass(frozen=True)
 class Rule:
-    """What one key accepts: ``kind`` (int, float, bool, str, name, pair, names, prior) and closed bounds."""
+    """What one key accepts: ``kind`` (int, float, bool, str, name, pair, names, conditions: which test
+    conditions a recording logs) and closed bounds."""
 
     kind: str
     low: float | None = None
@@ -75,8 +76,8 @@ _RULES: list[tuple[str, Rule]] = [
     ("object.name", Rule("name")),
     ("object.path", Rule("str", nullable=True)),
     ("object.scale", _float(1e-6, 1e3)),
-    ("sim.time_step", _float(1e-4, 0.05)),
     ("object.up", Rule("str", choices=("z", "y"))),  # pushtorch.objects.UP_AXES
+    ("sim.time_step", _float(1e-4, 0.05)),
     ("sim.solver_iterations", _int(1, 1000)),
     ("sim.control_every", _int(1, 1000)),
     ("sim.record_rate", _float(1e-3, 1000.0)),
@@ -129,6 +130,7 @@ _RULES: list[tuple[str, Rule]] = [
     ("**.shard_size", _int(1, 100_000)),
     ("**.progress", _BOOL),
     ("**.log_examples", _int(0, 100)),
+    ("recording.conditions", Rule("conditions", nullable=True)),  # experiments.common.LogConditions
     ("**.test_conditions", _int(1, 100_000)),
     ("**.runs", _int(1, 100_000)),
     ("**.yaw_range_deg", Rule("pair", -360.0, 360.0)),
@@ -152,7 +154,8 @@ _RULES: list[tuple[str, Rule]] = [
 ]
 
 _KIND_WORDS = {"int": "an integer", "float": "a number", "bool": "true or false", "str": "a string",
-               "name": "a name", "pair": "a pair [low, high] of numbers", "names": "a list of names"}
+               "name": "a name", "pair": "a pair [low, high] of numbers", "names": "a list of names",
+               "conditions": "first:k, worst:k, best:k or a list of indices"}
 
 
 def _matches(key: str, pattern: str) -> bool:
@@ -212,6 +215,14 @@ def _check_value(key: str, value: Any, rule: Rule) -> str | None:
         if len(numbers) != 2 or None in numbers or not rule.low <= numbers[0] <= numbers[1] <= rule.high:
             return (f"{key} must be [low, high] with {rule.low:g} <= low <= high <= {rule.high:g}, "
                     f"got {_shown(value)}")
+        return None
+    if rule.kind == "conditions":
+        from pushtorch.experiments.common import LogConditions
+
+        try:
+            LogConditions.parse(value, key=key)
+        except InvalidParameterError as exc:
+            return str(exc)
         return None
     if rule.kind == "names":
         if isinstance(value, str):
@@ -362,6 +373,7 @@ def _experiment_problems(c: Mapping[str, Any]) -> list[str]:
     samples = _number((c.get("model") or {}).get("samples_per_action", 500), True)
     if None in (count, duration, rate, samples):
         return problems  # reported by the rules
+    problems += _logged_condition_problems(c, exp)
     runs = [samples]
     for part in list((exp.get("parts") or {}).values()) or [exp]:
         if not isinstance(part, Mapping):
@@ -371,6 +383,20 @@ def _experiment_problems(c: Mapping[str, Any]) -> list[str]:
             if isinstance(conditions, Mapping) else 1
         runs.append(int(part.get("test_conditions", 1)) * int(part.get("truth_samples", 1)) * combinations)
     return problems + _memory_problems("experiment", max(runs) * count, duration, rate)
+
+
+def _logged_condition_problems(c: Mapping[str, Any], exp: Mapping[str, Any]) -> list[str]:
+    """``recording.conditions`` may not list an index beyond every part's test conditions."""
+    listed = (c.get("recording") or {}).get("conditions")
+    if not isinstance(listed, list) or not listed:
+        return []
+    sizes = [_number(part.get("test_conditions"), True)
+             for part in list((exp.get("parts") or {}).values()) or [exp] if isinstance(part, Mapping)]
+    sizes = [size for size in sizes if size is not None]
+    if not sizes or max(listed) < max(sizes):
+        return []
+    return [f"recording.conditions lists test condition {max(listed)}, but no part has more than {max(sizes)} "
+            f"(indices 0..{max(sizes) - 1})"]
 
 
 def _prior_name_problems(c: Mapping[str, Any], exp: Mapping[str, Any]) -> list[str]:

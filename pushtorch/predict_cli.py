@@ -9,10 +9,12 @@ friction drawn from the chosen priors, and measure H_acc. Usage::
     python -m pushtorch.predict 'models=[runs/train_cube/model.npz]' object=prism_long yaw_deg=20
     python -m pushtorch.predict 'models=[cube.npz,cylinder.npz]' object=mesh object.path=part.stl
 
-(``python -m pushtorch.predict_cli`` is the same app.) Output in the run directory: ``predictions.json``,
-``resolved_config.yaml`` and ``recording.rrd``: every prediction (:func:`pushtorch.viz.model.log_prediction`,
-at ``world/model/prediction/action_<j>``) with its first ground-truth push playing on ``sim_time``, a
-markdown summary at ``metrics/summary``, and a blueprint with a tab per action
+(``python -m pushtorch.predict_cli`` is the same app.) Output in the run directory: ``predictions.json``
+(each action's H_acc and ``nll``, the negative log-likelihood of each ground truth under the predicted
+density, as results.json's), ``resolved_config.yaml`` and ``recording.rrd``: every prediction
+(:func:`pushtorch.viz.model.log_prediction`, at ``world/model/prediction/action_<j>``, its density's draws
+at ``.../density``) with its first ground-truth push playing on ``sim_time``, a markdown summary with each
+action's H_acc and nll at ``metrics/summary``, and a blueprint with a tab per action
 (:func:`pushtorch.viz.blueprint.predict_blueprint`).
 """
 
@@ -135,6 +137,8 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
                 finals = se3.Pose.unchecked(records.object_final.p.float(), records.object_final.q.float())
                 acc = accuracy(prediction.final_pose.expand(samples), finals, obj)
                 entry["truth_final"] = [_pose_dict(finals.take(k)) for k in range(samples)]
+                entry["nll"] = [round(float(v), 4) for v in _nll(prediction, finals, truth_initial, obj,
+                                                                   stable_seed(seed, i, "likelihood"))]
                 entry["touched"] = records.touched.tolist()
                 # a ground truth that tipped or left the ground is no fair score for a planar prediction
                 entry["tipped_or_left_ground"] = (records.tipped | records.left_ground).tolist()
@@ -171,21 +175,41 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
     return summary
 
 
+def _nll(prediction, finals, truth_initial, obj, seed: int):
+    """Negative log-likelihoods (nats) of the true final poses ``(S,)`` under the prediction's density, in the
+    displacement sense, nearest symmetric copy: the score of results.json's ``nll_mean``
+    (:func:`pushtorch.evaluation.likelihood.nll`; its normaliser drawn from a generator seeded with ``seed``)."""
+    import torch
+
+    from pushtorch.evaluation.likelihood import motion_product_density, nll
+
+    density = motion_product_density(prediction.motion_density, torch.Generator().manual_seed(seed),
+                                     prediction.candidates)
+    return nll(density, finals, truth_initial, prediction.condition.object_pose, obj.symmetry)
+
+
 def _summary_markdown(object_name: str, model: str, paths: list[str], distances, results: list[dict]) -> str:
-    """The recording's summary: what was predicted with which model, and each action's accuracy."""
+    """The recording's summary: what was predicted with which model, and each action's accuracy and nll."""
     lines = [f"# Predicted pushes of {object_name}", "", f"Model: `{model}` (of {len(paths)} given)."]
     if distances is not None:
         lines.append("Feature distances H_r: " + ", ".join(f"{d:.4f}" for d in distances.tolist()) + ".")
-    lines += ["", "| action | (ẋ m/s, θ̇ rad/s) | H_acc | linear cm | angular deg | touched |",
-              "|---:|---|---:|---:|---:|---|"]
+    lines += ["", "| action | (ẋ m/s, θ̇ rad/s) | H_acc (frame) | nll (nats) | linear cm | angular deg | touched |",
+              "|---:|---|---:|---:|---:|---:|---|"]
     for entry in results:
         acc = entry.get("accuracy")
-        numbers = (f"{acc['hacc_mean']:.3f} | {acc['linear_cm']:.2f} | {acc['angular_deg']:.1f}" if acc
-                   else "– | – | –")
+        nll = entry.get("nll")
+        numbers = (f"{acc['hacc_mean']:.3f} | {sum(nll) / len(nll):.2f} | {acc['linear_cm']:.2f} | "
+                   f"{acc['angular_deg']:.1f}" if acc else "– | – | – | –")
         action = ", ".join(f"{v:.3f}" for v in entry["action"])
         lines.append(f"| {entry['action_index']} | ({action}) | {numbers} | {entry.get('touched', '–')} |")
-    lines += ["", "Ground truth: the first sample of each action plays on `sim_time` at "
-              "`world/model/prediction/action_<j>/truth_push`."]
+    lines += ["", "Means over the ground-truth samples. H_acc: the predicted final pose against the true one as it "
+              "is (in the frame the model estimated). nll: the negative log-likelihood of the true final pose "
+              "under the predicted density, the true motion applied to the estimated start (displacement "
+              "sense, nearest symmetric copy; `pushtorch.evaluation.likelihood.nll`, the score of results.json's "
+              "`nll_mean`).",
+              "", "Ground truth: the first sample of each action plays on `sim_time` at "
+              "`world/model/prediction/action_<j>/truth_push`; the predicted density is drawn at "
+              "`world/model/prediction/action_<j>/density` (draws, 90 % region, mode, the truth)."]
     return "\n".join(lines) + "\n"
 
 

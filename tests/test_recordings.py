@@ -4,12 +4,15 @@ A tiny real model-selection part (real pybullet pushes, a real trained cube mode
 ground truth) runs through :func:`pushtorch.experiments.suite.run_suite`; its ``recording.rrd`` is read
 back with Rerun's own reader. The blueprint is stored in the file as a separate *blueprint* store (same
 application id as the recording), so it is read from ``RrdReader.blueprints()``, not from the recording's
-chunks.
+chunks. Every logged prediction shows its density and its nll; a second run of two test conditions logs
+the worst one (``recording.conditions=worst:1``), predicted again with the set's seeds.
 """
 
 from __future__ import annotations
 
 import json
+import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +20,15 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from pushtorch.experiments.common import entity_label
+from pushtorch.config_check import ConfigError, check_config
+from pushtorch.errors import InvalidParameterError
+from pushtorch.experiments.common import (
+    LogConditions,
+    PredictionSet,
+    compare_displacement,
+    entity_label,
+    load_arrays,
+)
 from pushtorch.experiments.suite import run_suite
 from pushtorch.sim.records import load_records
 from pushtorch.viz import entity_name, open_recording
@@ -152,6 +163,115 @@ def test_annealing_and_hacc_series_are_logged(selection_run):
         value = [v for v in columns["Scalars:scalars"] if v is not None][0]
         assert value == pytest.approx([record["hacc_mean"]])
     assert "TextDocument:text" in _columns(out / "recording.rrd", part_summary_path("model_selection"))
+
+
+DENSITY = ("density/samples", "density/region_90", "density/ghosts", "density/mode", "density/truth")
+
+
+def _logged_roots(path) -> list[str]:
+    """The root of every logged prediction: the parent of each ``.../c<i>a<j>/summary``."""
+    paths = {str(chunk.entity_path) for chunk in _chunks(path)}
+    return sorted(p[1:-len("/summary")] for p in paths
+                  if p.startswith(f"/{PREDICTION}/") and re.search(r"/c\d+a\d+/summary$", p))
+
+
+def _summary(path, root: str) -> str:
+    text = _columns(path, f"{root}/summary")["TextDocument:text"][0]
+    return text[0] if isinstance(text, list) else text
+
+
+def test_every_logged_prediction_shows_its_density_and_nll(selection_run):
+    out, _ = selection_run
+    path = out / "recording.rrd"
+    roots = _logged_roots(path)
+    assert roots == [f"{PREDICTION}/model_selection/cube/adaptive/c0a{j}" for j in range(2)]
+    paths = {str(chunk.entity_path) for chunk in _chunks(path)}
+    scores, _ = load_arrays(out / "scores" / "model_selection_cube_adaptive.npz")
+    for j, root in enumerate(roots):
+        shown = {p for p in paths if p.startswith(f"/{root}/") and "density" in p}
+        assert {f"/{root}/{child}" for child in DENSITY} <= shown, root
+        samples = _columns(path, f"{root}/density/samples")["Points3D:positions"]
+        assert len(_present(samples)[0]) == 1000
+        # the summary's nll is the record's score of the truth it shows (condition 0, action j, sample 0)
+        summary = _summary(path, root)
+        nll = re.search(r"nll (-?\d+\.\d+) nats", summary)
+        assert nll, summary
+        assert float(nll.group(1)) == pytest.approx(float(scores["pushtorch"][0, 0, j, 0]), abs=0.006)
+        assert re.search(r"H_acc \d+\.\d+ \(displacement; frame \d+\.\d+\)", summary), summary
+
+
+@pytest.fixture(scope="module")
+def worst_run(selection_run, tmp_path_factory):
+    """The tiny part with two test conditions, logging the worst one; training reused from the first run."""
+    first, _ = selection_run
+    out = tmp_path_factory.mktemp("worst")
+    for folder in ("data", "models"):
+        shutil.copytree(first / folder, out / folder)
+    overrides = [o for o in TINY_SELECTION if not o.startswith("experiment.test_conditions=")]
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
+        cfg = compose("config", overrides=overrides + ["experiment.test_conditions=2",
+                                                       "recording.conditions=worst:1"])
+    run_suite(cfg, out, [("model_selection", cfg.experiment, cfg.model)])
+    return out
+
+
+def test_worst_logs_the_condition_of_highest_hacc_as_the_set_predicted_it(worst_run):
+    out = worst_run
+    key = "model_selection_cube_adaptive"
+    predictions = PredictionSet.load(out / "predictions" / f"{key}.npz")
+    n, a_count = predictions.final.batch_shape
+    assert (n, a_count) == (2, 2)
+    records = load_records(out / "truth" / key)
+    truth = records.object_final.reshape(n, a_count, 2)  # one truth condition, 2 samples
+    from pushtorch.objects import load_object
+
+    acc = compare_displacement(predictions.estimate, predictions.final, predictions.truth_initial, truth,
+                               load_object("cube"))
+    hacc = acc.hacc.double().reshape(n, a_count, 2).mean((1, 2))
+    worst = int(hacc.argmax())
+    path = out / "recording.rrd"
+    roots = _logged_roots(path)
+    assert roots == [f"{PREDICTION}/model_selection/cube/adaptive/c{worst}a{j}" for j in range(a_count)]
+    for j, root in enumerate(roots):
+        # predicted again with the set's seeds: the very prediction the set holds
+        final = np.asarray(_columns(path, f"{root}/final_predicted")["Transform3D:translation"][0]).reshape(3)
+        np.testing.assert_allclose(final, predictions.final.take((worst, j)).p.numpy(), atol=1e-6)
+        assert {f"/{root}/{child}" for child in DENSITY} <= {str(c.entity_path) for c in _chunks(path)}
+        summary = _summary(path, root)
+        assert f"worst:1: mean H_acc {float(hacc[worst]):.3f}" in summary, summary
+
+
+def test_log_conditions_parse_and_choose():
+    hacc = torch.tensor([0.3, 0.9, 0.1, 0.9, float("nan")])
+    assert LogConditions.parse(None, 2).choose(hacc) == [0, 1]
+    assert LogConditions.parse("first:9").choose(hacc) == [0, 1, 2, 3, 4]
+    assert LogConditions.parse("worst:3").choose(hacc) == [4, 1, 3]  # NaN worst; ties to the lower index
+    assert LogConditions.parse("best:2").choose(hacc) == [2, 0]
+    assert LogConditions.parse([3, 0, 7]).choose(hacc) == [3, 0]  # in the order given; 7 is not there
+    assert LogConditions.parse([]).choose(hacc) == []
+    assert LogConditions.parse("worst:2").known_before_truth(5) == []
+    assert LogConditions.parse([3, 0]).known_before_truth(2) == [0]
+    for bad in (2, "2", "wurst:2", "worst:", "worst:-1", "first:101", [0, 0], [-1], [0.5], True, {"k": 1}):
+        with pytest.raises(InvalidParameterError):
+            LogConditions.parse(bad)
+
+
+@pytest.mark.parametrize("value, fragment", [
+    ("2", "write first:2"),
+    ("wurst:2", "must be first:k, worst:k or best:k"),
+    ("[0,0]", "twice"),
+    ("[0,5]", "no part has more than 1"),
+])
+def test_config_check_refuses_a_malformed_recording_choice_in_one_line(value, fragment):
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
+        cfg = compose("config", overrides=TINY_SELECTION + [f"recording.conditions={value}"])
+    with pytest.raises(ConfigError) as error:
+        check_config(cfg, "config")
+    message = str(error.value)
+    assert "recording.conditions" in message and fragment in message and "\n" not in message
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
+        good = compose("config", overrides=TINY_SELECTION + ["recording.conditions=best:1"])
+    check_config(good, "config")
 
 
 def test_a_pushes_recording_ships_its_blueprint(tmp_path):

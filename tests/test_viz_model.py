@@ -1,12 +1,16 @@
 """Rerun logging of a trained model and a prediction (pushtorch.viz.model), on a tiny real cube model.
 
 The model is trained on real pybullet pushes and the prediction is made from a real single-shot
-cloud; what is logged is read back from the saved ``.rrd`` with Rerun's own reader.
+cloud; what is logged is read back from the saved ``.rrd`` with Rerun's own reader. The predicted
+density's entities (draws, 90 % region, ghosts, mode, truth) are checked against draws made here with
+the logger's seed, and logging is checked to leave the prediction and every caller's random stream as
+they were.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -15,7 +19,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pushtorch import se3
-from pushtorch.errors import InvalidParameterError
+from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.models.contact import closest_points_on_mesh
 from pushtorch.models.library import ModelSettings, train_push_model
 from pushtorch.objects import load_object
@@ -28,10 +32,15 @@ from pushtorch.viz import open_recording, read_entity_paths
 from pushtorch.viz.model import (
     ANNEAL_SERIES,
     ANNEAL_TIMELINE,
+    DENSITY_GHOSTS,
+    DENSITY_REGION,
+    DENSITY_SAMPLES,
+    DENSITY_SEED,
     PREDICTION,
     TRAINING,
     _range_colors,
     _subsample,
+    density_truth,
     log_anneal_history,
     log_anneal_series,
     log_contact_model,
@@ -47,6 +56,8 @@ TRAINING_ENTITIES = (
     "object", "object/mesh", "object/axes", "contact/points", "contact/frames", "contact/implied_robot",
     "robot", "robot/chassis", "robot/axes", "bumper", "position/points", "position/frames",
 )
+DENSITY_ENTITIES = ("density/samples", "density/region_90", "density/ghosts", "density/mode", "density/mode/axes",
+                    "density/truth", "density/truth/axes")
 PREDICTION_ENTITIES = (
     "cloud", "robot", "robot/chassis", "robot/axes", "bumper",
     "manipulator_contact/frame", "manipulator_contact/relation",
@@ -55,7 +66,7 @@ PREDICTION_ENTITIES = (
     "motion/experts", "motion/final_candidates",
     "final_predicted", "final_predicted/mesh", "final_predicted/axes",
     "initial_true", "initial_true/mesh", "final_true", "final_true/mesh", "initial_error", "final_error",
-) + tuple(ANNEAL_SERIES) + tuple(
+) + DENSITY_ENTITIES + tuple(ANNEAL_SERIES) + tuple(
     f"{query}/{part}" for query in ("robot_query", "pose_query")
     for part in ("features", "kernels", "candidates", "final_candidates")
 )
@@ -211,8 +222,11 @@ def test_prediction_without_history_density_truth_or_mesh(tmp_path, case):
                   "final_true", "initial_true", "final_error", "initial_error", "final_predicted/mesh"):
         assert f"/{root}/{child}" not in paths, child
     for child in ("robot_query/final_candidates", "pose_query/candidates", "pose_query/kernels", "robot",
-                  "bumper", "final_predicted", "final_predicted/axes", "initial_estimate/axes"):
+                  "bumper", "final_predicted", "final_predicted/axes", "initial_estimate/axes",
+                  "density/samples", "density/region_90", "density/ghosts", "density/mode"):
         assert f"/{root}/{child}" in paths, child
+    assert f"/{root}/density/truth" not in paths  # no truth given
+    assert not any(p.startswith(f"/{root}/collision_parts") for p in paths)  # no object given
 
 
 def test_anneal_history_absent_returns_false(tmp_path, case):
@@ -338,3 +352,121 @@ def test_prediction_plays_its_ground_truth_push(tmp_path, case):
                 if SIM_TIMELINE in batch.schema.names:
                     rows += batch.column("Transform3D:translation").to_pylist()
         np.testing.assert_allclose(np.asarray(rows).reshape(-1, 3), trajectory.p[0].numpy(), atol=1e-6)
+
+
+def _points(path, entity: str) -> np.ndarray:
+    return _single(path, entity, "Points3D:positions").reshape(-1, 3)
+
+
+def test_density_draws_region_mode_and_truth(tmp_path, case):
+    """The density's entities are draws made with the logger's own seed, the region their 90 % of highest
+    log-density, the mode the predicted final pose and the truth the true motion from the estimate."""
+    prediction, density = case["prediction"], case["prediction"].density
+    path = tmp_path / "density.rrd"
+    rec = open_recording(path, "pushtorch_test")
+    root = log_prediction(rec, prediction, case["truth_initial"], case["truth_final"], case["cube"],
+                          label="density", max_points=400, max_frames=10)
+    rec.disconnect()
+    n = min(DENSITY_SAMPLES, 400)
+    draws = density.sample((n,), torch.Generator().manual_seed(DENSITY_SEED))
+    samples = _points(path, f"{root}/density/samples")
+    np.testing.assert_allclose(samples, draws[:, :3].numpy(), atol=1e-6)
+    log_p = density.log_prob(draws).double()
+    region = _points(path, f"{root}/density/region_90")
+    assert len(region) == math.ceil(DENSITY_REGION * n)
+    inside = {tuple(np.round(r, 6)) for r in region}
+    outside = [k for k in range(n) if tuple(np.round(samples[k], 6)) not in inside]
+    assert outside, "some draws lie outside the 90 % region"
+    in_region = [k for k in range(n) if tuple(np.round(samples[k], 6)) in inside]
+    assert float(log_p[in_region].min()) >= float(log_p[outside].max())
+    ghosts = _single(path, f"{root}/density/ghosts", "Arrows3D:origins").reshape(-1, 3)
+    assert len(ghosts) == 3 * min(DENSITY_GHOSTS, 10)
+    np.testing.assert_allclose(ghosts[::3], draws[: len(ghosts) // 3, :3].numpy(), atol=1e-6)
+    np.testing.assert_allclose(_points(path, f"{root}/density/mode"), prediction.final_pose.p.reshape(1, 3),
+                               atol=1e-6)
+    np.testing.assert_allclose(_points(path, f"{root}/density/mode"), density.mode[:3].reshape(1, 3), atol=1e-6)
+    # the README's displaced truth: where the density scores the ground truth
+    start, final = case["truth_initial"], case["truth_final"]
+    moved = final.compose(start.inverse()).compose(prediction.condition.object_pose)
+    truth = _points(path, f"{root}/density/truth")
+    np.testing.assert_allclose(truth, moved.p.reshape(1, 3).numpy(), atol=1e-5)
+    np.testing.assert_allclose(density_truth(prediction, final, start).vector(), moved.vector(), atol=1e-6)
+    np.testing.assert_allclose(density_truth(prediction, final).vector(), final.vector(), atol=1e-6)
+
+
+def test_logging_changes_neither_the_prediction_nor_any_random_stream(tmp_path, case):
+    """A prediction logged and its twin not logged (same model, cloud, seed): same final pose and density,
+    and the callers' generators, used on after the prediction, draw the same; torch's and numpy's global
+    streams are untouched."""
+    model, cloud = case["model"], case["cloud"]
+    action = make_actions(3)[0]
+    logged_stream, plain_stream = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
+    logged = predict(model, cloud, action, logged_stream, record_history=True)
+    plain = predict(model, cloud, action, plain_stream, record_history=True)
+    final_before = logged.final_pose.vector().clone()
+    probe = logged.density.sample((32,), torch.Generator().manual_seed(5))
+    log_p_before = logged.density.log_prob(probe)
+    torch_state, numpy_state = torch.get_rng_state(), np.random.get_state()
+    path = tmp_path / "unchanged.rrd"
+    rec = open_recording(path, "pushtorch_test")
+    root = log_prediction(rec, logged, case["truth_initial"], case["truth_final"], case["cube"], label="logged",
+                          max_points=300)
+    again = log_prediction(rec, logged, label="again", max_points=300)
+    rec.disconnect()
+    assert torch.equal(torch.get_rng_state(), torch_state)
+    after = np.random.get_state()
+    assert after[0] == numpy_state[0] and np.array_equal(after[1], numpy_state[1]) and after[2:] == numpy_state[2:]
+    assert torch.equal(logged.final_pose.vector(), final_before)
+    assert torch.equal(logged.final_pose.vector(), plain.final_pose.vector())
+    assert torch.equal(logged.candidates.vector(), plain.candidates.vector())
+    assert torch.equal(logged.density.sample((32,), torch.Generator().manual_seed(5)), probe)
+    torch.testing.assert_close(logged.density.log_prob(probe), log_p_before, rtol=0, atol=0)
+    torch.testing.assert_close(plain.density.log_prob(probe), log_p_before, rtol=0, atol=0)
+    # the callers' streams go on alike: a draw from the density and a plain draw
+    assert torch.equal(logged.density.sample((16,), logged_stream), plain.density.sample((16,), plain_stream))
+    assert torch.equal(torch.rand(8, generator=logged_stream), torch.rand(8, generator=plain_stream))
+    # and two recordings of one prediction show the same draws
+    np.testing.assert_array_equal(_points(path, f"{root}/density/samples"),
+                                  _points(path, f"{again}/density/samples"))
+
+
+def test_collision_parts_are_shown_when_the_object_has_several(tmp_path, case):
+    """modified_cube is simulated as its catalogue pieces: each is a mesh under ``collision_parts``, at the
+    true initial pose; an object of one part (the cube) logs none."""
+    modified = load_object("modified_cube")
+    assert len(modified.collision_parts) > 1
+    path = tmp_path / "parts.rrd"
+    rec = open_recording(path, "pushtorch_test")
+    several = log_prediction(rec, case["prediction"], case["truth_initial"], object_mesh=modified, label="several")
+    one = log_prediction(rec, case["prediction"], case["truth_initial"], object_mesh=case["cube"], label="one")
+    rec.disconnect()
+    paths = read_entity_paths(path)
+    for k, part in enumerate(modified.collision_parts):
+        vertices = _single(path, f"{several}/collision_parts/part_{k}", "Mesh3D:vertex_positions").reshape(-1, 3)
+        np.testing.assert_allclose(vertices, np.asarray(part.vertices), atol=1e-6)
+    assert f"/{several}/collision_parts/part_{len(modified.collision_parts)}" not in paths
+    at = _single(path, f"{several}/collision_parts", "Transform3D:translation").reshape(3)
+    np.testing.assert_allclose(at, case["truth_initial"].p.numpy(), atol=1e-6)
+    assert not any(p.startswith(f"/{one}/collision_parts") for p in paths)
+
+
+class _Undrawable:
+    """A density with a mode and no support anywhere (its sampler raises as FinalPoseDistribution's does)."""
+
+    def __init__(self, mode: torch.Tensor) -> None:
+        self.mode, self.batch_shape = mode, torch.Size()
+
+    def sample(self, shape, generator=None):
+        raise ModelError("no proposal has non-zero density under the product of experts")
+
+
+def test_a_density_without_draws_logs_its_mode_only(tmp_path, case):
+    prediction = case["prediction"]
+    bare = dataclasses.replace(prediction, density=_Undrawable(prediction.final_pose.vector()))
+    path = tmp_path / "undrawable.rrd"
+    rec = open_recording(path, "pushtorch_test")
+    root = log_prediction(rec, bare, case["truth_initial"], case["truth_final"], label="undrawable")
+    rec.disconnect()
+    paths = read_entity_paths(path)
+    assert {f"/{root}/density/mode", f"/{root}/density/truth"} <= paths
+    assert f"/{root}/density/samples" not in paths and f"/{root}/density/region_90" not in paths

@@ -141,7 +141,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             truth_key = truth_fingerprint(ctx, conditions, samples, f"{name}_{obj.name}")
             predictions, examples = predict_set(
                 ctx, key, obj, candidates, poses, truth=truth_key, adaptive=adaptive, physics=physics,
-                seed_key=f"{name}_{obj.name}", bar=bar, examples=ctx.log_examples if k == 0 else 0,
+                seed_key=f"{name}_{obj.name}", bar=bar, examples=ctx.log_examples if k == 0 else None,
             )
             truth, broken = simulate_truth(ctx, key, obj, predictions, conditions, samples,
                                            seed_key=f"{name}_{obj.name}")
@@ -165,7 +165,8 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
                                              model_name, condition, metric="frame"))
             if examples:
                 label = entity_label(name, obj.name, model_name)
-                log_examples(ctx, label, obj, examples, predictions, truth.take(0))
+                log_examples(ctx, label, obj, examples, predictions, truth.take(0),
+                             nll=nll["pushtorch"][0])
     bar.close()
     return records, {"training_scatter": {name: scatter}, "training_actions": {name: scatter_actions},
                      "thrown": thrown, "hacc_samples": hacc_samples}

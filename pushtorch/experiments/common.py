@@ -43,7 +43,10 @@ from pushtorch.sim.world import SimSettings
 
 __all__ = [
     "Example",
+    "Examples",
     "ExperimentContext",
+    "LOG_RULES",
+    "LogConditions",
     "PredictionSet",
     "as_names",
     "compare",
@@ -109,6 +112,90 @@ def as_names(value: str | Sequence[str] | None) -> list[str]:
     return [str(v) for v in value]
 
 
+#: The rules of ``recording.conditions`` written ``<rule>:<k>`` (a list of indices is the fourth form).
+LOG_RULES = ("first", "worst", "best")
+#: Most test conditions one group logs (each logs every action: a recording grows by ~1 MB per prediction).
+MAX_LOGGED_CONDITIONS = 100
+
+
+@dataclass(frozen=True)
+class LogConditions:
+    """Which test conditions of a group the recording logs (config ``recording.conditions``).
+
+    ``first:k``: conditions ``0 .. k-1``; ``worst:k`` / ``best:k``: the k with the highest / lowest H_acc
+    (the group's primary score, :func:`compare_displacement`, against test condition 0's ground truth,
+    averaged over actions and truth samples; ties to the lower index); a list: those indices, in that order.
+    A group with fewer conditions logs those it has (an index it lacks is skipped, with a warning).
+
+    Attributes:
+        rule: ``first``, ``worst``, ``best`` or ``list``.
+        count: k of the first three rules.
+        indices: the listed indices (rule ``list``).
+    """
+
+    rule: str = "first"
+    count: int = 1
+    indices: tuple[int, ...] = ()
+
+    @staticmethod
+    def parse(value: Any, default_count: int = 1, key: str = "recording.conditions") -> LogConditions:
+        """The choice a config value names; None: ``first:<default_count>`` (``experiment.log_examples``).
+
+        Raises:
+            InvalidParameterError: anything but ``first:k``, ``worst:k``, ``best:k`` (0 <= k <= 100) or a
+                list of distinct integer indices >= 0 (at most 100), in one line naming ``key``.
+        """
+        usage = (f"{key} must be first:k, worst:k or best:k (0 <= k <= {MAX_LOGGED_CONDITIONS}) or a list of "
+                 "test-condition indices such as [0, 2]")
+        if value is None:
+            value = f"first:{default_count}"
+        if isinstance(value, str):
+            rule, colon, count = value.strip().partition(":")
+            if not colon or rule not in LOG_RULES or not count.strip().isdigit():
+                raise InvalidParameterError(f"{usage}, got {value!r}")
+            k = int(count)
+            if k > MAX_LOGGED_CONDITIONS:
+                raise InvalidParameterError(f"{usage}, got {value!r}")
+            return LogConditions(rule, k)
+        if isinstance(value, Sequence) and not isinstance(value, bytes):
+            items = list(value)
+            if len(items) > MAX_LOGGED_CONDITIONS or not all(
+                    isinstance(i, int | np.integer) and not isinstance(i, bool) and i >= 0 for i in items):
+                raise InvalidParameterError(f"{usage}, got {items!r}")
+            if len(set(items)) != len(items):
+                raise InvalidParameterError(f"{key} lists a test condition twice: {items!r}")
+            return LogConditions("list", len(items), tuple(int(i) for i in items))
+        hint = (f": for the first {value} write first:{value}, for condition {value} alone [{value}]"
+                if isinstance(value, int) and not isinstance(value, bool) else "")
+        raise InvalidParameterError(f"{usage}, got {value!r} ({type(value).__name__}){hint}")
+
+    @property
+    def by_hacc(self) -> bool:
+        """Whether the choice needs the group's ground truth (``worst`` and ``best``)."""
+        return self.rule in ("worst", "best")
+
+    def __str__(self) -> str:
+        return repr(list(self.indices)) if self.rule == "list" else f"{self.rule}:{self.count}"
+
+    def known_before_truth(self, n: int) -> list[int]:
+        """The conditions of a group of ``n`` chosen before its ground truth exists (none for worst and best)."""
+        if self.rule == "first":
+            return list(range(min(self.count, n)))
+        if self.rule == "list":
+            return [i for i in self.indices if i < n]
+        return []
+
+    def choose(self, hacc: torch.Tensor) -> list[int]:
+        """The conditions chosen, given each condition's H_acc ``(N,)`` (used by worst and best only; NaN
+        counts as the worst)."""
+        n = int(hacc.shape[0])
+        if not self.by_hacc:
+            return self.known_before_truth(n)
+        score = torch.nan_to_num(hacc.detach().double().cpu(), nan=math.inf)
+        order = torch.sort(score if self.rule == "best" else -score, stable=True).indices
+        return order[: self.count].tolist()
+
+
 @dataclass
 class ExperimentContext:
     """Everything the experiment steps share: where to cache, how to train, simulate and log.
@@ -125,7 +212,8 @@ class ExperimentContext:
         workers: simulation processes (0: all cores); shard_size: pushes per shard.
         progress: show tqdm progress bars.
         recording: an open Rerun recording, or None.
-        log_examples: test conditions per part and object whose predictions (every action) are logged.
+        log_examples: which test conditions per part and object have their predictions (every action)
+            logged: ``recording.conditions``, default the first ``experiment.log_examples``.
         logged_predictions: ``(root entity path, summary)`` of every prediction :func:`log_examples` logged
             (for the recording's blueprint and part summaries; shared by :meth:`with_model` contexts).
         placement: how training places the robot (``model.placement``; default the paper's single
@@ -147,7 +235,7 @@ class ExperimentContext:
     shard_size: int = 100
     progress: bool = True
     recording: Any = None
-    log_examples: int = 1
+    log_examples: LogConditions = field(default_factory=LogConditions)
     placement: Placement = Placement()
     test_placement: Placement | None = None
     logged_predictions: list[tuple[str, str]] = field(default_factory=list, repr=False)
@@ -218,7 +306,7 @@ def _test_placement(entry: Mapping[str, Any] | None) -> Placement | None:
 
 def context_from_config(cfg: DictConfig | Mapping[str, Any], run_dir: str | Path) -> ExperimentContext:
     """Build the context from a composed experiment config (keys ``seed``, ``model``, ``priors``, ``sim``,
-    ``experiment.actions``, ``experiment.workers``, ...).
+    ``experiment.actions``, ``experiment.workers``, ``recording.conditions``, ...).
 
     Raises:
         InvalidParameterError: an invalid model setting, prior or size.
@@ -252,7 +340,8 @@ def context_from_config(cfg: DictConfig | Mapping[str, Any], run_dir: str | Path
         workers=int(exp.get("workers", 0)),
         shard_size=int(exp.get("shard_size", 100)),
         progress=bool(exp.get("progress", True)),
-        log_examples=int(exp.get("log_examples", 1)),
+        log_examples=LogConditions.parse((c.get("recording") or {}).get("conditions"),
+                                         int(exp.get("log_examples", 1))),
         placement=_model_placement(model_cfg),
         test_placement=_test_placement(c.get("test_placement")),
     )
@@ -530,6 +619,26 @@ class Example:
     features: SurfaceFeatures
 
 
+@dataclass
+class Examples:
+    """The predictions of one group that the recording logs (:func:`log_examples`).
+
+    Attributes:
+        choice: which conditions (None: the group logs none).
+        kept: the chosen conditions' predictions kept while the set was predicted (every action, with their
+            annealing history), when the choice was known before the ground truth (``first``, a list).
+        again: predicts condition ``i`` again with its own seeds (the same predictions the set holds, with
+            their history): ``worst`` and ``best`` choose once the ground truth is known.
+    """
+
+    choice: LogConditions | None = None
+    kept: list[Example] = field(default_factory=list)
+    again: Callable[[int], list[Example]] | None = field(default=None, repr=False)
+
+    def __bool__(self) -> bool:
+        return self.choice is not None
+
+
 def _cache_name(ctx: ExperimentContext, key: str) -> str:
     """A group's cache name: its key, tagged when the test pushes start off-centre (``test_placement``), so
     both test sets' predictions, scores and ground truth keep apart in one run folder."""
@@ -577,9 +686,9 @@ def predict_set(
     physics: tuple[float, float] | None = None,
     seed_key: str | None = None,
     memo: dict | None = None,
-    examples: int = 0,
+    examples: LogConditions | int | None = None,
     bar=None,
-) -> tuple[PredictionSet, list[Example]]:
+) -> tuple[PredictionSet, Examples]:
     """Predict every test condition and action of one group, with the baselines (cached).
 
     Paper, Fig. prediction_accuracy_methodology: capture the partial cloud, generate the push condition,
@@ -603,12 +712,15 @@ def predict_set(
         seed_key: the name the seeds derive from (default ``key``).
         memo: a dict shared by groups with the same ``seed_key`` and object, keyed by (condition,
             model name, action); holds derived poses and densities, not predictions.
-        examples: how many conditions' predictions to return whole, with their annealing history (for
-            the recording; recomputed with the same seeds when the set comes from the cache).
+        examples: which conditions' predictions to return whole, with their annealing history, for the
+            recording (an int k: the first k; None or no recording: none). Those chosen before the
+            ground truth are kept while predicting (recomputed with the same seeds when the set comes
+            from the cache); the rest are predicted again, with the same seeds, on demand
+            (:class:`Examples`).
         bar: a tqdm bar advanced once per prediction.
 
     Returns:
-        The predictions, and the kept examples.
+        The predictions, and the examples to log.
     """
     from pushtorch.baselines import (
         mean_motion_prediction,
@@ -642,7 +754,10 @@ def predict_set(
             if cached.fingerprint != made_from or scores_meta.get("made_from") != [made_from, truth]:
                 cached = None
     library = ModelLibrary(list(candidates)) if adaptive else None
-    wanted = min(int(examples), n) if ctx.recording is not None else 0
+    if isinstance(examples, int) and not isinstance(examples, bool):
+        examples = LogConditions("first", examples)
+    choice = examples if ctx.recording is not None else None
+    wanted = set(choice.known_before_truth(n)) if choice is not None else set()
     memo = {} if memo is None else memo
     kept: list[Example] = []
 
@@ -653,8 +768,10 @@ def predict_set(
         return spread_test_start(obj, poses.take(i), ctx.test_placement,
                                  torch.Generator().manual_seed(stable_seed(ctx.seed, seed_key, i, j, "placement")))
 
-    def predict_condition(i: int, features: SurfaceFeatures, record: bool) -> tuple[int, list[dict]]:
-        """Model index and, per action, the derived poses of condition ``i`` (kept predictions aside)."""
+    def predict_condition(i: int, features: SurfaceFeatures, record: bool,
+                          into: list[Example] = kept) -> tuple[int, list[dict]]:
+        """Model index and, per action, the derived poses of condition ``i`` (with ``record``, its predictions
+        go to ``into`` whole)."""
         index = int(library.select(features)[1].argmin()) if library is not None else choose(i)
         model = candidates[index]
         derived = []
@@ -683,16 +800,26 @@ def predict_set(
             }
             derived.append(memo[memo_key])
             if record:
-                kept.append(Example(i, j, prediction, features))
+                into.append(Example(i, j, prediction, features))
         return index, derived
 
+    def again(i: int) -> list[Example]:
+        """Condition ``i``'s predictions, made again with its seeds (the set's own), whole."""
+        if not 0 <= i < n:
+            raise InvalidParameterError(f"{key} has test conditions 0..{n - 1}, not {i}")
+        _, features = observe(obj, poses.take(i), ctx.settings)
+        out: list[Example] = []
+        predict_condition(i, features, True, out)
+        return out
+
+    chosen = Examples(choice, kept, again) if choice is not None else Examples()
     if cached is not None:
         if bar is not None:
             bar.update(n * a_count)
-        for i in range(wanted):  # the logged examples only: same seeds, same predictions
+        for i in sorted(wanted):  # the logged examples only: same seeds, same predictions
             _, features = observe(obj, poses.take(i), ctx.settings)
             predict_condition(i, features, True)
-        return cached, kept
+        return cached, chosen
 
     names = ("robot_start", "estimate", "final", "mean_motion", "nearest", "oracle", "cloud_start", "cloud_final")
     fields: dict[str, list] = {name: [] for name in names}
@@ -701,7 +828,7 @@ def predict_set(
     densities: list[list[dict]] = []
     for i in range(n):
         _, features = observe(obj, poses.take(i), ctx.settings)
-        index, derived = predict_condition(i, features, i < wanted)
+        index, derived = predict_condition(i, features, i in wanted)
         selected[i] = index
         densities.append([d["densities"] for d in derived])
         for j, poses_ij in enumerate(derived):
@@ -736,7 +863,7 @@ def predict_set(
     result.save(path)
     stale = _scores_path(ctx, key)
     stale.unlink(missing_ok=True)  # scores of an older set must not pass for this one's
-    return result, kept
+    return result, chosen
 
 
 def likelihood_scores(ctx: ExperimentContext, key: str, obj: ObjectModel, predictions: PredictionSet,
@@ -955,34 +1082,74 @@ def _truth_push(ctx: ExperimentContext, obj: ObjectModel, predictions: Predictio
     return simulate_plan(object_spec(obj), _one_push(plan, (i * a_count + j) * samples), ctx.sim)
 
 
+def _condition_hacc(predictions: PredictionSet, truth_final: se3.Pose, obj: ObjectModel) -> torch.Tensor:
+    """Each test condition's H_acc ``(N,)``: the group's primary score (displacement) against the ground truth
+    ``(N, A, S)``, averaged over actions and truth samples (what ``worst:k`` and ``best:k`` rank by)."""
+    n, a_count = predictions.final.batch_shape
+    acc = compare_displacement(predictions.estimate, predictions.final, predictions.truth_initial, truth_final, obj)
+    return acc.hacc.double().reshape(n, a_count, -1).mean((1, 2))
+
+
+def _chosen_examples(predictions: PredictionSet, examples: Examples, truth_final: se3.Pose,
+                    obj: ObjectModel) -> tuple[list[Example], dict[int, float]]:
+    """The examples ``examples.choice`` picks, in its order (each condition's actions in order), and each
+    chosen condition's mean H_acc (:func:`_condition_hacc`; the ranking of ``worst`` and ``best``)."""
+    choice = examples.choice
+    if choice is None:
+        return [], {}
+    n = int(predictions.final.batch_shape[0])
+    hacc = _condition_hacc(predictions, truth_final, obj)
+    indices = choice.choose(hacc)
+    if choice.rule == "list" and len(indices) < len(choice.indices):
+        log.warning("recording.conditions %s: this group has test conditions 0..%d only; logging %s",
+                    choice, n - 1, indices)
+    if choice.by_hacc:
+        if examples.again is None:
+            raise InvalidParameterError("these examples cannot be predicted again: no predict_set behind them")
+        picked = [e for i in indices for e in examples.again(i)]
+    else:
+        by_condition: dict[int, list[Example]] = {}
+        for e in examples.kept:
+            by_condition.setdefault(e.condition, []).append(e)
+        picked = [e for i in indices for e in sorted(by_condition.get(i, []), key=lambda e: e.action)]
+    return picked, {i: float(hacc[i]) for i in indices}
+
+
 def log_examples(
     ctx: ExperimentContext,
     label: str,
     obj: ObjectModel,
-    examples: Sequence[Example],
+    examples: Examples,
     predictions: PredictionSet,
     truth_final: se3.Pose,
+    nll: torch.Tensor | None = None,
 ) -> None:
-    """Log example predictions with their true initial and final poses and ground-truth push.
+    """Log example predictions with their true initial and final poses, ground-truth push and density.
 
-    Every example goes under ``world/model/prediction/<label>/c<i>a<j>`` (``label`` from
-    :func:`entity_label`: ``<part>/<object>/<model or method>``; entities as in :mod:`pushtorch.viz.model`),
-    whose transform shifts it to a free cell of the recording's grid. Its ground-truth push (test
-    condition 0, sample 0: the pose ``truth_final`` holds) is re-simulated in this process with its
-    trajectory and played on ``sim_time`` at ``<root>/truth_push``; a re-simulated final pose that differs
-    from the recorded one is reported in the log and the summary. ``<root>/summary`` holds the example's
-    accuracy as text, also kept in ``ctx.logged_predictions``.
+    The conditions logged are ``examples.choice`` (``recording.conditions``, :class:`LogConditions`), each
+    with every action. Every example goes under ``world/model/prediction/<label>/c<i>a<j>`` (``label`` from
+    :func:`entity_label`: ``<part>/<object>/<model or method>``; entities as in :mod:`pushtorch.viz.model`,
+    the predicted density included), whose transform shifts it to a free cell of the recording's grid. Its
+    ground-truth push (test condition 0, sample 0: the pose ``truth_final`` holds) is re-simulated in this
+    process with its trajectory and played on ``sim_time`` at ``<root>/truth_push``; a re-simulated final
+    pose that differs from the recorded one is reported in the log and the summary. ``<root>/summary``
+    holds the example's scores as text, also kept in ``ctx.logged_predictions``: H_acc (displacement, the
+    records' primary score, with the frame score beside it), ``nll`` (the records' score of that truth,
+    :func:`likelihood_scores`) and the raw errors.
 
     Args:
         truth_final: ground-truth final poses ``(N, A, S)`` of test condition 0 (sample 0 is shown).
+        nll: the group's ``pushtorch`` negative log-likelihoods ``(N, A, S)`` of the same truths
+            (:func:`likelihood_scores` of test condition 0), or None (the summary then has none).
     """
     import rerun as rr
 
     from pushtorch.viz.model import PREDICTION, log_prediction
 
-    if ctx.recording is None:
+    if ctx.recording is None or not examples:
         return
-    for example in examples:
+    picked, condition_hacc = _chosen_examples(predictions, examples, truth_final, obj)
+    for example in picked:
         i, j = example.condition, example.action
         root = f"{PREDICTION}/{label}/c{i}a{j}"
         x, y = ctx.next_slot()
@@ -998,12 +1165,18 @@ def log_examples(
                       f"re-simulated ground-truth push ends {gap:.2e} m from the recorded final pose")
             if not same:
                 log.warning("%s/c%da%d: %s", label, i, j, replay)
-        log_prediction(ctx.recording, example.prediction, predictions.truth_initial.take(i), truth, obj,
+        truth_initial = predictions.truth_initial.take(i)
+        log_prediction(ctx.recording, example.prediction, truth_initial, truth, obj,
                        label=f"{label}/c{i}a{j}", cloud=example.features, truth_push=push)
-        acc = accuracy(predictions.final.take((i, j)), truth, obj)
-        summary = (f"`{label}/c{i}a{j}`: condition {i}, action {ctx.actions[j].tolist()}: "
-                   f"H_acc {float(acc.hacc):.3f}, linear {float(acc.linear_cm):.2f} cm, "
-                   f"angular {float(acc.angular_deg):.1f} deg; {replay}")
+        estimate, final = predictions.estimate.take((i, j)), predictions.final.take((i, j))
+        acc = accuracy(displaced(estimate, final, truth_initial), truth, obj)
+        frame = accuracy(final, truth, obj)
+        score = "nll –" if nll is None else f"nll {float(nll[i, j, 0]):.2f} nats (of this truth, displacement)"
+        why = ("" if not examples.choice.by_hacc else
+               f" ({examples.choice}: mean H_acc {condition_hacc[i]:.3f} over its actions and truth samples)")
+        summary = (f"`{label}/c{i}a{j}`: condition {i}{why}, action {ctx.actions[j].tolist()}: "
+                   f"H_acc {float(acc.hacc):.3f} (displacement; frame {float(frame.hacc):.3f}), {score}, "
+                   f"linear {float(acc.linear_cm):.2f} cm, angular {float(acc.angular_deg):.1f} deg; {replay}")
         ctx.recording.log(f"{root}/summary", rr.TextDocument(summary, media_type=rr.MediaType.MARKDOWN),
                           static=True)
         ctx.logged_predictions.append((root, summary))

@@ -110,7 +110,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             predictions, examples = predict_set(
                 ctx, key, obj, models, poses, truth=truth_key, adaptive=method == "adaptive",
                 choose=choices[method], seed_key=f"{name}_{obj_name}", memo=memo, bar=bar,
-                examples=ctx.log_examples if method == "adaptive" else 0,
+                examples=ctx.log_examples if method == "adaptive" else None,
             )
             truth, broken = simulate_truth(ctx, key, obj, predictions, [condition], samples,
                                            seed_key=f"{name}_{obj_name}")
@@ -129,7 +129,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
                            "starts": predictions.backoff.numel()})
             if examples:
                 label = entity_label(name, obj_name, method)
-                log_examples(ctx, label, obj, examples, predictions, truth.take(0))
+                log_examples(ctx, label, obj, examples, predictions, truth.take(0), nll=nll[0])
     bar.close()
     return records, {"thrown": thrown, "hacc_samples": hacc_samples}
 

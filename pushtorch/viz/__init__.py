@@ -13,7 +13,9 @@ Entity paths (world frame, z up, metres):
                                        ground-truth push plays on ``sim_time`` at .../truth_push, its
                                        annealing series are .../robot_query/best_log_prob,
                                        .../pose_query/best_log_prob and .../motion/best_log_prob on
-                                       ``anneal_step``, its accuracy is the text .../summary
+                                       ``anneal_step``, its predicted density is .../density/...
+                                       (draws, 90 % region, mode, truth), its accuracy and nll are
+                                       the text .../summary
     world/model/prediction/action_<j>/...
                                        the predict app's prediction of action j (the same entities)
     world/experiments/pose_estimation/<object>/...

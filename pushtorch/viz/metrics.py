@@ -3,8 +3,8 @@
 Paper, Experimental Setup (H_acc, the accuracy measure every experiment reports): results.json holds one
 record per group (part, object, model, test condition, method); here each group's ``hacc_mean`` becomes
 a point of a scalar series, so the viewer plots every group of a part side by side, coloured by method,
-and a markdown summary per part lists the same groups as a table (with their index on the timeline)
-beside the logged example predictions.
+and a markdown summary per part lists the same groups as a table (with their index on the timeline, their
+H_acc and mean nll) beside the logged example predictions (each with its own H_acc and nll).
 
 Entity paths:
     metrics/<part>/hacc/<object>[/<model>][/<condition>]/<method>[/<metric>]   ``Scalars``: the group's mean H_acc
@@ -102,17 +102,21 @@ def log_group_hacc(
 def part_summary(
     part: str, records: Sequence[Mapping[str, Any]], first_group: int = 0, examples: Sequence[str] = ()
 ) -> str:
-    """A part's markdown summary: its groups' H_acc as a table, then the logged example predictions."""
+    """A part's markdown summary: its groups' H_acc and mean nll (``nll_mean``, displacement records) as a
+    table, then the logged example predictions."""
     lines = [f"# {part}", "", f"{len(records)} groups; the `group` column is the index on the "
              f"`{GROUP_TIMELINE}` timeline (and in results.json).", ""]
     if records:
-        lines += ["| group | object | model | condition | method | metric | n | H_acc | linear cm | angular deg |",
-                  "|---:|---|---|---|---|---|---:|---|---:|---:|"]
+        lines += ["| group | object | model | condition | method | metric | n | H_acc | nll (nats) | linear cm | "
+                  "angular deg |",
+                  "|---:|---|---|---|---|---|---:|---|---:|---:|---:|"]
         for k, r in enumerate(records):
+            nll = r.get("nll_mean")
             lines.append(
                 f"| {first_group + k} | {r.get('object')} | {r.get('model') or '–'} | "
                 f"{r.get('condition') or '–'} | {r.get('method')} | {r.get('metric') or '–'} | {r.get('n')} | "
                 f"{float(r['hacc_mean']):.3f} ± {float(r.get('hacc_std', 0.0)):.3f} | "
+                f"{'–' if nll is None else f'{float(nll):.2f}'} | "
                 f"{float(r.get('linear_cm', float('nan'))):.2f} | {float(r.get('angular_deg', float('nan'))):.1f} |"
             )
     if examples:

@@ -61,7 +61,28 @@ the push started); everything else is static.
                                           recorded time; its mesh at ``/mesh``
 ``<root>/truth_push/robot``               *(s)* the robot base's transform; ``/chassis``, ``/bumper``, ``/bumper/mesh``
 ``<root>/truth_push/object_path``         the object centre's path during the push (``/robot_path``: the robot's)
+``<root>/density/samples``                draws from ``prediction.density`` (:data:`DENSITY_SAMPLES`, at most
+                                          ``max_points``): final positions, coloured by log-density
+``<root>/density/region_90``              the draws inside the 90 % highest-density region: those whose
+                                          log-density is among the highest 90 % of the draws' (a Monte
+                                          Carlo estimate of the region's extent; a point set, no hull)
+``<root>/density/ghosts``                 :data:`DENSITY_GHOSTS` of the draws as axis triads (their
+                                          orientations)
+``<root>/density/mode``                   the density's mode (``prediction.final_pose``): a point; its axis
+                                          triad at ``/axes``
+``<root>/density/truth``                  the truth in the density's frame, if ``truth_final`` is given: the
+                                          true motion applied to the estimated start, ``B1 ∘ B0⁻¹ ∘ B̂0``
+                                          (``truth_final`` as it is without ``truth_initial``); ``/axes``
+``<root>/collision_parts``                the object's convex collision parts, when the simulator used more
+                                          than one (:attr:`~pushtorch.objects.ObjectModel.collision_parts`):
+                                          a transform (the true initial pose, else the estimate) and a mesh
+                                          per part at ``/part_<k>``
 ========================================  ==========================================================
+
+The density's draws come from a generator of their own, seeded with :data:`DENSITY_SEED` inside
+:func:`log_density`: a recording never changes a prediction or a random stream of the caller, and two
+recordings of one prediction show the same draws. Draws are importance-resampled
+(:meth:`~pushtorch.distribution.FinalPoseDistribution.sample`), so a draw may repeat.
 
 The query kernels need :attr:`pushtorch.models.query.QueryResult.density`; a result without it logs
 everything else. :class:`pushtorch.predict.Prediction` keeps the motion annealing's candidates but
@@ -71,6 +92,9 @@ not its per-step history; if it gains an ``anneal`` attribute (an
 
 from __future__ import annotations
 
+import logging
+import math
+
 import numpy as np
 import rerun as rr
 import torch
@@ -78,7 +102,7 @@ import trimesh
 
 from pushtorch import se3
 from pushtorch.anneal import AnnealResult
-from pushtorch.errors import InvalidParameterError
+from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.models.frames import ContactFrames
 from pushtorch.models.query import QueryResult, planar
 from pushtorch.viz.core import (
@@ -96,15 +120,24 @@ from pushtorch.viz.core import (
 __all__ = [
     "ANNEAL_SERIES",
     "ANNEAL_TIMELINE",
+    "DENSITY_GHOSTS",
+    "DENSITY_REGION",
+    "DENSITY_SAMPLES",
+    "DENSITY_SEED",
     "MODEL",
     "PREDICTION",
     "TRAINING",
+    "density_truth",
     "log_anneal_history",
     "log_anneal_series",
+    "log_collision_parts",
     "log_contact_model",
+    "log_density",
     "log_prediction",
     "log_query",
 ]
+
+log = logging.getLogger(__name__)
 
 #: Root of every model entity.
 MODEL = f"{WORLD}/model"
@@ -132,7 +165,17 @@ _BUMPER_COLOUR = (240, 200, 40, 255)
 _CLOUD_COLOUR = (150, 150, 150, 255)
 _MANIPULATOR_COLOUR = (240, 60, 160, 255)
 _ENVIRONMENT_COLOUR = (40, 200, 200, 255)
+_REGION_COLOUR = (255, 120, 30, 255)
+_MODE_COLOUR = (255, 40, 200, 255)
 _SUBSAMPLE_SEED = 0
+#: Draws from a prediction's density logged per prediction (at most ``max_points``).
+DENSITY_SAMPLES = 1000
+#: Draws shown as ghost poses (axis triads; at most ``max_frames``).
+DENSITY_GHOSTS = 20
+#: Probability mass of the highest-density region shown.
+DENSITY_REGION = 0.9
+#: Seed of the generator the logged draws come from (made inside :func:`log_density`).
+DENSITY_SEED = 0
 
 
 def _check_limits(max_points: int, max_frames: int) -> None:
@@ -187,7 +230,7 @@ def _log_posed_mesh(
     axis_length: float = 0.05,
 ) -> None:
     """A pose as a transform with an axis triad, and the mesh under it if there is one (all static)."""
-    pose = se3.Pose(pose.p.reshape(3), pose.q.reshape(4))
+    pose = se3.Pose.unchecked(pose.p.reshape(3), pose.q.reshape(4))
     log_pose(rec, entity_path, pose, static=True)
     origin = se3.identity((1,), dtype=pose.p.dtype)
     log_frames(rec, f"{entity_path}/axes", origin, length=axis_length, static=True)
@@ -199,7 +242,7 @@ def _log_robot(rec: rr.RecordingStream, root: str, base: se3.Pose) -> None:
     """The robot at one base pose: ``<root>/robot`` (transform, chassis, axes), ``<root>/bumper`` (world)."""
     from pushtorch.robot import bumper_geometry, bumper_mesh
 
-    base = se3.Pose(base.p.reshape(3), base.q.reshape(4))
+    base = se3.Pose.unchecked(base.p.reshape(3), base.q.reshape(4))
     geometry = bumper_geometry()
     chassis = trimesh.creation.box(extents=geometry.chassis_size)
     chassis.apply_translation(geometry.chassis_centre)
@@ -374,7 +417,7 @@ def log_contact_model(
     if object_pose is None:
         # ObjectModel.resting_pose's definition, which a bare mesh lacks
         object_pose = se3.from_xy_yaw(0.0, 0.0, 0.0, z=float(-mesh.bounds[0, 2]))
-    object_pose = se3.Pose(object_pose.p.reshape(3).float(), object_pose.q.reshape(4).float())
+    object_pose = se3.Pose.unchecked(object_pose.p.reshape(3).float(), object_pose.q.reshape(4).float())
     root = f"{TRAINING}/{entity_name(label if label is not None else model.name)}"
     _log_posed_mesh(rec, f"{root}/object", object_pose, mesh, _OBJECT_COLOUR, axis_length=0.1)
 
@@ -394,6 +437,120 @@ def log_contact_model(
     return root
 
 
+def _one_pose(pose: se3.Pose, like: torch.Tensor | None = None) -> se3.Pose:
+    """A pose ``()`` from a pose of one element (cast to ``like``'s dtype and device if given)."""
+    p, q = pose.p.reshape(3), pose.q.reshape(4)
+    if like is not None:
+        p, q = p.to(like), q.to(like)
+    return se3.Pose.unchecked(p, q)
+
+
+def density_truth(prediction, truth_final: se3.Pose, truth_initial: se3.Pose | None = None) -> se3.Pose:
+    """The truth where the prediction's density is: the true motion ``B1 ∘ B0⁻¹`` applied to the estimated
+    start ``B̂0`` (``truth_final`` as it is if ``truth_initial`` is None), Pose ``()``.
+
+    The density is over the final pose given the *estimated* start, so this is the pose whose
+    ``prediction.density.log_prob`` scores the truth (README's library example).
+    """
+    estimate = _one_pose(prediction.condition.object_pose)
+    final = _one_pose(truth_final, estimate.p)
+    if truth_initial is None:
+        return final
+    start = _one_pose(truth_initial, estimate.p)
+    return final.compose(start.inverse()).compose(estimate)
+
+
+def log_density(
+    rec: rr.RecordingStream,
+    root: str,
+    density,
+    truth: se3.Pose | None = None,
+    max_points: int = 3000,
+    max_frames: int = 300,
+) -> bool:
+    """A prediction's density over final poses: draws, its 90 % region, ghost poses, mode and truth.
+
+    Logs, all static, ``<root>/density/samples`` (:data:`DENSITY_SAMPLES` draws, at most ``max_points``:
+    final positions coloured by log-density, viridis over their range), ``<root>/density/region_90`` (the
+    draws inside the :data:`DENSITY_REGION` highest-density region: the ``ceil(0.9 n)`` draws of highest
+    log-density, since the draws' log-densities at or above their 10 % quantile mark the region that holds
+    90 % of the mass; a point set, no hull or box), ``<root>/density/ghosts`` (the first
+    :data:`DENSITY_GHOSTS` draws, at most ``max_frames``, as axis triads), ``<root>/density/mode`` (the
+    density's mode, a point, with its triad at ``/axes``) and, if given, ``<root>/density/truth`` (a point
+    and ``/axes``).
+
+    The draws come from a generator made here and seeded with :data:`DENSITY_SEED` (on the density's
+    device): no caller's stream and not torch's global one is drawn from, and the density's own values do
+    not change (its normaliser is seeded too).
+
+    Args:
+        rec: an open recording.
+        root: the prediction's root entity path.
+        density: a :class:`~pushtorch.distribution.FinalPoseDistribution` (any batch shape: draws pooled).
+        truth: the truth in the density's frame (:func:`density_truth`), Pose ``()``, or None.
+        max_points: draws shown; max_frames: ghost poses shown.
+    Returns:
+        False if the density could not be drawn from (no proposal with non-zero density: a warning, and
+        only the mode and truth are logged), else True.
+    Raises:
+        InvalidParameterError: a limit below 1.
+    """
+    _check_limits(max_points, max_frames)
+    mode = density.mode.detach().reshape(-1, 7)
+    modes = se3.Pose.unchecked(mode[:, :3], mode[:, 3:])
+    log_points(rec, f"{root}/density/mode", modes.p, colors=_MODE_COLOUR, radii=0.006, static=True)
+    log_frames(rec, f"{root}/density/mode/axes", modes, length=0.05, static=True)
+    if truth is not None:
+        truth = _one_pose(truth)
+        log_points(rec, f"{root}/density/truth", truth.p.reshape(1, 3), colors=_TRUE_FINAL_COLOUR[:3],
+                   radii=0.006, static=True)
+        log_frames(rec, f"{root}/density/truth/axes", truth.reshape(1), length=0.05, static=True)
+    n = min(DENSITY_SAMPLES, max_points)
+    generator = torch.Generator(device=mode.device).manual_seed(DENSITY_SEED)
+    try:
+        with torch.no_grad():
+            draws = density.sample((n,), generator)  # (n, *B, 7)
+            log_p = density.log_prob(draws).reshape(-1).double()
+    except ModelError as exc:
+        log.warning("%s: no draws from the prediction's density logged: %s", root, exc)
+        return False
+    draws = draws.reshape(-1, 7)
+    poses = se3.Pose.unchecked(draws[:, :3], draws[:, 3:])
+    log_points(rec, f"{root}/density/samples", poses.p, colors=_range_colors(log_p), radii=0.002, static=True)
+    # highest log-density first; ties keep draw order, so the region is the same every time
+    order = torch.sort(torch.nan_to_num(log_p, nan=-math.inf), descending=True, stable=True).indices
+    inside = order[: math.ceil(DENSITY_REGION * order.numel())].sort().values
+    log_points(rec, f"{root}/density/region_90", poses.p[inside], colors=_REGION_COLOUR, radii=0.0035,
+               static=True)
+    ghosts = torch.arange(min(DENSITY_GHOSTS, max_frames, poses.p.shape[0]), device=poses.p.device)
+    log_frames(rec, f"{root}/density/ghosts", poses.take(ghosts), length=0.03, static=True)
+    return True
+
+
+def log_collision_parts(rec: rr.RecordingStream, entity_path: str, obj, pose: se3.Pose | None = None) -> bool:
+    """The convex parts the simulator collides ``obj`` as, if there are several (static).
+
+    ``entity_path`` gets ``pose``'s transform (if given) and ``entity_path/part_<k>`` a mesh per part of
+    :attr:`~pushtorch.objects.ObjectModel.collision_parts` (object frame), one tab10 colour each.
+
+    Returns:
+        True if the parts were logged; False (nothing logged) for an object simulated as one part, or
+        anything that is not an ObjectModel (a bare mesh).
+    """
+    parts = getattr(obj, "collision_parts", None)
+    if isinstance(obj, trimesh.Trimesh) or not parts or len(parts) < 2:
+        return False
+    from matplotlib import colormaps
+
+    palette = (np.asarray(colormaps["tab10"].colors)[:, :3] * 255).astype(np.uint8)
+    if pose is not None:
+        log_pose(rec, entity_path, _one_pose(pose), static=True)
+    for k, part in enumerate(parts):
+        colour = tuple(int(c) for c in palette[k % len(palette)]) + (200,)
+        log_mesh(rec, f"{entity_path}/part_{k}", part, color=colour, static=True)
+    return True
+
+
 def log_prediction(
     rec: rr.RecordingStream,
     prediction,
@@ -406,18 +563,21 @@ def log_prediction(
     max_frames: int = 300,
     truth_push=None,
 ) -> str:
-    """Log a prediction: query kernels, robot start, contact frames, initial pose, annealing, final pose.
+    """Log a prediction: query kernels, robot start, contact frames, initial pose, annealing, final pose,
+    and the predicted density (:func:`log_density`).
 
     Entity paths: see the module docstring. The per-step annealing candidates and series need the
     prediction to have been made with ``record_history=True``; the query kernels need
-    ``QueryResult.density``.
+    ``QueryResult.density``. Logging draws from no caller's random stream and leaves the prediction as
+    it was (:func:`log_density`).
 
     Args:
         rec: an open recording (:func:`pushtorch.viz.open_recording`).
         prediction: a :class:`~pushtorch.predict.Prediction`.
         truth_initial, truth_final: the true object poses before and after the push, Pose ``()``, if known.
         object_mesh: the object's mesh (object frame) or its ObjectModel, drawn at every object pose;
-            without it, the poses are drawn as axis triads only.
+            without it, the poses are drawn as axis triads only. An ObjectModel simulated as several
+            convex parts also gets them drawn at ``<root>/collision_parts`` (:func:`log_collision_parts`).
         label: entity path under ``world/model/prediction``; ``/`` nests it (``part/object/model/c0a1``).
         cloud: the partial cloud the prediction was made from (a PointCloud, SurfaceFeatures or
             ``(N, 3)`` tensor), logged as ``<root>/cloud`` if given.
@@ -500,4 +660,10 @@ def log_prediction(
                        static=True)
     if truth_push is not None:
         log_push(rec, truth_push, 0, mesh, root=f"{root}/truth_push", with_final_pose=False)
+    log_collision_parts(rec, f"{root}/collision_parts", object_mesh,
+                        truth_initial if truth_initial is not None else condition.object_pose)
+    density = getattr(prediction, "density", None)
+    if density is not None:
+        truth = None if truth_final is None else density_truth(prediction, truth_final, truth_initial)
+        log_density(rec, root, density, truth, max_points, max_frames)
     return root
