@@ -63,8 +63,8 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
     import torch
 
     from pushtorch import se3
+    from pushtorch.evaluation.metrics import accuracy
     from pushtorch.experiments.common import as_names, observe, plain, stable_seed
-    from pushtorch.metrics import accuracy
     from pushtorch.models.library import ModelLibrary, load_model
     from pushtorch.objects import load_object
     from pushtorch.predict import predict

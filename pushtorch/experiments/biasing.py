@@ -9,7 +9,7 @@ normals) on one physical parameter; every model predicts the same test poses of 
 the same seeds: a paired comparison of the models), and each prediction is compared with ground truths
 simulated under the *low*, *medium* and *high* test
 conditions ("144 sets of simulated ground truths compared with 48 sets of generated predictions").
-Baselines on the same pushes (:mod:`pushtorch.baselines`): no motion, the training pushes' mean motion, the
+Baselines on the same pushes (:mod:`pushtorch.evaluation.baselines`): no motion, the training pushes' mean motion, the
 nearest training push, physics on a body reconstructed from the cloud, and oracle physics (the true mesh at
 the true pose) — the last two with the training prior's mean mass and friction. Every prediction is scored
 on its displacement (H_acc) and by the likelihood of the truth under its density (``nll_mean``).

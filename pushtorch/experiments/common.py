@@ -31,8 +31,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, RecordFormatError
+from pushtorch.evaluation.metrics import Accuracy, accuracy, displaced
 from pushtorch.features import SurfaceFeatures, compute_surface_features
-from pushtorch.metrics import Accuracy, accuracy, displaced
 from pushtorch.models.library import ModelLibrary, ModelSettings, PushModel, load_model, train_push_model
 from pushtorch.objects import ObjectModel, load_object
 from pushtorch.paths import contained_path
@@ -722,13 +722,13 @@ def predict_set(
     Returns:
         The predictions, and the examples to log.
     """
-    from pushtorch.baselines import (
+    from pushtorch.evaluation.baselines import (
         mean_motion_prediction,
         nearest_push_prediction,
         oracle_physics_prediction,
         physics_from_cloud_prediction,
     )
-    from pushtorch.likelihood import mean_motion_density, motion_product_density
+    from pushtorch.evaluation.likelihood import mean_motion_density, motion_product_density
     from pushtorch.predict import contact_bandwidth, predict
 
     n, a_count = int(poses.p.shape[0]), int(ctx.actions.shape[0])
@@ -869,17 +869,17 @@ def predict_set(
 def likelihood_scores(ctx: ExperimentContext, key: str, obj: ObjectModel, predictions: PredictionSet,
                       truth_final: se3.Pose, truth: str) -> dict[str, torch.Tensor]:
     """Negative log-likelihoods (nats) of the ground truths ``(C, N, A, S)`` under every method's predicted
-    density, in the displacement sense (:func:`pushtorch.likelihood.nll`): ``{method: (C, N, A, S)}``.
+    density, in the displacement sense (:func:`pushtorch.evaluation.likelihood.nll`): ``{method: (C, N, A, S)}``.
 
     ``pushtorch`` and ``mean_motion`` are scored under their own densities; the point predictions under one
-    kernel of the model's motion bandwidth (:func:`pushtorch.likelihood.point_density`). Cached as
+    kernel of the model's motion bandwidth (:func:`pushtorch.evaluation.likelihood.point_density`). Cached as
     ``<run_dir>/scores/<key>.npz`` with the set's and the truth's fingerprints (``truth``:
     :func:`truth_fingerprint`).
 
     Raises:
         RecordFormatError: the set came from the cache but its scores did not (they are written together).
     """
-    from pushtorch.likelihood import nll, point_density
+    from pushtorch.evaluation.likelihood import nll, point_density
 
     path = _scores_path(ctx, key)
     made_from = [predictions.fingerprint, truth]
@@ -1011,7 +1011,7 @@ def summarise(
     """One results.json record: a group's H_acc mean and std, and mean raw errors, over ``n`` comparisons.
 
     ``metric`` (prediction and selection records): ``displacement``, the predicted motion applied to the
-    true start pose (:func:`pushtorch.metrics.displaced`, the primary score), or ``frame``, the predicted
+    true start pose (:func:`pushtorch.evaluation.metrics.displaced`, the primary score), or ``frame``, the predicted
     final pose as it is (the estimated frame against the test object's own); pose records carry none.
     ``nll`` (displacement records): the per-comparison negative log-likelihoods of the truth under the
     method's density (:func:`likelihood_scores`), summarised as ``nll_mean`` and ``nll_median`` (nats)."""
