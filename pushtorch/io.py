@@ -8,7 +8,7 @@ that name).
 
 **Locks.** A run folder, a shard folder and a folder that model files are saved to are written by one
 process at a time: :func:`folder_lock` (the lock file :data:`FOLDER_LOCK` in the folder; shard folders and
-model saves) and the apps' claim on their run folder (``.pushtorch.lock``, :mod:`pushtorch.cli`) both hold
+model saves) and the apps' claim on their run folder (``.pushtorch.lock``, :mod:`pushtorch.apps.cli`) both hold
 a :func:`lock_file`. A run folder may be run and resumed from many machines, on a filesystem the nodes of
 a cluster share, so the lock is not ``flock``/``fcntl``: on NFS those lock only within one node (or not at
 all), and two nodes would both pass the check. A lock is a file created by one atomic exclusive create

@@ -447,7 +447,7 @@ def test_a_concave_mesh_is_simulated_as_its_convex_decomposition(env):
 
 
 def test_training_on_part_of_a_run_needs_the_flag_and_is_recorded(env):
-    from pushtorch.train import train_from_config
+    from pushtorch.apps.train import train_from_config
 
     folder = _drop(_copy_run(env), 4)
     status = run_status(folder)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from pushtorch.cli import _claimed, job_dir_name
+from pushtorch.apps.cli import _claimed, job_dir_name
 from pushtorch.errors import PushtorchError
 
 
@@ -84,7 +84,7 @@ def test_a_run_folder_is_used_by_one_live_process_at_a_time(tmp_path: Path):
         [sys.executable, "-c", textwrap.dedent(f"""
             import sys, time
             from pathlib import Path
-            from pushtorch.cli import _claimed
+            from pushtorch.apps.cli import _claimed
             with _claimed(Path({str(tmp_path)!r})):
                 print("held", flush=True)
                 time.sleep(60)

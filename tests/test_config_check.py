@@ -17,7 +17,7 @@ import pytest
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 
-from pushtorch.config_check import ConfigError, check_config, experiment_names
+from pushtorch.apps.config_check import ConfigError, check_config, experiment_names
 from pushtorch.errors import InvalidParameterError
 
 CONF = Path(__file__).resolve().parents[1] / "conf"

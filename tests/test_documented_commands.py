@@ -24,9 +24,9 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import OmegaConf
 
-import pushtorch.cli  # noqa: F401  (registers the pushtorch.job_dir resolver the output config uses)
-from pushtorch import collect
-from pushtorch.config_check import ConfigError, check_config
+import pushtorch.apps.cli  # noqa: F401  (registers the pushtorch.job_dir resolver the output config uses)
+from pushtorch.apps import collect
+from pushtorch.apps.config_check import ConfigError, check_config
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Module run with ``python -m`` → the config its Hydra app composes.

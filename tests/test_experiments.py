@@ -18,6 +18,8 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf
 
 from pushtorch import viz
+from pushtorch.apps.predict import predict_from_config
+from pushtorch.apps.train import train_from_config
 from pushtorch.errors import InvalidParameterError, PushtorchError
 from pushtorch.evaluation.metrics import Accuracy
 from pushtorch.experiments import quickstart
@@ -25,8 +27,6 @@ from pushtorch.experiments.common import sample_test_poses, summarise
 from pushtorch.experiments.report import PAPER_LINEAR_CM, acceptance_checks, pool, primary
 from pushtorch.models.library import ModelSettings, load_model
 from pushtorch.objects import load_object
-from pushtorch.predict_cli import predict_from_config
-from pushtorch.train import train_from_config
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"

@@ -18,6 +18,12 @@ MOVED = {
     "pushtorch.metrics": "pushtorch.evaluation.metrics",
     "pushtorch.likelihood": "pushtorch.evaluation.likelihood",
     "pushtorch.baselines": "pushtorch.evaluation.baselines",
+    "pushtorch.cli": "pushtorch.apps.cli",
+    "pushtorch.config_check": "pushtorch.apps.config_check",
+    "pushtorch.simulate": "pushtorch.apps.simulate",
+    "pushtorch.train": "pushtorch.apps.train",
+    "pushtorch.predict_cli": "pushtorch.apps.predict",
+    "pushtorch.collect": "pushtorch.apps.collect",
 }
 
 
@@ -38,3 +44,12 @@ def test_the_library_itself_imports_no_old_path():
              "pushtorch.evaluation.baselines, pushtorch.objects.shapes, pushtorch.distribution, "
              "pushtorch.models.motion")
     subprocess.run([sys.executable, "-c", probe], check=True)
+
+
+@pytest.mark.parametrize("app", ["pushtorch", "pushtorch.simulate", "pushtorch.train", "pushtorch.predict",
+                                 "pushtorch.predict_cli"])
+def test_the_documented_commands_run_the_apps_without_a_warning(app):
+    result = subprocess.run([sys.executable, "-W", "default", "-m", app, "--help"], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0 and "Configuration groups" in result.stdout, result.stderr[-2000:]
+    assert "DeprecationWarning" not in result.stderr

@@ -20,7 +20,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from pushtorch.config_check import ConfigError, check_config
+from pushtorch.apps.config_check import ConfigError, check_config
 from pushtorch.errors import InvalidParameterError
 from pushtorch.experiments.common import (
     LogConditions,

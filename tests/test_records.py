@@ -15,6 +15,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from pushtorch.apps.simulate import simulate_from_config
 from pushtorch.errors import RecordFormatError
 from pushtorch.objects import load_object
 from pushtorch.sim import (
@@ -32,7 +33,6 @@ from pushtorch.sim import (
 )
 from pushtorch.sim.records import ARRAYS, complete_shards
 from pushtorch.sim.runner import simulate_arrays
-from pushtorch.simulate import simulate_from_config
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"

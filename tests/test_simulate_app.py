@@ -12,12 +12,12 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from pushtorch.cli import job_dir_name
+from pushtorch.apps.cli import job_dir_name
+from pushtorch.apps.simulate import simulate_from_config
 from pushtorch.errors import InvalidParameterError, PushtorchError
 from pushtorch.objects import catalogue_names
 from pushtorch.sim import SimSettings, prior_from_config
 from pushtorch.sim.records import load_records
-from pushtorch.simulate import simulate_from_config
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -62,7 +62,7 @@ def test_run_and_sweep_directories_name_the_priors():
     assert cfg.hydra.run.dir.startswith("runs/")
     assert cfg.hydra.sweep.dir.startswith("runs/multirun/")
     subdir = OmegaConf.to_container(cfg.hydra.sweep, resolve=False)["subdir"]
-    # one resolver names every app's sweep jobs by what they sweep (pushtorch.cli.job_dir_name)
+    # one resolver names every app's sweep jobs by what they sweep (pushtorch.apps.cli.job_dir_name)
     assert subdir == "${pushtorch.job_dir:${hydra.job.num},${hydra.sweep.dir},${hydra.overrides.task}}"
     assert job_dir_name(3, "/nonexistent", ["friction=low", "mass=high"]) == "3_friction=low,mass=high"
 

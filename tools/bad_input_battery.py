@@ -43,7 +43,7 @@ from pathlib import Path
 
 from bench_predict import cpu_name  # tools/ is on sys.path when a tool runs as a script
 
-from pushtorch.cli import RUN_LOCK
+from pushtorch.apps.cli import RUN_LOCK
 from pushtorch.io import lock_file
 
 PYTHON = sys.executable

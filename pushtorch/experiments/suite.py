@@ -74,7 +74,7 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]],
 
     Args:
         cfg: the composed config (``seed``, ``model``, ``priors``, ``sim``, ``experiment``, ``object``), as
-            the app checked it (:func:`pushtorch.config_check.check_config`).
+            the app checked it (:func:`pushtorch.apps.config_check.check_config`).
         out_dir: the run directory (outputs and caches).
         parts: ``(kind, part config, model config)`` per part.
         overrides: the command line's overrides, recorded in results.json (the app passes them).
