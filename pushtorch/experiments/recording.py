@@ -1,0 +1,162 @@
+"""An experiment's recording: the example predictions logged to Rerun with their ground-truth pushes,
+densities and scores (no paper section: review of every prediction).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+
+from pushtorch import se3
+from pushtorch.errors import InvalidParameterError
+from pushtorch.evaluation.metrics import accuracy, displaced
+from pushtorch.experiments.context import ExperimentContext
+from pushtorch.experiments.evaluation import Example, Examples, PredictionSet, compare_displacement
+from pushtorch.objects import ObjectModel
+
+__all__ = [
+    "entity_label",
+    "log_examples",
+]
+
+log = logging.getLogger("pushtorch.experiments")
+
+
+def entity_label(*parts: str) -> str:
+    """A prediction's entity path below ``world/model/prediction`` from words, one level each:
+    ``entity_label("model_selection", "cube", "adaptive")`` is ``model_selection/cube/adaptive``. Within a
+    level, anything outside ``[A-Za-z0-9_.-]`` (a ``/`` too) becomes ``_``
+    (:func:`pushtorch.viz.core.entity_name`)."""
+    from pushtorch.viz.core import entity_name
+
+    return "/".join(entity_name(str(p).replace("/", "_")) for p in parts)
+
+
+def _one_push(plan, k: int):
+    """Push ``k`` of a :class:`~pushtorch.sim.plan.PushPlan` as a plan of its own (same index and seed)."""
+    from pushtorch.sim.plan import PushPlan
+
+    one = slice(k, k + 1)
+    return PushPlan(
+        object_name=plan.object_name,
+        robot_start=se3.Pose.unchecked(plan.robot_start.p[one], plan.robot_start.q[one]),
+        object_initial=se3.Pose.unchecked(plan.object_initial.p[one], plan.object_initial.q[one]),
+        action=plan.action[one], mass=plan.mass[one], ground_friction=plan.ground_friction[one],
+        action_index=plan.action_index[one], index=plan.index[one], seed=plan.seed, duration=plan.duration,
+    )
+
+
+def _truth_push(ctx: ExperimentContext, obj: ObjectModel, predictions: PredictionSet, i: int, j: int):
+    """The ground-truth push shown with example ``(i, j)``: test condition 0, sample 0, re-simulated here
+    with its trajectory (its final pose is compared with the recorded one by :func:`log_examples`: since
+    every push rebuilds the object's shape they agree bit for bit; the check guards that); None if
+    :func:`simulate_truth` did not run for these predictions while recording."""
+    from pushtorch.sim.runner import simulate_plan
+    from pushtorch.sim.world import object_spec
+
+    if ctx._truth_plan is None or ctx._truth_plan[0] != predictions.fingerprint:
+        log.warning("no ground-truth plan for %s: its pushes are not animated", predictions.fingerprint[:8])
+        return None
+    _, plan, (_, n, a_count, samples) = ctx._truth_plan
+    return simulate_plan(object_spec(obj), _one_push(plan, (i * a_count + j) * samples), ctx.sim)
+
+
+def _condition_hacc(predictions: PredictionSet, truth_final: se3.Pose, obj: ObjectModel) -> torch.Tensor:
+    """Each test condition's H_acc ``(N,)``: the group's primary score (displacement) against the ground truth
+    ``(N, A, S)``, averaged over actions and truth samples (what ``worst:k`` and ``best:k`` rank by)."""
+    n, a_count = predictions.final.batch_shape
+    acc = compare_displacement(predictions.estimate, predictions.final, predictions.truth_initial, truth_final, obj)
+    return acc.hacc.double().reshape(n, a_count, -1).mean((1, 2))
+
+
+def _chosen_examples(predictions: PredictionSet, examples: Examples, truth_final: se3.Pose,
+                    obj: ObjectModel) -> tuple[list[Example], dict[int, float]]:
+    """The examples ``examples.choice`` picks, in its order (each condition's actions in order), and each
+    chosen condition's mean H_acc (:func:`_condition_hacc`; the ranking of ``worst`` and ``best``)."""
+    choice = examples.choice
+    if choice is None:
+        return [], {}
+    n = int(predictions.final.batch_shape[0])
+    hacc = _condition_hacc(predictions, truth_final, obj)
+    indices = choice.choose(hacc)
+    if choice.rule == "list" and len(indices) < len(choice.indices):
+        log.warning("recording.conditions %s: this group has test conditions 0..%d only; logging %s",
+                    choice, n - 1, indices)
+    if choice.by_hacc:
+        if examples.again is None:
+            raise InvalidParameterError("these examples cannot be predicted again: no predict_set behind them")
+        picked = [e for i in indices for e in examples.again(i)]
+    else:
+        by_condition: dict[int, list[Example]] = {}
+        for e in examples.kept:
+            by_condition.setdefault(e.condition, []).append(e)
+        picked = [e for i in indices for e in sorted(by_condition.get(i, []), key=lambda e: e.action)]
+    return picked, {i: float(hacc[i]) for i in indices}
+
+
+def log_examples(
+    ctx: ExperimentContext,
+    label: str,
+    obj: ObjectModel,
+    examples: Examples,
+    predictions: PredictionSet,
+    truth_final: se3.Pose,
+    nll: torch.Tensor | None = None,
+) -> None:
+    """Log example predictions with their true initial and final poses, ground-truth push and density.
+
+    The conditions logged are ``examples.choice`` (``recording.conditions``, :class:`LogConditions`), each
+    with every action. Every example goes under ``world/model/prediction/<label>/c<i>a<j>`` (``label`` from
+    :func:`entity_label`: ``<part>/<object>/<model or method>``; entities as in :mod:`pushtorch.viz.model`,
+    the predicted density included), whose transform shifts it to a free cell of the recording's grid. Its
+    ground-truth push (test condition 0, sample 0: the pose ``truth_final`` holds) is re-simulated in this
+    process with its trajectory and played on ``sim_time`` at ``<root>/truth_push``; a re-simulated final
+    pose that differs from the recorded one is reported in the log and the summary. ``<root>/summary``
+    holds the example's scores as text, also kept in ``ctx.logged_predictions``: H_acc (displacement, the
+    records' primary score, with the frame score beside it), ``nll`` (the records' score of that truth,
+    :func:`likelihood_scores`) and the raw errors.
+
+    Args:
+        truth_final: ground-truth final poses ``(N, A, S)`` of test condition 0 (sample 0 is shown).
+        nll: the group's ``pushtorch`` negative log-likelihoods ``(N, A, S)`` of the same truths
+            (:func:`likelihood_scores` of test condition 0), or None (the summary then has none).
+    """
+    import rerun as rr
+
+    from pushtorch.viz.model import PREDICTION, log_prediction
+
+    if ctx.recording is None or not examples:
+        return
+    picked, condition_hacc = _chosen_examples(predictions, examples, truth_final, obj)
+    for example in picked:
+        i, j = example.condition, example.action
+        root = f"{PREDICTION}/{label}/c{i}a{j}"
+        x, y = ctx.next_slot()
+        ctx.recording.log(root, rr.Transform3D(translation=[x, y, 0.0]), static=True)
+        truth = truth_final.take((i, j, 0))
+        push = _truth_push(ctx, obj, predictions, i, j)
+        replay = "ground-truth push not re-simulated"
+        if push is not None:
+            gap = float((push.object_final.p[0].to(truth.p) - truth.p.reshape(3)).abs().max())
+            same = torch.equal(push.object_final.p[0].to(truth.p), truth.p.reshape(3)) and torch.equal(
+                push.object_final.q[0].to(truth.q), truth.q.reshape(4))
+            replay = ("re-simulated ground-truth push ends at the recorded final pose" if same else
+                      f"re-simulated ground-truth push ends {gap:.2e} m from the recorded final pose")
+            if not same:
+                log.warning("%s/c%da%d: %s", label, i, j, replay)
+        truth_initial = predictions.truth_initial.take(i)
+        log_prediction(ctx.recording, example.prediction, truth_initial, truth, obj,
+                       label=f"{label}/c{i}a{j}", cloud=example.features, truth_push=push)
+        estimate, final = predictions.estimate.take((i, j)), predictions.final.take((i, j))
+        acc = accuracy(displaced(estimate, final, truth_initial), truth, obj)
+        frame = accuracy(final, truth, obj)
+        score = "nll –" if nll is None else f"nll {float(nll[i, j, 0]):.2f} nats (of this truth, displacement)"
+        why = ("" if not examples.choice.by_hacc else
+               f" ({examples.choice}: mean H_acc {condition_hacc[i]:.3f} over its actions and truth samples)")
+        summary = (f"`{label}/c{i}a{j}`: condition {i}{why}, action {ctx.actions[j].tolist()}: "
+                   f"H_acc {float(acc.hacc):.3f} (displacement; frame {float(frame.hacc):.3f}), {score}, "
+                   f"linear {float(acc.linear_cm):.2f} cm, angular {float(acc.angular_deg):.1f} deg; {replay}")
+        ctx.recording.log(f"{root}/summary", rr.TextDocument(summary, media_type=rr.MediaType.MARKDOWN),
+                          static=True)
+        ctx.logged_predictions.append((root, summary))

@@ -1,0 +1,113 @@
+"""An experiment's training: simulated pushes under a training prior and the model trained on them,
+cached per object and prior (paper, Experimental Setup, Fig. prediction_accuracy_methodology, training).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+
+from pushtorch.errors import RecordFormatError
+from pushtorch.experiments.context import ExperimentContext, stable_seed
+from pushtorch.models.library import PushModel, load_model, train_push_model
+from pushtorch.objects import ObjectModel
+from pushtorch.paths import contained_path
+from pushtorch.sim.plan import Placement
+
+__all__ = [
+    "train_model",
+    "training_records",
+]
+
+log = logging.getLogger("pushtorch.experiments")
+
+
+def _model_key(obj_name: str, friction: str, mass: str) -> str:
+    return f"{obj_name}_{friction}_{mass}"
+
+
+def _placement_tag(placement: Placement) -> str:
+    """'' for the paper's placement, else a suffix naming what differs from it, e.g. ``_lateral_jitter0.05``
+    (cached pushes and models of each placement keep apart)."""
+    paper = asdict(Placement())
+    return "".join(f"_{k}{v:g}" for k, v in asdict(placement).items() if v != paper[k])
+
+
+def _training_folder(ctx: ExperimentContext, obj_name: str, friction: str, mass: str) -> Path:
+    return contained_path(ctx.run_dir, "data", _model_key(obj_name, friction, mass) + _placement_tag(ctx.placement),
+                          what="object or prior name")
+
+
+def training_records(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str,
+                     progress: bool | None = None):
+    """The training pushes of ``obj`` under the named priors, simulated into the run's cache if missing.
+
+    Paper, Experimental Setup: the robot placed against the object, mass and friction drawn from the
+    training prior, ``samples_per_action`` pushes per action.
+    """
+    from pushtorch.sim.plan import plan_training_pushes
+    from pushtorch.sim.records import load_records
+    from pushtorch.sim.runner import run_plan
+    from pushtorch.sim.world import object_spec
+
+    plan = plan_training_pushes(
+        obj, ctx.actions, ctx.samples_per_action, ctx.prior("mass", mass), ctx.prior("friction", friction),
+        seed=stable_seed(ctx.seed, "training", obj.name, friction, mass), duration=ctx.duration,
+        placement=ctx.placement,
+    )
+    folder = _training_folder(ctx, obj.name, friction, mass)
+    run_plan(object_spec(obj), plan, folder, ctx.sim, workers=ctx.workers, shard_size=ctx.shard_size,
+             progress=ctx.progress if progress is None else progress)
+    return load_records(folder)
+
+
+def train_model(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str) -> PushModel:
+    """A model of ``obj`` trained under the named friction and mass priors (cached in the run directory).
+
+    The model file is reused when its settings and training size match the context's; otherwise the
+    model is retrained from the (cached) training pushes.
+    """
+    key = _model_key(obj.name, friction, mass)
+    meta = {"friction": friction, "mass": mass, "samples_per_action": ctx.samples_per_action,
+            "seed": ctx.seed}
+    if ctx.placement != Placement():  # absent at the paper's placement, so earlier caches stay valid
+        meta["placement"] = asdict(ctx.placement)
+    cache_key = (f"{key}|{json.dumps(asdict(ctx.settings), sort_keys=True)}|{ctx.samples_per_action}"
+                 f"|{_placement_tag(ctx.placement)}")
+    if cache_key in ctx._models:
+        return ctx._models[cache_key]
+    path = contained_path(ctx.run_dir, "models", f"{key}{_placement_tag(ctx.placement)}.npz",
+                          what="object or prior name")
+    model = None
+    if path.is_file():
+        try:
+            cached = load_model(path)
+        except RecordFormatError as exc:
+            log.warning("retraining %s: %s", key, exc)
+        else:
+            trained_meta = {k: v for k, v in cached.meta.items() if k != "bandwidths"}
+            if cached.configured_settings == ctx.settings and trained_meta == meta:
+                model = cached
+    if model is None:
+        records = training_records(ctx, obj, friction, mass)
+        log.info("training %s on %d pushes (%d valid)", key, len(records), int(records.valid.sum()))
+        model = train_push_model(obj, records, ctx.settings, name=key,
+                                 generator=torch.Generator().manual_seed(stable_seed(ctx.seed, "fit", key)),
+                                 meta=meta)
+        model.save(path)
+    if ctx.recording is not None and all(m.name != model.name for m in ctx._models.values()):
+        _log_training(ctx, model, obj)
+    ctx._models[cache_key] = model
+    return model
+
+
+def _log_training(ctx: ExperimentContext, model: PushModel, obj: ObjectModel) -> None:
+    from pushtorch.viz.model import log_contact_model
+
+    # one row of trained models along +x at y = -1.5 m, clear of the experiments around the origin
+    index = len({m.name for m in ctx._models.values()})
+    log_contact_model(ctx.recording, model, obj, object_pose=obj.resting_pose(x=1.0 * index, y=-1.5))
