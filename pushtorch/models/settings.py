@@ -1,0 +1,155 @@
+"""A model's settings (paper, §TPMM and the lineage's defaults: bandwidths, cut-offs, query kernels,
+annealing) and the helpers every model call shares: a seeded generator by default, an action checked.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+
+from pushtorch.errors import InvalidParameterError
+
+__all__ = [
+    "DEFAULT_SEED",
+    "ModelSettings",
+    "as_generator",
+    "check_action",
+]
+
+
+@dataclass(frozen=True)
+class ModelSettings:
+    """Every number of training and prediction; defaults are the paper's (tables) or lineage's.
+
+    Lengths in m, angles in rad, curvature stds in the embedded descriptor space
+    (:func:`pushtorch.models.frames.embed_descriptors`).
+    """
+
+    # surface features (paper: Surface Features; lineage radius 0.005–0.015 m)
+    voxel_size: float = 0.004
+    feature_radius: float = 0.012
+    # manipulator contact model (paper tables: Distance 0.01, Lambda 100)
+    contact_cutoff: float = 0.01
+    contact_drop_off: float = 100.0
+    # motion model training (paper: 10 environment contacts per push)
+    environment_contacts_training: int = 10
+    manipulator_kernels_per_push: int = 1
+    # prediction (paper tables: 5 environment contacts, 100 samples each, 5000 / 500 kernels)
+    environment_contacts: int = 5
+    environment_samples: int = 100
+    environment_kernels: int = 5000
+    manipulator_kernels: int = 500
+    # query densities (paper, pose estimation table: 3000 kernels, 500 candidates x 100 steps)
+    query_kernels: int = 3000
+    position_frames: int = 3000  # uniform subset of the training features kept as position frames
+    anneal_candidates: int = 500
+    anneal_steps: int = 100
+    # the fast path (method="fast") anneals for this fraction of anneal_steps, then moves every candidate
+    # to its local mode by polish_steps mean-shift steps (docs/method.md: as accurate as the full schedule
+    # on tools/bench_predict.py, a little less on the hardest pose); the dense reference runs it in full
+    fast_anneal_fraction: float = 0.3
+    polish_steps: int = 3
+    descriptor_std: float = 0.5
+    descriptor_cutoff_std: float = 5.0
+    query_p_std: float = 0.01
+    query_rot_std: float = 0.1
+    # contact-frame kernel K^c over (u, r) and motion kernels over final poses
+    contact_p_std: float = 0.02
+    contact_rot_std: float = 0.3
+    contact_robot_std: float = 0.05  # m, frame position in the robot's start frame (motion model)
+    contact_patch_std: float = 0.02  # m, the push's contact patch on the bumper: its lateral extent
+    contact_patch_yaw_std: float = 0.05  # rad, ... and its heading (motion model)
+    motion_p_std: float = 0.01
+    motion_rot_std: float = 0.05
+    # Σ of the experts' exponents (w^P normalised; 1: a logarithmic opinion pool, docs/method.md)
+    pool_sharpness: float = 1.0
+    # k of the k-fold search that chooses the motion and contact bandwidths from the training pushes
+    # (pushtorch.models.bandwidth); 0 keeps the values above
+    bandwidth_folds: int = 5
+    cutoff_std: float = 3.0
+    alpha_t: float = 2.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            numeric = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+            zero_ok = f.name in ("polish_steps", "bandwidth_folds")
+            if not (numeric and (value >= 0 if zero_ok else value > 0)):
+                kind = "a number >= 0" if zero_ok else "a positive number"
+                raise InvalidParameterError(f"model setting {f.name} must be {kind}, got {value!r}")
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.type == "int":  # a count: 2.5 kernels would be silently floored
+                if int(value) != value:
+                    raise InvalidParameterError(f"model setting {f.name} must be an integer, got {value!r}")
+                object.__setattr__(self, f.name, int(value))  # 3000.0 from a config is the count 3000
+        if self.fast_anneal_fraction > 1:
+            raise InvalidParameterError(f"fast_anneal_fraction must be in (0, 1], got {self.fast_anneal_fraction}")
+        if self.alpha_t <= 1:
+            raise InvalidParameterError(f"alpha_t must be > 1, got {self.alpha_t}")
+
+    @property
+    def fast_anneal_steps(self) -> int:
+        """Annealing steps of the fast path: ``fast_anneal_fraction`` of ``anneal_steps`` (at least 1)."""
+        return max(1, round(self.anneal_steps * self.fast_anneal_fraction))
+
+    @staticmethod
+    def from_mapping(mapping) -> ModelSettings:
+        """Settings from a dict / Hydra node; unknown keys are an error (a typo would be silent)."""
+        known = {f.name for f in fields(ModelSettings)}
+        if not isinstance(mapping, Mapping):
+            raise InvalidParameterError(f"model settings must be a mapping of names to numbers, got {mapping!r}")
+        extra = set(mapping) - known
+        if extra:
+            raise InvalidParameterError(f"unknown model settings: {sorted(extra)}; known: {sorted(known)}")
+        return ModelSettings(**dict(mapping))
+
+
+def check_action(action) -> torch.Tensor:
+    """``action`` as a float64 ``(2,)`` tensor (ẋ m/s, θ̇ rad/s), or a clear error.
+
+    Raises:
+        InvalidParameterError: not numeric, not exactly two numbers, or NaN/infinite.
+    """
+    try:
+        a = torch.as_tensor(action, dtype=torch.float64) if not isinstance(action, torch.Tensor) else action
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise InvalidParameterError(f"an action must be two numbers (ẋ m/s, θ̇ rad/s), got {action!r}") from exc
+    if a.is_complex() or a.dtype == torch.bool or a.numel() != 2:
+        raise InvalidParameterError(
+            f"an action must be two real numbers (ẋ m/s, θ̇ rad/s), got shape {tuple(a.shape)} of {a.dtype}"
+        )
+    a = a.detach().reshape(2).to(torch.float64)
+    if not torch.isfinite(a).all():
+        raise InvalidParameterError(f"an action must be finite, got {a.tolist()}")
+    return a
+
+
+#: The seed of the generator a function that draws random numbers uses when given none: results never depend
+#: on torch's global random state (issue 23, "reproducible by default").
+DEFAULT_SEED = 0
+
+
+def as_generator(generator: torch.Generator | int | None, device: torch.device | str | None = None
+                 ) -> torch.Generator:
+    """A ``torch.Generator`` as given, a new one seeded with an int, or (None) a new one seeded with
+    :data:`DEFAULT_SEED`: never torch's global stream, so a call without a generator is reproducible. New
+    generators are made for ``device`` (default the CPU).
+
+    Raises:
+        InvalidParameterError: anything else (a float, a string, a negative or too large seed).
+    """
+    if generator is None:
+        return torch.Generator(device=device or "cpu").manual_seed(DEFAULT_SEED)
+    if isinstance(generator, torch.Generator):
+        return generator
+    if isinstance(generator, int | np.integer) and not isinstance(generator, bool):
+        if not 0 <= int(generator) < 2**64:
+            raise InvalidParameterError(f"a seed must be an integer in [0, 2**64), got {generator}")
+        return torch.Generator(device=device or "cpu").manual_seed(int(generator))
+    raise InvalidParameterError(
+        f"generator must be a torch.Generator or an integer seed, got {type(generator).__name__} {generator!r}"
+    )
