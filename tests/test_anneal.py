@@ -8,7 +8,8 @@ import torch
 from pushtorch import se3
 from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal, initial_candidates, polish_candidates
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
-from pushtorch.kde import KernelBandwidth, PoseKDE, ProductOfExperts
+from pushtorch.kde import AnnealInputs, AnnealOutcome, KernelBandwidth, PoseKDE, ProductOfExperts
+from pushtorch.kde.annealing import anneal_chains
 
 BANDWIDTH = KernelBandwidth(p_std=0.01, rot_std=0.15, cutoff_std=(3.0, 3.0, 3.0))
 
@@ -206,3 +207,45 @@ def test_polish_moves_short_annealing_onto_the_mode_and_never_loses_likelihood()
     assert polish_candidates(short, kde.mean_shift, kde.log_prob, steps=0) is short
     with pytest.raises(InvalidParameterError):
         polish_candidates(short, kde.mean_shift, kde.log_prob, steps=-1)
+
+
+def test_a_density_that_anneals_itself_is_handed_the_drawn_steps():
+    """On the fast path the annealer hands the steps it drew to a density's ``fused_anneal`` (duck-typed): one
+    that declines (None, nothing drawn) is annealed by the generic loop over its values, one that takes them
+    reports its outcome — the same stream either way — and its start values are checked like any others."""
+    mode = se3.Pose(torch.tensor([0.1, -0.05, 0.02]), axis_angle([0.2, 1.0, 0.3], 0.8))
+    other = se3.Pose(torch.tensor([0.3, 0.1, 0.0]), axis_angle([1.0, 0.0, 0.0], 2.0))
+    kde = two_kernel_kde(mode, other)
+    init = scatter(initial_candidates(kde, 32, torch.Generator().manual_seed(1)), 0.01, 0.1,
+                   torch.Generator().manual_seed(2))
+
+    class Density:
+        def __init__(self, takes: bool, start_value: float | None = None):
+            self.takes, self.start_value, self.offers = takes, start_value, 0
+
+        def __call__(self, pose):
+            return kde.log_prob(pose)
+
+        def fused_anneal(self, inputs: AnnealInputs) -> AnnealOutcome | None:
+            self.offers += 1
+            if not self.takes:
+                return None
+            start = kde.log_prob(inputs.start)
+            if self.start_value is not None:
+                start = torch.full_like(start, self.start_value)
+            return anneal_chains(kde.log_prob, inputs, start)
+
+    schedule = AnnealSchedule(steps=30)
+    runs = {}
+    for name, density in [("function", kde.log_prob), ("declines", Density(False)), ("takes", Density(True))]:
+        runs[name] = anneal(density, init, schedule, torch.Generator().manual_seed(3), method="fast")
+        assert getattr(density, "offers", 1) == 1
+    for name in ("declines", "takes"):
+        assert torch.equal(runs[name].candidates.p, runs["function"].candidates.p)
+        assert torch.equal(runs[name].log_prob, runs["function"].log_prob)
+    assert (runs["takes"].log_prob > kde.log_prob(init)).any()
+    dense = Density(True)
+    anneal(dense, init, schedule)
+    assert dense.offers == 0  # the dense reference loop never hands its steps over
+    with pytest.raises(ModelError, match="NaN"):
+        anneal(Density(True, start_value=math.nan), init, schedule, method="fast")

@@ -16,17 +16,20 @@ from hypothesis import strategies as st
 from scipy import stats
 
 from pushtorch import se3
-from pushtorch.anneal import AnnealSchedule, _anneal_pruned_kde, anneal, initial_candidates
+from pushtorch.anneal import AnnealSchedule, anneal, initial_candidates
 from pushtorch.errors import InvalidParameterError
 from pushtorch.kde import (
     FAST_DENSE_KERNELS,
+    AnnealInputs,
+    DrawnSteps,
     KernelBandwidth,
     PoseKDE,
     ProductOfExperts,
     SharedKernelProduct,
     fused_function,
 )
-from pushtorch.kde.fast_index import _FastIndex
+from pushtorch.kde.annealing import anneal_chains
+from pushtorch.kde.fast_index import FastIndex
 from pushtorch.models.frames import embed_descriptors
 from pushtorch.models.query import (
     _fast_kernel_draws,
@@ -78,8 +81,8 @@ def test_fast_log_prob_equals_dense(n, batch):
     kde = _random_kde(n, batch, seed=n + len(batch), rounds=rounds)
     queries = _queries_near(kde, 200, seed=2)
     dense = kde.log_prob(queries)
-    fast = _FastIndex(kde).log_prob(queries.p, queries.q)
-    assert (_FastIndex(kde).blocks) == (n > FAST_DENSE_KERNELS)
+    fast = FastIndex(kde).log_prob(queries.p, queries.q)
+    assert (FastIndex(kde).blocks) == (n > FAST_DENSE_KERNELS)
     finite = torch.isfinite(dense)
     assert 0.2 < finite.double().mean() < 1.0  # both supported and cut-off queries are exercised
     assert torch.equal(finite, torch.isfinite(fast))
@@ -123,7 +126,7 @@ def test_block_pruning_never_skips_a_live_kernel(n, c_p, c_q, leaf, seed):
     zero = torch.zeros_like(p)
     queries = se3.Pose(p, se3.compose(se3.Pose(zero, kde.means.q[k]), se3.Pose(zero, turn)).q)
     dense = kde.log_prob(queries)
-    out = _FastIndex(kde, leaf=leaf, blocks=True).log_prob(queries.p, queries.q)
+    out = FastIndex(kde, leaf=leaf, blocks=True).log_prob(queries.p, queries.q)
     finite = torch.isfinite(dense)
     assert torch.equal(finite, torch.isfinite(out))
     assert torch.allclose(out[finite], dense[finite], atol=1e-9, rtol=0)
@@ -131,7 +134,7 @@ def test_block_pruning_never_skips_a_live_kernel(n, c_p, c_q, leaf, seed):
 
 def test_block_layout_pads_leaves_and_keeps_batches_apart():
     kde = _random_kde(40, (2,), seed=3)
-    index = _FastIndex(kde, leaf=4, blocks=True)
+    index = FastIndex(kde, leaf=4, blocks=True)
     assert index.blocks and index.num_blocks == 16
     queries = _queries_near(kde, 50, seed=8)
     dense, fast = kde.log_prob(queries), index.log_prob(queries.p, queries.q)
@@ -432,26 +435,70 @@ def test_annealing_a_shared_kernel_product_in_fused_steps_follows_the_generic_lo
         assert (fused.log_prob > product.log_prob(init)).any()  # the chains moved up
 
 
+def _drawn_steps(shape, temperatures, planar, seed, dtype=torch.float32):
+    """Steps drawn as the annealer draws them (:class:`DrawnSteps`, one chunk): free chains translate in 3-D
+    and turn about their body axes, planar chains (``planar (*B, 1)``) move in x, y and turn about world z."""
+    g = torch.Generator().manual_seed(seed)
+    full = (len(temperatures), *shape)
+    t = torch.tensor(temperatures, dtype=dtype).reshape(len(temperatures), *([1] * len(shape)), 1)
+    step_p = torch.randn(*full, 3, generator=g, dtype=dtype) * 0.003 * t
+    turn = pose_quaternion(torch.randn(*full, 3, generator=g, dtype=dtype) * 0.06 * t)
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dtype).expand(*full, 4)
+    yaw = se3.yaw_quaternion(torch.randn(full, generator=g, dtype=dtype) * 0.06 * t[..., 0])
+    step_p = torch.where(planar.unsqueeze(-1) & torch.tensor([False, False, True]), 0.0, step_p)
+    left = torch.where(planar.unsqueeze(-1), yaw, identity).contiguous()
+    right = torch.where(planar.unsqueeze(-1), identity, turn).contiguous()
+    return DrawnSteps(list(temperatures), step_p, left, right, torch.rand(full, generator=g, dtype=dtype))
+
+
 def test_annealing_a_pruned_density_in_fused_steps_follows_the_generic_loop():
     """A density on leaf blocks anneals (compiled) in two fused calls per step around its (query, block)
-    pairs; run eagerly here on a problem small enough for one pair chunk, it must end where the generic
-    loop over ``log_prob(method="fast")`` ends: the same accepted moves, the same values up to the
-    rounding of the queries ``log_prob`` normalises again (planar and free problems)."""
+    pairs; run eagerly here on a problem small enough for one pair chunk, over the same drawn steps it must
+    end where the generic loop over ``log_prob(method="fast")`` ends: the same accepted moves, the same values
+    up to the rounding of the queries ``log_prob`` normalises again (planar and free problems, two chunks)."""
     kde = _random_kde(FAST_DENSE_KERNELS + 700, (2,), seed=60, dtype=torch.float32)
-    assert kde.fast_index().blocks
+    index = kde.fast_index()
+    assert index.blocks
     init = initial_candidates(kde, 100, torch.Generator().manual_seed(61))
     init_lp = kde.log_prob(init, method="fast")
-    schedule = AnnealSchedule(steps=12)
-    for planar in (None, torch.tensor([[True], [False]])):
-        best, best_lp, saw_nan = _anneal_pruned_kde(kde, init, init_lp, schedule, torch.Generator().manual_seed(5),
-                                                    planar)
-        generic = anneal(partial(kde.log_prob, method="fast"), init, schedule, torch.Generator().manual_seed(5),
-                         planar=None if planar is None else planar.squeeze(-1), method="fast")
-        assert not saw_nan
-        assert torch.equal(best.p, generic.candidates.p)
-        assert torch.allclose(best.q, generic.candidates.q, atol=1e-7)
-        assert torch.allclose(best_lp, generic.log_prob, atol=1e-4)  # κ (1 − |<q, μ>|) scales q rounding by ~400
-        assert (best_lp > init_lp).any()  # the chains moved up
+    temperatures = AnnealSchedule(steps=12).temperatures()
+    for planar in (torch.tensor([[False], [False]]), torch.tensor([[True], [False]])):
+        steps = [_drawn_steps(init.batch_shape, temperatures[:7], planar, seed=5),
+                 _drawn_steps(init.batch_shape, temperatures[7:], planar, seed=6)]
+        fused = index.anneal_blocks(AnnealInputs(init, iter(steps), 0.1), init_lp)
+        generic = anneal_chains(partial(kde.log_prob, method="fast"), AnnealInputs(init, iter(steps), 0.1), init_lp)
+        assert not fused.saw_nan and fused.history is None
+        assert torch.equal(fused.best.p, generic.best.p)
+        assert torch.allclose(fused.best.q, generic.best.q, atol=1e-7)
+        # κ (1 − |<q, μ>|) scales the rounding of q by ~400
+        assert torch.allclose(fused.best_log_prob, generic.best_log_prob, atol=1e-4)
+        assert (fused.best_log_prob > init_lp).any()  # the chains moved up
+
+
+def test_a_density_anneals_itself_or_declines_before_drawing():
+    """``anneal(density, method="fast")`` hands the density the drawn steps: eagerly a PoseKDE runs the generic
+    loop on its own fast evaluation (the same result, bit for bit, as given that evaluation); a
+    SharedKernelProduct declines a history or poses not of its own batch without drawing a step, and the
+    annealer's loop then draws the same stream."""
+    kde = _random_kde(FAST_DENSE_KERNELS + 700, (2,), seed=60, dtype=torch.float32)
+    init = initial_candidates(kde, 40, torch.Generator().manual_seed(61))
+    schedule = AnnealSchedule(steps=25)  # two draw chunks
+    for options in ({}, {"record_history": True}, {"planar": torch.tensor([True, False])}):
+        itself = anneal(kde, init, schedule, torch.Generator().manual_seed(7), method="fast", **options)
+        given = anneal(partial(kde.log_prob, method="fast"), init, schedule, torch.Generator().manual_seed(7),
+                       method="fast", **options)
+        assert torch.equal(itself.candidates.p, given.candidates.p) and torch.equal(itself.log_prob, given.log_prob)
+        if options.get("record_history"):
+            assert torch.equal(itself.history.q, given.history.q)
+    product, start = _shared_product_problem(2, 300, 50, seed=70)
+    untouched = iter([])
+    for inputs in (AnnealInputs(start, untouched, 0.1, record_history=True),
+                   AnnealInputs(se3.Pose(start.p[:1], start.q[:1]), untouched, 0.1)):
+        assert product.fused_anneal(inputs) is None
+    recorded = anneal(product, start, schedule, torch.Generator().manual_seed(8), record_history=True, method="fast")
+    plain = anneal(product, start, schedule, torch.Generator().manual_seed(8), method="fast")
+    assert torch.equal(recorded.candidates.p, plain.candidates.p) and torch.equal(recorded.log_prob, plain.log_prob)
+    assert torch.equal(recorded.history.p[0], start.p)
 
 
 @pytest.mark.slow

@@ -12,6 +12,7 @@ from scipy import integrate, stats
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.kde import (
+    Evaluation,
     KernelBandwidth,
     PoseKDE,
     ProductOfExperts,
@@ -591,3 +592,21 @@ def test_bad_kernels_and_queries_are_refused():
     batched = PoseKDE(se3.Pose(torch.zeros(2, 3, 3), q.expand(2, 3, 4)), bw)
     with pytest.raises(InvalidPoseError, match="broadcast"):
         batched.log_prob(se3.Pose(torch.zeros(5, 4, 3), torch.tensor([IDENTITY_Q]).expand(5, 4, 4)))
+
+
+def test_an_evaluation_is_its_string_wherever_a_method_is_taken():
+    """``Evaluation.DENSE`` / ``Evaluation.FAST`` name the dense reference and the fast path; each equals its
+    string, so a ``method=`` takes either and gives the same values, and anything else is refused."""
+    g = torch.Generator().manual_seed(0)
+    kde = PoseKDE(se3.Pose(torch.randn(1500, 3, generator=g) * 0.05, torch.tensor([IDENTITY_Q]).expand(1500, 4)),
+                  KernelBandwidth(p_std=0.01, rot_std=0.1))
+    queries = se3.Pose(torch.randn(20, 3, generator=g) * 0.05, torch.tensor([IDENTITY_Q]).expand(20, 4))
+    assert Evaluation.FAST == "fast" and Evaluation.of("dense") is Evaluation.DENSE
+    for method in Evaluation:
+        assert torch.equal(kde.log_prob(queries, method=method), kde.log_prob(queries, method=str(method)))
+        assert torch.equal(kde.mean_shift(queries, method=method).p, kde.mean_shift(queries, method=method.value).p)
+    for bad in ("approximate", None, "FAST"):
+        with pytest.raises(InvalidParameterError, match="method"):
+            Evaluation.of(bad)
+        with pytest.raises(InvalidParameterError, match="method"):
+            kde.log_prob(queries, method=bad)

@@ -4,9 +4,11 @@ One module per concern: :mod:`~pushtorch.kde.bandwidth` (bandwidths, trial round
 :mod:`~pushtorch.kde.density` (:class:`PoseKDE`: the dense reference, the textbook evaluation, mean shift,
 sampling), :mod:`~pushtorch.kde.sampling` (one kernel factor's exact draws), :mod:`~pushtorch.kde.fused`
 (the fast path's fused functions and when they compile), :mod:`~pushtorch.kde.fast_index` (kernels laid out
-for the fast path), :mod:`~pushtorch.kde.products` (products of experts) and :mod:`~pushtorch.kde.normaliser`
-(the normalising constants of kernels and of products of experts). This package re-exports the
-public names.
+for the fast path), :mod:`~pushtorch.kde.products` (products of experts), :mod:`~pushtorch.kde.annealing`
+(densities that anneal themselves: the fast annealing steps fused with a density's evaluation, for
+:func:`pushtorch.anneal.anneal`) and :mod:`~pushtorch.kde.normaliser` (the normalising constants of kernels
+and of products of experts); :mod:`~pushtorch.kde.evaluation` names the two evaluations. This package
+re-exports the public names.
 
 Paper, Background → Kernel Density Estimation: the surface-feature kernel (Eq. surface_feature_kernel)
 approximated by the cut-off Gaussians N3 / N2 and the antipodal von Mises–Fisher pair Θ, the distances
@@ -35,14 +37,16 @@ ratio and arg-max the method takes (P(m|c,a) = Σ…/P(c), annealing, the produc
 descriptors of a query (``descriptors=None``) therefore evaluates the density marginalised over the
 descriptors, up to that same constant — the paper's "descriptor distance is omitted during optimisation".
 
-Two evaluation paths give the same values: ``method="dense"`` (the reference, every query against every
-kernel with matmuls) and ``method="fast"`` (exact distances in fused, optionally compiled passes, pruned by
-the hard cut-offs to the leaf blocks of kernels that can reach a query; :mod:`pushtorch.kde.fused`).
+Two evaluation paths give the same values (:class:`Evaluation`, or its string, wherever ``method=`` is
+taken): ``method="dense"`` (the reference, every query against every kernel with matmuls) and
+``method="fast"`` (exact distances in fused, optionally compiled passes, pruned by the hard cut-offs to the
+leaf blocks of kernels that can reach a query; :mod:`pushtorch.kde.fused`).
 Inside :func:`straightforward_evaluation` the dense reference is evaluated the textbook way instead
 (``cdist`` and the quaternion dot for all queries at once, cut-offs, ``logsumexp``): the baseline the
 prediction benchmark times for scale, and an oracle for both paths.
 """
 
+from pushtorch.kde.annealing import AnnealInputs, AnnealOutcome, DrawnSteps, FusedAnnealing
 from pushtorch.kde.bandwidth import (
     COMPONENTS,
     KernelBandwidth,
@@ -53,6 +57,7 @@ from pushtorch.kde.bandwidth import (
     translation_distance,
 )
 from pushtorch.kde.density import PoseKDE, straightforward_evaluation
+from pushtorch.kde.evaluation import Evaluation
 from pushtorch.kde.fused import (
     FAST_DENSE_KERNELS,
     FAST_LEAF_SIZE,
@@ -63,9 +68,14 @@ from pushtorch.kde.fused import (
 from pushtorch.kde.products import ProductOfExperts, SharedKernelProduct, product_log_prob
 
 __all__ = [
+    "AnnealInputs",
+    "AnnealOutcome",
     "COMPONENTS",
+    "DrawnSteps",
+    "Evaluation",
     "FAST_DENSE_KERNELS",
     "FAST_LEAF_SIZE",
+    "FusedAnnealing",
     "KernelBandwidth",
     "PoseKDE",
     "ProductOfExperts",

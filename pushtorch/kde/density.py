@@ -1,12 +1,14 @@
 """The weighted kernel density over SE(3) (× descriptors), :class:`PoseKDE` (Eqs. surface_feature_kernel,
 surface_feature_probability): its dense reference evaluation, the textbook one (:func:`straightforward_evaluation`),
-mean shift, trial rounds and sampling; the fast path lives in :mod:`pushtorch.kde.fused` and
-:mod:`pushtorch.kde.fast_index`."""
+mean shift, trial rounds, sampling, and its own annealing on the fast path (:meth:`PoseKDE.fused_anneal`, the
+Query Density's simulated annealing); the fast path lives in :mod:`pushtorch.kde.fused`,
+:mod:`pushtorch.kde.fast_index` and :mod:`pushtorch.kde.annealing`."""
 
 from __future__ import annotations
 
 import contextlib
 import contextvars
+import functools
 import math
 from collections.abc import Iterator, Sequence
 
@@ -14,8 +16,10 @@ import torch
 from pytorch_kinematics import transforms as pkt
 
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
+from pushtorch.kde.annealing import AnnealInputs, AnnealOutcome, anneal_chains
 from pushtorch.kde.bandwidth import KernelBandwidth, TrialRounds
-from pushtorch.kde.fast_index import _FastIndex
+from pushtorch.kde.evaluation import Evaluation
+from pushtorch.kde.fast_index import FastIndex
 from pushtorch.kde.fused import (
     _DEFAULT_BLOCK_ELEMENTS,
     _descriptor_sums,
@@ -483,7 +487,7 @@ class PoseKDE:
         pose: Pose,
         descriptors: Tensor | None = None,
         chunk_size: int | None = None,
-        method: str = "dense",
+        method: Evaluation | str = Evaluation.DENSE,
     ) -> Tensor:
         """log P(x) = log Σ_i w_i K(x | μ_i) with the hard cut-offs (Eq. surface_feature_probability).
 
@@ -492,7 +496,8 @@ class PoseKDE:
             descriptors: query descriptors ``(*B', M, k)``; None evaluates the density over SE(3) alone
                 (marginal over descriptors, see the module docstring).
             chunk_size: queries per dense ``(chunk, N)`` block; None picks one bounded in memory.
-            method: ``"dense"`` (the reference: every query against every kernel) or ``"fast"``:
+            method: :class:`~pushtorch.kde.Evaluation` or its string: ``"dense"`` (the reference: every
+                query against every kernel) or ``"fast"``:
                 exact distances evaluated in fused passes (compiled, see :func:`fast_path_compiled`),
                 for more than ``FAST_DENSE_KERNELS`` kernels only on the leaf blocks the cut-offs let
                 reach a query. Same values up to float rounding; the kernel layout is built on first
@@ -513,15 +518,14 @@ class PoseKDE:
         (κ = β_q / σ_q = 4 β_q / rot_std²), so ``log_prob`` at a kernel's mean is within 1e-3 of its log
         weight for rot_std ≥ 0.025 rad in float32 (use float64 densities for narrower ones).
         """
-        if method not in ("dense", "fast"):
-            raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
-        if method == "fast" and descriptors is None:
+        method = Evaluation.of(method)
+        if method == Evaluation.FAST and descriptors is None:
             index = self.fast_index()
             # uncompiled, the dense reference is as fast as an eager fused pass for small densities
             if index.linear and (index.blocks or fast_path_compiled(self.device)):
                 p, q, _ = self._prepare_queries(pose, None)
                 return index.log_prob(p, q)
-        if method == "fast" and descriptors is not None and len(self.batch_shape) == 0:
+        if method == Evaluation.FAST and descriptors is not None and len(self.batch_shape) == 0:
             table = self._descriptor_table()
             if table is not None:
                 p, q, r = self._prepare_queries(pose, descriptors)
@@ -598,7 +602,8 @@ class PoseKDE:
                            for s in range(0, x.shape[1], step)])
         return (torch.log(total) + top).reshape(shape)
 
-    def mean_shift(self, pose: Pose, chunk_size: int | None = None, method: str = "dense") -> Pose:
+    def mean_shift(self, pose: Pose, chunk_size: int | None = None, method: Evaluation | str = Evaluation.DENSE
+                   ) -> Pose:
         """One mean-shift step of every query towards a local mode of the density over SE(3).
 
         With responsibilities ``a_i ∝ w_i K(x | μ_i)`` (cut-offs included) the step is
@@ -608,9 +613,8 @@ class PoseKDE:
         ``method="fast"`` sums the moments over the leaf blocks in reach (large densities only);
         ``"dense"`` forms every query's responsibilities. Poses ``(*B', M)`` → ``(*broadcast, M)``.
         """
-        if method not in ("dense", "fast"):
-            raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
-        if method == "fast" and self._r is None:
+        method = Evaluation.of(method)
+        if method == Evaluation.FAST and self._r is None:
             index = self.fast_index()
             if index.linear and index.blocks:
                 p, q, _ = self._prepare_queries(pose, None)
@@ -628,13 +632,29 @@ class PoseKDE:
             new_q.append(torch.where(alive, moved_q, q.expand_as(moved_q)))
         return Pose.unchecked(torch.cat(new_p, -2), torch.cat(new_q, -2))
 
-    def fast_index(self) -> _FastIndex:
+    def fast_index(self) -> FastIndex:
         """The fast path's leaf blocks of this density (built on first use, then cached)."""
         index = self.__dict__.get("_fast_index")
         if index is None:
-            index = _FastIndex(self)
+            index = FastIndex(self)
             self._fast_index = index
         return index
+
+    def fused_anneal(self, inputs: AnnealInputs) -> AnnealOutcome:
+        """Anneal on the fast path (:class:`~pushtorch.kde.annealing.FusedAnnealing`): over this density's
+        fast evaluation, ``log_prob(..., method="fast")``. The poses of its own batch on compiled leaf blocks
+        run in steps fused with the evaluation (:meth:`FastIndex.anneal_blocks`); otherwise, or with a
+        history, the generic loop (:func:`~pushtorch.kde.annealing.anneal_chains`) — eagerly the fused step
+        would not chunk its pair sums in memory as ``log_prob`` does."""
+        evaluate = functools.partial(self.log_prob, method=Evaluation.FAST)
+        with torch.no_grad():
+            start_log_prob = evaluate(inputs.start)
+        index = self.fast_index()
+        own = inputs.start.batch_shape[:-1] == self.batch_shape
+        if (index.blocks and index.linear and own and not inputs.record_history
+                and fast_path_compiled(inputs.start.p.device)):
+            return index.anneal_blocks(inputs, start_log_prob)
+        return anneal_chains(evaluate, inputs, start_log_prob)
 
     def __call__(self, pose: Pose, descriptors: Tensor | None = None) -> Tensor:
         """Alias of :meth:`log_prob`, so a PoseKDE is itself a ``log_prob_fn`` for annealing."""

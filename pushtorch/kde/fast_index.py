@@ -1,5 +1,7 @@
-"""A density's kernels laid out for the fast path (:class:`_FastIndex`): one dense table, or k-d leaf blocks
-pruned by the hard cut-offs."""
+"""A density's kernels laid out for the fast path (:class:`FastIndex`): one dense table, or k-d leaf blocks
+pruned by the hard cut-offs (paper, Background → Kernel Density Estimation: the cut-offs make each kernel
+exactly zero beyond its reach), and the annealing steps of a query density fused with its evaluation on
+those blocks (:meth:`FastIndex.anneal_blocks`; Query Density's simulated annealing)."""
 
 from __future__ import annotations
 
@@ -9,6 +11,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from pushtorch.kde.annealing import AnnealInputs, AnnealOutcome, chain_state, metropolis_update, propose_from_offsets
 from pushtorch.kde.fused import (
     _BOUND_SLACK,
     _DEFAULT_BLOCK_ELEMENTS,
@@ -33,7 +36,7 @@ if TYPE_CHECKING:
 
 Tensor = torch.Tensor
 
-class _FastIndex:
+class FastIndex:
     """A PoseKDE's kernels laid out for the fast path: a dense table or pruned leaf blocks."""
 
     def __init__(self, kde: PoseKDE, leaf: int = FAST_LEAF_SIZE, blocks: bool | None = None) -> None:
@@ -190,3 +193,57 @@ class _FastIndex:
         moved_q = moved_q / moved_q.norm(dim=-1, keepdim=True).clamp_min(1e-30)
         return Pose.unchecked(torch.where(alive, moments[..., 1:4] / moments[..., :1].clamp_min(1e-30), p),
                     torch.where(alive, moved_q, q))
+
+    def anneal_blocks(self, inputs: AnnealInputs, start_log_prob: Tensor) -> AnnealOutcome:
+        """The annealer's fast steps against this density on its leaf blocks (see
+        :mod:`pushtorch.kde.annealing`): each step two fused calls — proposal with block reach, then the pair
+        sums with the Metropolis test — around the one data-dependent step, the list of (query, block) pairs,
+        instead of four calls and the glue of :meth:`PoseKDE.log_prob`. The start poses must be the
+        density's own batch ``(*B, C)``; no history is recorded. Compiled, the pair sums stream; eagerly
+        they are not chunked (use :func:`~pushtorch.kde.annealing.anneal_chains` over ``log_prob``)."""
+        start = inputs.start
+        shape = start.batch_shape
+        d, c = max(1, self.batch_shape.numel()), shape[-1]
+        device = start.p.device
+        propose = fused_function("anneal_propose_and_reach", _propose_and_reach, device)
+        accept = fused_function("anneal_block_step_acceptance", _block_step_acceptance, device)
+        state = chain_state(start.p.reshape(d, c, 3), start.q.reshape(d, c, 4), start_log_prob.reshape(d, c))
+        query_density = torch.arange(d, device=device).repeat_interleave(c)
+        log_w_max = self.log_w_max.reshape(d, 1)
+        bounds = (self.lo, self.hi, self.centre, self.cos_reach, self.r2)
+        for chunk, step_p, left, right, accept_u in inputs.steps:
+            step_p, accept_u = step_p.reshape(len(chunk), d, c, 3), accept_u.reshape(len(chunk), d, c)
+            left, right = left.reshape(len(chunk), d, c, 4), right.reshape(len(chunk), d, c, 4)
+            for k, temperature in enumerate(chunk):
+                x, reach = propose(state[0], state[1], step_p[k], left[k], right[k], *bounds)
+                pair_query, pair_block = (reach.reshape(d * c, self.num_blocks) > 0).nonzero(as_tuple=True)
+                state = accept(*state, x, accept_u[k], inputs.inverse_energy(temperature), self.table, self.scale,
+                               query_density, pair_query, pair_block, self.num_blocks, log_w_max, self.delta_p,
+                               self.delta_q)
+        best = Pose.unchecked(state[3].reshape(*shape, 3), state[4].reshape(*shape, 4))
+        return AnnealOutcome(start_log_prob, best, state[5].reshape(shape), state[6])
+
+
+def _propose_and_reach(
+    p: Tensor, q: Tensor, step_p: Tensor, left: Tensor, right: Tensor,
+    lo: Tensor, hi: Tensor, centre: Tensor, cos_reach: Tensor, r2: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """A step's proposals against a block-pruned density (fused): the proposals as query rows
+    ``(D, C, 7)`` and which leaf blocks each may touch ``(D, C, nb)`` (see :func:`_reachable_blocks`)."""
+    prop_p, prop_q = propose_from_offsets(p, q, step_p, left, right)
+    x = torch.cat([prop_p, prop_q], -1)
+    return x, _reachable_blocks(x.transpose(1, 2), lo, hi, centre, cos_reach, r2)
+
+
+def _block_step_acceptance(
+    p: Tensor, q: Tensor, lp: Tensor, best_p: Tensor, best_q: Tensor, best_lp: Tensor, saw_nan: Tensor,
+    x: Tensor, u: Tensor, inverse_energy: Tensor, table: Tensor, scale: Tensor, query_density: Tensor,
+    pair_query: Tensor, pair_block: Tensor, num_blocks: int, log_w_max: Tensor, delta_p: float, delta_q: float,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The rest of that step (fused): the proposals' log densities over their (query, block) pairs and the
+    Metropolis test. ``log_w_max (D, 1)`` is each density's largest log weight (the table's are relative)."""
+    total = _block_sums(x.reshape(-1, 7), table, scale, query_density, pair_query, pair_block, num_blocks,
+                        delta_p, delta_q)
+    prop_lp = torch.log(total.reshape(lp.shape)) + log_w_max
+    return metropolis_update(p, q, lp, best_p, best_q, best_lp, x[..., :3], x[..., 3:], prop_lp, u,
+                             inverse_energy, saw_nan)
