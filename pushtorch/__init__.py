@@ -20,7 +20,7 @@ __version__ = "0.1.0"
 
 #: name → the module that defines it, imported on first access (PEP 562). ``predict`` is also the name of
 #: a submodule: once that is imported the package attribute is the module, which is callable as the function
-#: (``pushtorch.predict._CallableModule``).
+#: (``pushtorch.prediction._CallableModule``).
 _LAZY = {
     # objects and what a camera sees of them
     "load_object": "pushtorch.objects",
@@ -39,8 +39,8 @@ _LAZY = {
     "train_push_model": "pushtorch.models.library",
     "load_model": "pushtorch.models.library",
     "ModelLibrary": "pushtorch.models.library",
-    "predict": "pushtorch.predict",
-    "predict_many": "pushtorch.predict",
+    "predict": "pushtorch.prediction",
+    "predict_many": "pushtorch.prediction",
     "FinalPoseDistribution": "pushtorch.distribution",
 }
 
@@ -54,7 +54,7 @@ if TYPE_CHECKING:  # what type checkers and IDEs see (py.typed ships with the pa
     from pushtorch.models.library import ModelLibrary, load_model, train_push_model
     from pushtorch.objects import load_object
     from pushtorch.perception import capture_partial_cloud
-    from pushtorch.predict import predict, predict_many
+    from pushtorch.prediction import predict, predict_many
     from pushtorch.sim.plan import plan_training_pushes
     from pushtorch.sim.priors import Fixed, Normal, Uniform
     from pushtorch.sim.push import make_actions

@@ -48,7 +48,7 @@ from pushtorch.models.library import FORMAT, ModelSettings, load_model, train_pu
 from pushtorch.objects import load_mesh_file, load_object
 from pushtorch.paths import contained_path, safe_name
 from pushtorch.perception import PointCloud, capture_partial_cloud
-from pushtorch.predict import predict, predict_many
+from pushtorch.prediction import predict, predict_many
 from pushtorch.sim.plan import PushPlan, plan_training_pushes
 from pushtorch.sim.priors import Normal
 from pushtorch.sim.push import make_actions, place_robot_against

@@ -27,7 +27,7 @@ METHODS = ("fast", "dense")
 @pytest.fixture(scope="module")
 def predictions(small_model):
     from pushtorch import capture_partial_cloud, load_object
-    from pushtorch.predict import predict_many
+    from pushtorch.prediction import predict_many
 
     model = small_model("cube")
     prism = load_object("prism_thin")

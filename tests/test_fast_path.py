@@ -39,7 +39,7 @@ from pushtorch.models.query import (
 )
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
-from pushtorch.predict import predict, predict_many
+from pushtorch.prediction import predict, predict_many
 
 
 @pytest.fixture(autouse=True)

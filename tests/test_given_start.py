@@ -17,7 +17,7 @@ from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.features import compute_surface_features
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
-from pushtorch.predict import manipulator_frame_at, predict, predict_many
+from pushtorch.prediction import manipulator_frame_at, predict, predict_many
 from pushtorch.sim.push import place_robot_against
 
 

@@ -24,6 +24,7 @@ MOVED = {
     "pushtorch.train": "pushtorch.apps.train",
     "pushtorch.predict_cli": "pushtorch.apps.predict",
     "pushtorch.collect": "pushtorch.apps.collect",
+    "pushtorch.predict": "pushtorch.prediction",
 }
 
 
@@ -42,7 +43,7 @@ def test_the_library_itself_imports_no_old_path():
     probe = ("import warnings; warnings.simplefilter('error', DeprecationWarning); "
              "import pushtorch.objects, pushtorch.evaluation.metrics, pushtorch.evaluation.likelihood, "
              "pushtorch.evaluation.baselines, pushtorch.objects.shapes, pushtorch.distribution, "
-             "pushtorch.models.motion")
+             "pushtorch.models.motion, pushtorch.prediction, pushtorch.apps.cli, pushtorch.experiments.common")
     subprocess.run([sys.executable, "-c", probe], check=True)
 
 

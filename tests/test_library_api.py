@@ -48,10 +48,15 @@ def test_the_public_face_is_light_and_complete():
 
 
 def test_predict_is_callable_from_the_package_in_any_import_order():
+    """``pushtorch.predict`` is the function, and stays callable once the old module path ``pushtorch.predict``
+    (now :mod:`pushtorch.prediction`, which is callable as the function) has been imported."""
     import pushtorch
-    import pushtorch.predict  # the submodule binds the package attribute to itself
+    import pushtorch.prediction
 
-    assert callable(pushtorch.predict) and pushtorch.predict_many is pushtorch.predict.predict_many
+    assert callable(pushtorch.predict) and pushtorch.predict_many is pushtorch.prediction.predict_many
+    with pytest.warns(DeprecationWarning, match="pushtorch.prediction"):
+        import pushtorch.predict  # the old path binds the package attribute to the (callable) new module
+    assert callable(pushtorch.predict) and pushtorch.predict.predict_many is pushtorch.prediction.predict_many
     with pytest.raises(AttributeError):
         pushtorch.no_such_thing  # noqa: B018
 

@@ -30,7 +30,7 @@ from pushtorch.evaluation.likelihood import (
 from pushtorch.features import compute_surface_features
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
-from pushtorch.predict import contact_bandwidth, predict
+from pushtorch.prediction import contact_bandwidth, predict
 
 
 def _unit(q: torch.Tensor) -> torch.Tensor:

@@ -34,7 +34,7 @@ from pushtorch.models.position import (
 )
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_full_cloud, capture_partial_cloud
-from pushtorch.predict import estimate_pose, predict
+from pushtorch.prediction import estimate_pose, predict
 from pushtorch.robot import backed_off
 from pushtorch.sim.plan import Placement, plan_training_pushes
 from pushtorch.sim.priors import Normal

@@ -17,7 +17,7 @@ from pushtorch.errors import InvalidParameterError, InvalidPointCloudError, Mode
 from pushtorch.features import compute_surface_features
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
-from pushtorch.predict import (
+from pushtorch.prediction import (
     MAX_BACKOFF,
     START_CLEARANCE,
     clear_robot_start,

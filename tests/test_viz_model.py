@@ -24,7 +24,7 @@ from pushtorch.models.contact import closest_points_on_mesh
 from pushtorch.models.library import ModelSettings, train_push_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
-from pushtorch.predict import predict
+from pushtorch.prediction import predict
 from pushtorch.robot import bumper_mesh
 from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_training_pushes, run_plan
 from pushtorch.sim.runner import simulate_pushes

@@ -38,7 +38,7 @@ _CHILD = r"""
 import json, statistics, sys, time
 started = time.perf_counter()
 import pushtorch
-import pushtorch.predict
+import pushtorch.prediction
 import_s = time.perf_counter() - started
 model = pushtorch.load_model(sys.argv[1])
 prism = pushtorch.load_object("prism_thin")

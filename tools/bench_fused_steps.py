@@ -33,7 +33,7 @@ import pushtorch.models.motion
 import pushtorch.models.query
 from pushtorch.kde import PoseKDE, declare_long_run
 from pushtorch.objects import load_object
-from pushtorch.predict import predict
+from pushtorch.prediction import predict
 
 
 def main() -> None:

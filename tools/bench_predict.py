@@ -72,7 +72,7 @@ from pushtorch.models.library import ModelSettings, PushModel, load_model, train
 from pushtorch.objects import load_object
 from pushtorch.parallel import share_cores
 from pushtorch.perception import capture_partial_cloud
-from pushtorch.predict import predict, predict_many
+from pushtorch.prediction import predict, predict_many
 from pushtorch.sim.plan import Placement, plan_training_pushes
 from pushtorch.sim.priors import Normal
 from pushtorch.sim.push import make_actions

@@ -27,7 +27,7 @@ import json, sys, torch
 from pushtorch.models.library import load_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
-from pushtorch.predict import predict_many
+from pushtorch.prediction import predict_many
 model = load_model(sys.argv[1])
 obj = load_object("cube")
 clouds = [capture_partial_cloud(obj, obj.resting_pose(0.0, 0.0, 0.3 * k), generator=torch.Generator().manual_seed(k))

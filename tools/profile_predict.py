@@ -26,7 +26,7 @@ from bench_predict import cpu_name, paper_size_model, test_conditions, warm_up
 
 from pushtorch.kde import declare_long_run
 from pushtorch.objects import load_object
-from pushtorch.predict import predict, predict_many
+from pushtorch.prediction import predict, predict_many
 
 #: A prediction's stages, in the order they run: (label, file, function). None of them calls another, so
 #: their inclusive times add up; what is left of a prediction is dispatch and bookkeeping between them.

@@ -56,7 +56,7 @@ from pushtorch.models.library import ModelLibrary, PushModel, load_model
 from pushtorch.models.motion import local_motions
 from pushtorch.objects import ObjectModel, load_object
 from pushtorch.objects.shapes import held_out_shapes
-from pushtorch.predict import predict_many
+from pushtorch.prediction import predict_many
 from pushtorch.sim import SimSettings, make_actions, place_robot_against
 from pushtorch.sim.runner import simulate_pushes
 

@@ -2,7 +2,7 @@
 
 Paper, Fig. pipeline (prediction) and Fig. prediction_accuracy_methodology: capture the object's
 single-shot cloud, generate the push condition (robot start pose, contact frames, initial-pose estimate)
-and predict the final pose for each action (:func:`pushtorch.predict.predict`); then simulate
+and predict the final pose for each action (:func:`pushtorch.prediction.predict`); then simulate
 ``truth_samples`` ground-truth pushes per action from the predicted robot start pose, with mass and
 friction drawn from the chosen priors, and measure H_acc. Usage::
 
@@ -67,7 +67,7 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
     from pushtorch.experiments.common import as_names, observe, plain, stable_seed
     from pushtorch.models.library import ModelLibrary, load_model
     from pushtorch.objects import load_object
-    from pushtorch.predict import predict
+    from pushtorch.prediction import predict
     from pushtorch.sim.priors import prior_from_config
     from pushtorch.sim.runner import simulate_pushes
     from pushtorch.sim.world import SimSettings

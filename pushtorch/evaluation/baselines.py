@@ -68,7 +68,7 @@ def nearest_push_prediction(motion: MotionModel, manipulator_frame, robot_start:
         motion: the action's motion model (its manipulator kernels: one per training push and feature).
         manipulator_frame: the push condition's manipulator contact frame (world).
         robot_start, initial_estimate: the push condition's robot start and estimated object pose ``B0'``.
-        contact_bandwidth: the model's contact-frame kernel (:func:`pushtorch.predict.contact_bandwidth`).
+        contact_bandwidth: the model's contact-frame kernel (:func:`pushtorch.prediction.contact_bandwidth`).
         contact_patch: ``(3,)`` the push condition's contact patch on the bumper
             (``PushCondition.contact_patch``).
 

@@ -103,7 +103,7 @@ class PredictionSet:
         cloud_start, cloud_final: the physics-from-cloud baseline's reconstructed body before and after the
             push ``(N, A)``, or None.
         backoff: ``(N, A)`` metres each robot start was backed off to clear the observed cloud
-            (:attr:`pushtorch.predict.PushCondition.backoff`).
+            (:attr:`pushtorch.prediction.PushCondition.backoff`).
         selected: ``(N, A)`` index into ``model_names`` of the model that made each prediction.
         model_names: names of the candidate models.
         fingerprint: what the set was computed from (a cached set is reused only if it matches).
@@ -129,9 +129,9 @@ class PredictionSet:
 
     @property
     def invalid_starts(self) -> int:
-        """How many robot starts needed more back-off than :data:`pushtorch.predict.MAX_BACKOFF` (invalid
+        """How many robot starts needed more back-off than :data:`pushtorch.prediction.MAX_BACKOFF` (invalid
         conditions, pushed from the cleared start all the same)."""
-        from pushtorch.predict import MAX_BACKOFF
+        from pushtorch.prediction import MAX_BACKOFF
 
         return int((self.backoff > MAX_BACKOFF).sum())
 
@@ -295,7 +295,7 @@ def predict_set(
         physics_from_cloud_prediction,
     )
     from pushtorch.evaluation.likelihood import mean_motion_density, motion_product_density
-    from pushtorch.predict import contact_bandwidth, predict
+    from pushtorch.prediction import contact_bandwidth, predict
 
     n, a_count = int(poses.p.shape[0]), int(ctx.actions.shape[0])
     choose = choose or (lambda i: 0)

@@ -183,7 +183,7 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
 
     counts = _thrown_counts(extras.get("thrown") or [])
     if counts:
-        from pushtorch.predict import MAX_BACKOFF
+        from pushtorch.prediction import MAX_BACKOFF
 
         lines += ["## Ground-truth pushes that threw the object, and starts backed off", "",
                   "Per part and method: pushes in which the object tipped or left the ground (the physics engine "

@@ -60,7 +60,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
         every estimate's linear error for the report (``{"pose_errors": {object: [cm, ...]}}``).
     """
     from pushtorch.models.position import centroid_pose
-    from pushtorch.predict import estimate_pose
+    from pushtorch.prediction import estimate_pose
 
     part = plain(part)
     name = part.get("name", "pose_estimation")

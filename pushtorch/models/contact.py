@@ -138,7 +138,7 @@ def bumper_contact_patch(points_robot: Tensor, depth: float = 0.01) -> Tensor:
 
     The points within the plate's width and height band whose distance along the approach (base x) is within
     ``depth`` of the foremost one are the contact patch. Measured along the approach rather than from the
-    plate, so a start backed off from the object (:func:`pushtorch.predict.clear_robot_start`) and the
+    plate, so a start backed off from the object (:func:`pushtorch.prediction.clear_robot_start`) and the
     training placement's 2 mm gap give the same patch. A cloud with no point in the band (a bumper that
     would miss it) falls back to the height band alone: the patch of the surface nearest the plate's line.
 

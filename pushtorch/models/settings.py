@@ -6,18 +6,26 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
+from functools import cached_property
 
 import numpy as np
 import torch
 
 from pushtorch.errors import InvalidParameterError
+from pushtorch.kde import KernelBandwidth
 
 __all__ = [
+    "CONTACT_TRIAL_ROUNDS",
     "DEFAULT_SEED",
     "ModelSettings",
     "as_generator",
     "check_action",
 ]
+
+
+#: Trial rounds the motion model's contact-frame kernel may take (:attr:`ModelSettings.contact_bandwidth`): 2^-30 scales
+#: any distance a float32 holds into reach.
+CONTACT_TRIAL_ROUNDS = 30
 
 
 @dataclass(frozen=True)
@@ -95,6 +103,49 @@ class ModelSettings:
     def fast_anneal_steps(self) -> int:
         """Annealing steps of the fast path: ``fast_anneal_fraction`` of ``anneal_steps`` (at least 1)."""
         return max(1, round(self.anneal_steps * self.fast_anneal_fraction))
+
+    # -- the kernels the settings define: built once per settings object (frozen, so they cannot go stale)
+
+    @cached_property
+    def query_bandwidth(self) -> KernelBandwidth:
+        """The query densities' kernel (robot and object poses)."""
+        c = self.cutoff_std
+        return KernelBandwidth(self.query_p_std, self.query_rot_std, cutoff_std=(c, c, c), alpha_t=self.alpha_t)
+
+    @cached_property
+    def contact_bandwidth(self) -> KernelBandwidth:
+        """The motion model's contact-frame kernel: relation ``u``, embedded curvatures, the frame's position in
+        the robot's start frame and the push's contact patch on the bumper.
+
+        It may widen by up to :data:`CONTACT_TRIAL_ROUNDS` trial rounds (the lineage's 10 elsewhere): its patch
+        stds are chosen from the training pushes (5 mm, 0.01 rad at the bounds), and an incongruent model's push
+        can meet the object with a patch metres or a radian from every training one (measured: 9,600 scaled
+        distances in the quickstart's selection part). Widening then lets the nearest training pushes weigh in,
+        as trial rounds are meant to, instead of refusing the prediction.
+        """
+        return self._contact_kernel(True)
+
+    @cached_property
+    def environment_contact_bandwidth(self) -> KernelBandwidth:
+        """The environment contacts' kernel: relation ``u`` and embedded curvatures (10 trial rounds at most)."""
+        return self._contact_kernel(False)
+
+    def _contact_kernel(self, with_robot_position: bool) -> KernelBandwidth:
+        c = self.cutoff_std
+        stds = (self.descriptor_std,) * 2
+        rounds = 10
+        if with_robot_position:
+            stds += (self.contact_robot_std,) * 3 + (self.contact_patch_std,) * 2 + (self.contact_patch_yaw_std,)
+            rounds = CONTACT_TRIAL_ROUNDS
+        return KernelBandwidth(self.contact_p_std, self.contact_rot_std, stds,
+                               cutoff_std=(c, c, self.descriptor_cutoff_std), alpha_t=self.alpha_t,
+                               max_trial_rounds=rounds)
+
+    @cached_property
+    def motion_bandwidth(self) -> KernelBandwidth:
+        """The motion kernels' bandwidth (final poses)."""
+        c = self.cutoff_std
+        return KernelBandwidth(self.motion_p_std, self.motion_rot_std, cutoff_std=(c, c, c), alpha_t=self.alpha_t)
 
     @staticmethod
     def from_mapping(mapping) -> ModelSettings:

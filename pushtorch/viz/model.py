@@ -85,7 +85,7 @@ recordings of one prediction show the same draws. Draws are importance-resampled
 (:meth:`~pushtorch.distribution.FinalPoseDistribution.sample`), so a draw may repeat.
 
 The query kernels need :attr:`pushtorch.models.query.QueryResult.density`; a result without it logs
-everything else. :class:`pushtorch.predict.Prediction` keeps the motion annealing's candidates but
+everything else. :class:`pushtorch.prediction.Prediction` keeps the motion annealing's candidates but
 not its per-step history; if it gains an ``anneal`` attribute (an
 :class:`~pushtorch.anneal.AnnealResult`), ``motion/candidates`` is logged from it.
 """
@@ -573,7 +573,7 @@ def log_prediction(
 
     Args:
         rec: an open recording (:func:`pushtorch.viz.open_recording`).
-        prediction: a :class:`~pushtorch.predict.Prediction`.
+        prediction: a :class:`~pushtorch.prediction.Prediction`.
         truth_initial, truth_final: the true object poses before and after the push, Pose ``()``, if known.
         object_mesh: the object's mesh (object frame) or its ObjectModel, drawn at every object pose;
             without it, the poses are drawn as axis triads only. An ObjectModel simulated as several
