@@ -56,7 +56,7 @@ from pushtorch.kde.bandwidth import (
     rotation_distance,
     translation_distance,
 )
-from pushtorch.kde.density import PoseKDE, straightforward_evaluation
+from pushtorch.kde.density import PoseKDE
 from pushtorch.kde.evaluation import Evaluation
 from pushtorch.kde.fused import (
     FAST_DENSE_KERNELS,
@@ -66,6 +66,7 @@ from pushtorch.kde.fused import (
     fused_function,
 )
 from pushtorch.kde.products import ProductOfExperts, SharedKernelProduct, product_log_prob
+from pushtorch.kde.straightforward import straightforward_evaluation
 
 __all__ = [
     "AnnealInputs",

@@ -6,16 +6,14 @@ Query Density's simulated annealing); the fast path lives in :mod:`pushtorch.kde
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import functools
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 
 import torch
 from pytorch_kinematics import transforms as pkt
 
-from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
+from pushtorch.errors import InvalidParameterError, InvalidPoseError
 from pushtorch.kde.annealing import AnnealInputs, AnnealOutcome, anneal_chains
 from pushtorch.kde.bandwidth import KernelBandwidth, TrialRounds
 from pushtorch.kde.evaluation import Evaluation
@@ -27,7 +25,10 @@ from pushtorch.kde.fused import (
     fast_path_compiled,
     fused_function,
 )
+from pushtorch.kde.reductions import logsumexp_last, needs_grad, neg_scaled_squared_distances
+from pushtorch.kde.rounds import fit_trial_rounds
 from pushtorch.kde.sampling import _sample_rotation_offsets, _sample_translation_offsets
+from pushtorch.kde.straightforward import straightforward_active, straightforward_log_prob
 from pushtorch.se3 import Pose, check_unit_quaternion
 
 Tensor = torch.Tensor
@@ -37,51 +38,6 @@ Tensor = torch.Tensor
 # --------------------------------------------------------------------------------------------------
 # The density
 # --------------------------------------------------------------------------------------------------
-
-
-def _neg_scaled_squared_distances(x: Tensor, mu_t: Tensor, root_scale: Tensor) -> Tensor:
-    """``−s |x − μ|²`` for queries ``x (*BB, m, k)`` and kernels ``μ (*B, N, k)``, with ``root_scale = √s``
-    ``(*B, 1, 1)`` already applied to ``mu_t``: ``(*BB, m, N)``.
-
-    The differences are taken directly (``cdist`` without the matmul expansion), so the value has a small
-    *relative* error: exactly 0 at a kernel's own mean, wherever that lies. The expansion
-    ``|x|² − 2x·μ + |μ|²`` it replaces cancelled to an absolute error of ~1e-7 · |x|² in float32, which a
-    narrow bandwidth turns into percent-sized errors (kernels 0.6 m apart, p_std 1 mm: up to 6 %), and whose
-    size depended on the CPU's matmul path.
-    """
-    xs = x * root_scale
-    batch = torch.broadcast_shapes(xs.shape[:-2], mu_t.shape[:-2])
-    d = torch.cdist(xs.expand(*batch, *xs.shape[-2:]), mu_t.expand(*batch, *mu_t.shape[-2:]),
-                    compute_mode="donot_use_mm_for_euclid_dist")
-    return d.square_().neg_() if not d.requires_grad else -d.square()
-
-
-_STRAIGHTFORWARD = contextvars.ContextVar("pushtorch_straightforward_evaluation", default=False)
-
-
-@contextlib.contextmanager
-def straightforward_evaluation() -> Iterator[None]:
-    """Within this block, ``method="dense"`` log densities are evaluated the straightforward way.
-
-    Every query against every kernel in one block per density (no chunking, no expansion around the
-    kernel centre, no in-place passes): ``d_p`` from ``torch.cdist``, ``d_q`` from the quaternion dot
-    product, the cut-offs as masks, ``logsumexp`` over the kernels; a stacked density (e.g. the experts
-    of a product) is evaluated one element at a time on its own kernels, padding left out. The values
-    are those of the dense reference up to float rounding. It is the baseline issue 6 sized (timed by
-    ``tools/bench_predict.py`` beside the dense reference) and an independent check of the dense and
-    fast paths. Memory is a whole ``(queries, kernels)`` block per density, not bounded by chunks, so
-    the library itself never evaluates this way. Scoped to the current thread or task (a context
-    variable), like ``torch.no_grad``.
-
-    Example:
-        >>> with straightforward_evaluation():
-        ...     prediction = predict(model, cloud, action, generator, method="dense")  # doctest: +SKIP
-    """
-    token = _STRAIGHTFORWARD.set(True)
-    try:
-        yield
-    finally:
-        _STRAIGHTFORWARD.reset(token)
 
 
 class PoseKDE:
@@ -441,12 +397,12 @@ class PoseKDE:
         """
         clamp = torch.Tensor.clamp_max_ if inplace else torch.Tensor.clamp_max
         dot = torch.matmul(q, self._q_kappa_t)
-        neg_p = _neg_scaled_squared_distances(p - self._p_centre, self._p_scaled, self._p_root_scale)
+        neg_p = neg_scaled_squared_distances(p - self._p_centre, self._p_scaled, self._p_root_scale)
         neg_q = clamp(dot.abs_().sub_(self._kappa) if inplace else dot.abs() - self._kappa, 0.0)
         neg_r = None
         if r is not None:
             x = (r - self._r_centre) * self._r_inv_sqrt_sigma
-            neg_r = _neg_scaled_squared_distances(x, self._r_scaled, self._r_root_scale)
+            neg_r = neg_scaled_squared_distances(x, self._r_scaled, self._r_root_scale)
         return neg_p, neg_q, neg_r
 
     def _scaled_terms(self, p: Tensor, q: Tensor, r: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
@@ -530,11 +486,11 @@ class PoseKDE:
             if table is not None:
                 p, q, r = self._prepare_queries(pose, descriptors)
                 return self._fast_log_prob_descriptors(table, p, q, r)
-        if _STRAIGHTFORWARD.get():
-            return self._straightforward_log_prob(*self._prepare_queries(pose, descriptors))
-        inplace = not _needs_grad(pose, descriptors)
+        if straightforward_active():
+            return straightforward_log_prob(self, *self._prepare_queries(pose, descriptors))
+        inplace = not needs_grad(pose, descriptors)
         out = [
-            _logsumexp_last(self._chunk_log_kernels(p, q, r, with_weights=True, inplace=inplace), inplace)
+            logsumexp_last(self._chunk_log_kernels(p, q, r, with_weights=True, inplace=inplace), inplace)
             for p, q, r in self._iter_chunks(pose, descriptors, chunk_size)
         ]
         if not out:  # M = 0
@@ -542,39 +498,6 @@ class PoseKDE:
             shape = torch.broadcast_shapes(p.shape[:-2], self.batch_shape) + (0,)
             return torch.empty(shape, dtype=self.dtype, device=self.device)
         return torch.cat(out, -1)
-
-    def _straightforward_log_prob(self, p: Tensor, q: Tensor, r: Tensor | None) -> Tensor:
-        """log_prob the textbook way (see :func:`straightforward_evaluation`): ``(*BB, M)``."""
-        batch = torch.broadcast_shapes(p.shape[:-2], self.batch_shape)
-        m, n = p.shape[-2], self.num_kernels
-        flat = batch.numel()
-        p = p.expand(*batch, m, 3).reshape(flat, m, 3)
-        q = q.expand(*batch, m, 4).reshape(flat, m, 4)
-        kernel_p = self._p.expand(*batch, n, 3).reshape(flat, n, 3)
-        kernel_q = self._q.expand(*batch, n, 4).reshape(flat, n, 4)
-        log_w = self._log_w.expand(*batch, n).reshape(flat, n)
-        beta = self._beta.expand(*batch, 3).reshape(flat, 3)
-        bw = self.bandwidth
-        delta_p, delta_q, delta_r = bw.delta
-        if r is not None:
-            inv_sqrt_sigma = torch.tensor(bw.sigma_r, dtype=torch.float64).rsqrt().to(self.device, self.dtype)
-            k = r.shape[-1]
-            r = (r * inv_sqrt_sigma).expand(*batch, m, k).reshape(flat, m, k)
-            kernel_r = (self._r * inv_sqrt_sigma).expand(*batch, n, k).reshape(flat, n, k)
-        out = []
-        for b in range(flat):
-            keep = log_w[b] > -math.inf  # padding kernels of a stacked density are not kernels
-            d_p = torch.cdist(p[b], kernel_p[b][keep]).square() * (beta[b, 0] / bw.sigma_p)
-            d_q = (1.0 - (q[b] @ kernel_q[b][keep].T).abs().clamp(max=1.0)) * (beta[b, 1] / bw.sigma_q)
-            inside = (d_p < delta_p) & (d_q < delta_q)
-            distance = d_p + d_q
-            if r is not None:
-                d_r = torch.cdist(r[b], kernel_r[b][keep]).square() * beta[b, 2]
-                inside &= d_r < delta_r
-                distance = distance + d_r
-            log_kernels = torch.where(inside, log_w[b][keep] - distance, -math.inf)
-            out.append(torch.logsumexp(log_kernels, -1))
-        return torch.stack(out).reshape(*batch, m) if out else p.new_empty(*batch, m)
 
     def _descriptor_table(self) -> tuple[Tensor, Tensor] | None:
         """Kernels as rows ``(8 + k, N)`` (p, q, log w relative to the largest, r) and that largest log w,
@@ -698,87 +621,12 @@ class PoseKDE:
 
     # -- trial rounds --------------------------------------------------------------------------
 
-    def _coverage(
-        self, pose: Pose, descriptors: Tensor | None, chunk_size: int | None
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """Per batch element: surviving (query, kernel) pairs ``(*B,)``, cut-offs per factor ``(*B, 3)``
-        and the smallest β·d per factor ``(*B, 3)``, over valid (non-padding) kernels."""
-        delta = self.bandwidth.delta
-        valid = self._log_w > -math.inf  # (*B, N)
-        batch = self.batch_shape
-        survivors = torch.zeros(batch, dtype=torch.int64, device=self.device)
-        cuts = torch.zeros(*batch, 3, dtype=torch.int64, device=self.device)
-        nearest = torch.full((*batch, 3), math.inf, dtype=self.dtype, device=self.device)
-        for p, q, r in self._iter_chunks(pose, descriptors, chunk_size):
-            terms = self._scaled_terms(p, q, r)
-            valid_b = valid.unsqueeze(-2).expand_as(terms[0])
-            alive = valid_b.clone()
-            for k, bd in enumerate(terms):
-                if bd is None:
-                    continue
-                cut = bd >= delta[k]
-                alive &= ~cut
-                cuts[..., k] += (cut & valid_b).sum((-1, -2)).sum_to_size(batch)
-                masked = bd.masked_fill(~valid_b, math.inf).amin((-1, -2))
-                while masked.dim() > len(batch):
-                    masked = masked.amin(0)
-                nearest[..., k] = torch.minimum(nearest[..., k], _amin_to_size(masked, batch))
-            survivors += alive.sum((-1, -2)).sum_to_size(batch)
-        return survivors, cuts, nearest
-
     def fit_trial_rounds(
         self, pose: Pose, descriptors: Tensor | None = None, chunk_size: int | None = None
     ) -> PoseKDE:
-        """Widen the kernels by trial rounds until some (query, kernel) pair survives the cut-offs.
-
-        Paper (Kernel Density Estimation): a trial round fails when every (query, kernel) pair is cut
-        off by at least one factor; then one of T_p, T_q, T_r is incremented — the smallest, ties broken
-        by which factor (N3, Θ, N2) caused the most cut-offs — and β = α_T^(−T) recomputed. A factor
-        that cut off no pair is never raised (widening it cannot help); remaining ties go p, q, r.
-        Each batch element is fitted independently; queries broadcast as in :meth:`log_prob` and every
-        query batch that maps onto one density element counts toward that element.
-
-        Args:
-            pose: query poses ``(*B', M)``; descriptors: ``(*B', M, k)`` or None; chunk_size: as log_prob.
-
-        Returns:
-            A new PoseKDE with the fitted ``trial_rounds``; itself if no round fails or M = 0.
-
-        Raises:
-            ModelError: some element still fails when T_p + T_q + T_r reaches
-                ``bandwidth.max_trial_rounds``.
-        """
-        p, _, _ = self._prepare_queries(pose, descriptors)
-        if p.shape[-2] == 0:
-            return self
-        current = self
-        max_rounds = self.bandwidth.max_trial_rounds
-        while True:
-            survivors, cuts, nearest = current._coverage(pose, descriptors, chunk_size)
-            failed = survivors == 0
-            if not failed.any():
-                return current
-            rounds = current._trial_rounds
-            exhausted = failed & (rounds.sum(-1) >= max_rounds)
-            if exhausted.any():
-                where = exhausted.nonzero().tolist()
-                first = tuple(where[0])
-                raise ModelError(
-                    f"no kernel covers any query after {max_rounds} trial rounds"
-                    f" (T=(T_p, T_q, T_r)={tuple(rounds[first].tolist())}) for batch element(s)"
-                    f" {where[:5]}{'...' if len(where) > 5 else ''}; the smallest scaled distances β·d there"
-                    f" are (p, q, r)={tuple(round(v, 3) for v in nearest[first].tolist())} against cut-offs"
-                    f" δ={tuple(round(v, 3) for v in self.bandwidth.delta)}. The queries lie far outside the"
-                    " model: widen the bandwidth, relax cutoff_std or raise max_trial_rounds."
-                )
-            eligible = cuts > 0
-            big = torch.iinfo(torch.int64).max
-            masked_rounds = torch.where(eligible, rounds, torch.full_like(rounds, big))
-            smallest = masked_rounds.amin(-1, keepdim=True)
-            candidates = eligible & (rounds == smallest)
-            choice = torch.where(candidates, cuts, torch.full_like(cuts, -1)).argmax(-1)
-            step = torch.nn.functional.one_hot(choice, 3) * failed.unsqueeze(-1)
-            current = current._replace(_trial_rounds=rounds + step)
+        """Widen the kernels by trial rounds until some (query, kernel) pair survives the cut-offs
+        (:func:`pushtorch.kde.rounds.fit_trial_rounds`)."""
+        return fit_trial_rounds(self, pose, descriptors, chunk_size)
 
     # -- sampling ------------------------------------------------------------------------------
 
@@ -828,34 +676,3 @@ class PoseKDE:
         q = pkt.quaternion_raw_multiply(mean.q.double(), around_identity)
         q = q / q.norm(dim=-1, keepdim=True)
         return Pose.unchecked(p, q.to(self.dtype)), index
-
-
-def _needs_grad(pose: Pose, descriptors: Tensor | None) -> bool:
-    """Whether autograd records a density evaluation of these queries."""
-    tensors = [pose.p, pose.q] + ([] if descriptors is None else [descriptors])
-    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
-
-
-def _logsumexp_last(x: Tensor, inplace: bool = True) -> Tensor:
-    """logsumexp over the last dim; all ``-inf`` gives ``-inf``. In place (``x`` is consumed) unless
-    autograd follows ``x``.
-
-    ``torch.logsumexp`` over a long last dim is several times slower on CPU than these four passes. Out of
-    place, a row without a finite entry is taken as zeros and masked, so its gradient is 0, not the NaN of
-    exp(−inf + inf).
-    """
-    if not inplace:
-        reached = torch.isfinite(x).any(-1, keepdim=True)
-        safe = torch.logsumexp(torch.where(reached, x, torch.zeros_like(x)), -1)
-        return torch.where(reached.squeeze(-1), safe, torch.full_like(safe, -math.inf))
-    peak = x.amax(-1, keepdim=True)
-    peak = torch.where(torch.isfinite(peak), peak, torch.zeros_like(peak))  # small: (*BB, m, 1)
-    return x.sub_(peak).exp_().sum(-1).log_().add_(peak.squeeze(-1))
-
-
-def _amin_to_size(x: Tensor, size: torch.Size) -> Tensor:
-    """Min-reduce broadcast dims of ``x`` down to ``size`` (the min analogue of ``sum_to_size``)."""
-    for dim, (have, want) in enumerate(zip(x.shape, size, strict=False)):
-        if want == 1 and have != 1:
-            x = x.amin(dim, keepdim=True)
-    return x.expand(size) if x.shape != size else x
