@@ -54,3 +54,28 @@ def test_the_documented_commands_run_the_apps_without_a_warning(app):
                             timeout=120)
     assert result.returncode == 0 and "Configuration groups" in result.stdout, result.stderr[-2000:]
     assert "DeprecationWarning" not in result.stderr
+
+
+def _imported_private_names() -> list[str]:
+    """``module: from X import _name`` for every import of a private name from another package or top-level
+    module (a package may use its own privates: ``pushtorch.kde.*`` importing ``pushtorch.kde.fused._x``)."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "pushtorch"
+    found = []
+    for path in root.rglob("*.py"):
+        module = ".".join(("pushtorch", *path.relative_to(root).with_suffix("").parts)).removesuffix(".__init__")
+        package = module.rsplit(".", 1)[0] if path.name != "__init__.py" else module
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("pushtorch"):
+                source_package = node.module if (root / Path(*node.module.split(".")[1:]) / "__init__.py").exists() \
+                    else node.module.rsplit(".", 1)[0]
+                same = source_package == package and package != "pushtorch"
+                found += [f"{module}: from {node.module} import {a.name}" for a in node.names
+                          if a.name.startswith("_") and not a.name.startswith("__") and not same]
+    return found
+
+
+def test_no_module_imports_another_packages_private_names():
+    assert _imported_private_names() == []
