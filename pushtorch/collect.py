@@ -2,9 +2,11 @@
 the app as before, without a warning)."""
 
 if __name__ == "__main__":
+    import sys
+
     from pushtorch.apps.collect import main
 
-    main()
+    sys.exit(main())
 else:
     from pushtorch.deprecation import alias_module
 
