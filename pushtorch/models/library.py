@@ -1,19 +1,10 @@
-"""A trained push model, its file format, and the model library with selection by H_r (paper, §TPMM, §Model Selection).
+"""The model library with selection by H_r (paper, §Model Selection), and the models' one entry point.
 
-A :class:`PushModel` is what one training run produces (paper, Fig. pipeline, training): the manipulator
-contact model and the position model of the training object (stage one) and one motion model per
-action from the push records (stage two), with the settings used at prediction time. A
-:class:`ModelLibrary` holds several (one per training object and prior) and selects, for a new cloud,
-the one whose manipulator contact model has the lowest feature-distance heuristic ``H_r``.
-
-Model files are ``.npz`` archives read with ``allow_pickle=False``: tensors plus one JSON header
-(format name, version, settings, SHA-256 of every array), sealed by one SHA-256 over every byte of the
-archive before it, kept as the archive's 64-character zip comment (:func:`pushtorch.io.sealed_archive`).
-Any edited byte (an array, the header's action count or a setting, the zip structure) breaks the seal. A
-file of another version, a corrupt, edited or malformed file, or one whose settings construction would
-refuse is refused with :class:`~pushtorch.errors.RecordFormatError`. Saving is atomic; the temporaries a
-killed save leaves are removed by the next save to the same path, under the folder's lock
-(:func:`pushtorch.io.folder_lock`).
+A :class:`ModelLibrary` holds several trained models (one per training object and prior) and selects, for a
+new cloud, the one whose manipulator contact model has the lowest feature-distance heuristic ``H_r``. This
+module also gathers the names of :mod:`~pushtorch.models.settings`, :mod:`~pushtorch.models.model` (a trained
+:class:`PushModel` and its file format) and :mod:`~pushtorch.models.training`, as it did before they were
+modules of their own.
 """
 
 from __future__ import annotations
