@@ -31,6 +31,7 @@ from pushtorch.models.training import (  # noqa: F401  (re-exported: the models'
 )
 
 __all__ = [
+    "ConditionedLibrary",
     "DEFAULT_SEED",
     "FORMAT",
     "ModelLibrary",
@@ -67,3 +68,54 @@ class ModelLibrary:
         """The model with the lowest ``H_r`` and all models' ``H_r``."""
         h = self.feature_distances(features)
         return self.models[int(h.argmin())], h
+
+    def condition_on(self, observations, seed: int | None = None) -> ConditionedLibrary:
+        """Every model conditioned on the observed pushes (:meth:`PushModel.condition_on`), and the library's
+        posterior over its models by their evidence (:class:`ConditionedLibrary`)."""
+        from pushtorch.prediction.evidence import condition_library  # the evidence needs a push condition
+
+        return condition_library(self, observations, seed)
+
+
+class ConditionedLibrary(ModelLibrary):
+    """A library conditioned on observed pushes: each model conditioned, and a posterior over the models
+    ``p(M | O) ∝ p_M(O)`` (uniform prior; :meth:`PhysicsPosterior.log_evidence
+    <pushtorch.models.conditioning.PhysicsPosterior.log_evidence>`). :meth:`select` takes the model of highest
+    posterior once some observation was accepted, and the lowest ``H_r`` before."""
+
+    def __init__(self, models: list[PushModel]) -> None:
+        super().__init__(models)
+        if any(m.physics_posterior is None for m in self.models):
+            raise InvalidParameterError("a conditioned library needs conditioned models (PushModel.condition_on)")
+
+    @property
+    def observed(self) -> int:
+        return max(m.physics_posterior.observed for m in self.models)
+
+    def model_log_posterior(self) -> torch.Tensor:
+        """``(L,)`` float64 log ``p(M | O)`` of the models (uniform without accepted observations)."""
+        evidence = torch.tensor([m.physics_posterior.log_evidence() for m in self.models], dtype=torch.float64)
+        return torch.log_softmax(evidence, 0)
+
+    def select(self, features: SurfaceFeatures) -> tuple[PushModel, torch.Tensor]:
+        """The model of highest posterior (by ``H_r`` before any observation) and all models' ``H_r``."""
+        h = self.feature_distances(features)
+        if self.observed == 0:
+            return self.models[int(h.argmin())], h
+        return self.models[int(self.model_log_posterior().argmax())], h
+
+    def posterior(self, n: int = 256, generator: torch.Generator | int | None = None):
+        """The mixture of the models' posteriors by the models' posterior weights
+        (:class:`~pushtorch.models.conditioning.PosteriorSummary` with ``model_weights``)."""
+        from pushtorch.models.conditioning import kernel_physics, summarise
+
+        thetas, weights = [], []
+        for m, log_pm in zip(self.models, self.model_log_posterior(), strict=True):
+            theta = kernel_physics([k for mo in m.motions for k in (mo.manipulator, mo.environment)])
+            log_w, _ = m.physics_posterior.kernel_log_weights(theta)
+            thetas.append(theta)
+            weights.append(torch.log_softmax(log_w, 0) + log_pm)
+        post = self.model_log_posterior().exp()
+        return summarise(torch.cat(thetas), torch.cat(weights), n, as_generator(generator), self.observed,
+                         max(m.physics_posterior.rejected for m in self.models),
+                         model_weights={m.name: float(p) for m, p in zip(self.models, post, strict=True)})

@@ -25,6 +25,14 @@ import torch
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, RecordFormatError
 from pushtorch.io import atomic_write_bytes, folder_lock, read_sealed_archive, sealed_archive, temporary_files
+from pushtorch.models.conditioning import (
+    Observation,
+    PhysicsPosterior,
+    PosteriorSummary,
+    kernel_physics,
+    new_posterior,
+    summarise,
+)
 from pushtorch.models.contact import ManipulatorContactModel
 from pushtorch.models.frames import ContactFrames
 from pushtorch.models.motion import MotionKernels, MotionModel
@@ -42,11 +50,12 @@ __all__ = [
 FORMAT = "pushtorch.push_model"
 
 
-# 4: motion kernels carry their push's contact patch on the bumper, and the settings the expert exponents
-# and the bandwidths chosen from data (issue 17); 3: the whole file sealed by one SHA-256 and a
-# partial_data header field (2: only the arrays were checksummed; motion kernels in the robot's start
-# frame since 2, at the contact point in 1)
-VERSION = 4
+# 5: every motion kernel keeps the ground friction and mass of its push (``.physics``), a conditioned model its
+# kernels' log weights (``.log_weight``) and its posterior (``posterior.*``); 4: motion kernels carry their
+# push's contact patch on the bumper, and the settings the expert exponents and the bandwidths chosen from data;
+# 3: the whole file sealed by one SHA-256 and a partial_data header field (2: only the arrays were checksummed;
+# motion kernels in the robot's start frame since 2, at the contact point in 1)
+VERSION = 5
 
 
 @dataclass
@@ -62,6 +71,8 @@ class PushModel:
     meta: dict = field(default_factory=dict)
     #: None when trained on every push its runs promised; else what was missing (``train(allow_partial)``)
     partial_data: dict | None = None
+    #: the posterior over friction and mass a conditioned model holds (:meth:`condition_on`), else None
+    physics_posterior: PhysicsPosterior | None = None
 
     @property
     def device(self) -> torch.device:
@@ -87,6 +98,42 @@ class PushModel:
                                  self.position.descriptor_std.to(device, dtype))
         return replace(self, contact=contact, position=position,
                        motions=[m.to(device, dtype) for m in self.motions], meta=dict(self.meta))
+
+    # -- online adaptation ---------------------------------------------------------------------
+
+    def condition_on(self, observations: Observation | list[Observation], seed: int | None = None,
+                     prior: tuple | None = None) -> PushModel:
+        """This model conditioned on observed pushes of the object it will predict
+        (:mod:`pushtorch.models.conditioning`): its kernels re-weighted by a posterior over the friction and
+        mass their pushes were simulated with. ``predict``, ``predict_many`` and the density take it unchanged.
+
+        Conditioning is sequential: ``m.condition_on([a]).condition_on([b])`` equals ``m.condition_on([a, b])``.
+
+        Args:
+            observations: :class:`~pushtorch.models.conditioning.Observation` s (one or a list; may be empty).
+            seed: the seed of the observations' push conditions (default: the posterior's, or 0).
+            prior: ``(friction prior, mass prior)`` (:mod:`pushtorch.sim.priors`): de-bias the kernels towards
+                the training prior rather than where they crowd; only on a model not yet conditioned.
+
+        Raises:
+            ModelError: kernels that do not know their physics (retrain), or an observation whose push
+                condition cannot be built (its robot start does not touch the cloud).
+            InvalidParameterError: an observation of an action the model was not trained for, or a malformed one.
+        """
+        from pushtorch.prediction.evidence import condition_model  # the evidence needs a push condition
+
+        return condition_model(self, observations, seed, prior)
+
+    def posterior(self, n: int = 256, generator: torch.Generator | int | None = None) -> PosteriorSummary:
+        """The posterior over ``(μ, m)`` this model holds (the kernels' own spread before any observation):
+        ``n`` draws, the mean and spread of ``μ`` and of ``log m`` (:class:`PosteriorSummary`)."""
+        from pushtorch.models.settings import as_generator
+
+        kernels = [k for m in self.motions for k in (m.manipulator, m.environment)]
+        theta = kernel_physics(kernels)
+        post = self.physics_posterior or new_posterior(kernels)
+        log_w, tau = post.kernel_log_weights(theta)
+        return summarise(theta, log_w, n, as_generator(generator), post.observed, post.rejected, tau)
 
     @property
     def configured_settings(self) -> ModelSettings:
@@ -127,6 +174,8 @@ class PushModel:
             out.update(m.manipulator.arrays(f"motion{i}.manipulator"))
             out.update(m.environment.arrays(f"motion{i}.environment"))
             out[f"motion{i}.mean_motion_p"], out[f"motion{i}.mean_motion_q"] = m.mean_motion
+        if self.physics_posterior is not None:
+            out.update(self.physics_posterior.arrays())
         return out
 
     def save(self, path: str | Path) -> Path:
@@ -146,6 +195,7 @@ class PushModel:
             "actions": len(self.motions),
             "meta": self.meta,
             "partial_data": self.partial_data,
+            "posterior": None if self.physics_posterior is None else self.physics_posterior.header(),
             "sha256": {k: _digest(v) for k, v in arrays.items()},
         }
         data = _model_archive(header, arrays)
@@ -265,6 +315,9 @@ def _model_from(header: dict, arrays: dict[str, np.ndarray], dtype: torch.dtype)
 
     n_actions = typed("actions", int)
     motion_arrays = {k.split(".", 1)[0] for k in arrays if k.startswith("motion")}
+    posterior = header.get("posterior")
+    if posterior is not None and not isinstance(posterior, dict):
+        raise TypeError(f"header field 'posterior' must be null or an object, got {posterior!r}")
     if n_actions < 1 or motion_arrays != {f"motion{i}" for i in range(n_actions)}:
         raise ValueError(f"the header's action count {n_actions} does not match the arrays' motion models"
                          f" {sorted(motion_arrays)}")
@@ -298,4 +351,6 @@ def _model_from(header: dict, arrays: dict[str, np.ndarray], dtype: torch.dtype)
         motions=motions,
         meta=typed("meta", dict),
         partial_data=partial,
+        physics_posterior=None if posterior is None else PhysicsPosterior.from_file(
+            posterior, {k: torch.from_numpy(np.array(v)) for k, v in arrays.items() if k.startswith("posterior.")}),
     )

@@ -104,26 +104,44 @@ class MotionKernels:
     #: ``(N,)`` int64 the index (within its action) of each kernel's push, where known: set by
     #: :func:`fit_motion_model` for the bandwidth search, not kept in model files
     push: Tensor | None = None
+    #: ``(N, 2)`` the ground friction coefficient and the mass (kg) its push was simulated with (kept in
+    #: model files; what :mod:`pushtorch.models.conditioning` groups the kernels by); None where unknown
+    physics: Tensor | None = None
+    #: ``(N,)`` each kernel's log weight from conditioning on observed pushes (0 everywhere, or None: the
+    #: trained model; :mod:`pushtorch.models.conditioning`), added to its contact weight in every expert
+    log_weight: Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.r.shape[0])
 
     def take(self, index: Tensor) -> MotionKernels:
+        def pick(t: Tensor | None) -> Tensor | None:
+            return None if t is None else t[index]
+
         return MotionKernels(self.r[index], self.u.take(index), self.m.take(index), self.g[index], self.patch[index],
-                             None if self.push is None else self.push[index])
+                             pick(self.push), pick(self.physics), pick(self.log_weight))
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> MotionKernels:
         """The kernels on ``device`` and in the floating ``dtype`` (``push`` keeps its integer dtype)."""
+        def move(t: Tensor | None) -> Tensor | None:
+            return None if t is None else t.to(device, dtype)
+
         return MotionKernels(self.r.to(device, dtype), self.u.to(device, dtype), self.m.to(device, dtype),
                              self.g.to(device, dtype), self.patch.to(device, dtype),
-                             None if self.push is None else self.push.to(device))
+                             None if self.push is None else self.push.to(device), move(self.physics),
+                             move(self.log_weight))
 
     def arrays(self, prefix: str) -> dict[str, Tensor]:
-        return {
+        out = {
             f"{prefix}.r": self.r, f"{prefix}.u_p": self.u.p, f"{prefix}.u_q": self.u.q,
             f"{prefix}.m_p": self.m.p, f"{prefix}.m_q": self.m.q, f"{prefix}.g": self.g,
             f"{prefix}.patch": self.patch,
         }
+        if self.physics is not None:
+            out[f"{prefix}.physics"] = self.physics
+        if self.log_weight is not None:
+            out[f"{prefix}.log_weight"] = self.log_weight
+        return out
 
     @staticmethod
     def from_arrays(arrays: dict[str, Tensor], prefix: str) -> MotionKernels:
@@ -133,6 +151,8 @@ class MotionKernels:
             se3.Pose.unchecked(arrays[f"{prefix}.m_p"], arrays[f"{prefix}.m_q"]),
             arrays[f"{prefix}.g"],
             arrays[f"{prefix}.patch"],
+            physics=arrays[f"{prefix}.physics"],
+            log_weight=arrays.get(f"{prefix}.log_weight"),
         )
 
 
@@ -180,6 +200,7 @@ def fit_motion_model(
     contact_cutoff: float = 0.01,
     contact_drop_off: float = 100.0,
     generator: torch.Generator | None = None,
+    physics: Tensor | None = None,
 ) -> MotionModel:
     """Motion kernels of one action from its push records (paper, Motion Model; Environment Contact Model).
 
@@ -191,6 +212,8 @@ def fit_motion_model(
         action: ``(2,)`` the action these pushes share.
         environment_contacts: environment frames per push (paper: 10).
         manipulator_kernels_per_push: manipulator frames drawn per push among those touching the bumper.
+        physics: ``(P, 2)`` each push's ground friction and mass (kg): every kernel keeps its push's
+            (:attr:`MotionKernels.physics`), or None.
     Raises:
         ModelError: no push has a feature within ``contact_cutoff`` of the bumper.
     """
@@ -231,6 +254,7 @@ def fit_motion_model(
         points_robot[rows, pick],
         patches[rows],
         rows,
+        None if physics is None else physics[rows].to(x.p.dtype),
     )
 
     # Environment frames: drawn per push at the push's initial pose (z above the floor matters).
@@ -246,6 +270,7 @@ def fit_motion_model(
         se3.apply(se3.inverse(robot_start.take(env_rows)), v_world.p),
         patches[env_rows],
         env_rows,
+        None if physics is None else physics[env_rows].to(x.p.dtype),
     )
     in_robot = se3.compose(se3.inverse(robot_start), se3.compose(world_motion, robot_start))
     return MotionModel(torch.as_tensor(action, dtype=x.p.dtype), manipulator, environment, se3.mean_pose(in_robot))
@@ -370,6 +395,8 @@ class MotionDensity:
         for frame, kernels in frames:
             n_frames = frame.r.reshape(-1, 2).shape[0]
             log_w = contact_log_weights(frame, kernels, robot_start, contact_bandwidth, contact_patch)  # (F, N)
+            if kernels.log_weight is not None:  # a conditioned model: the posterior's weight of each kernel
+                log_w = log_w + kernels.log_weight.to(log_w)
             finals = se3.compose(se3.compose(robot_start, kernels.m), to_final)  # (N,)
             # kernels the contact kernel cut off carry no weight
             keep = torch.isfinite(log_w) | (not drop_cut_kernels)  # (F, N)

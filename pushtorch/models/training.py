@@ -96,6 +96,7 @@ def train_push_model(
                 features_object, sel.object_initial, sel.object_final, sel.robot_start, bumper_mesh(se3.identity()),
                 sel.action[0], settings.environment_contacts_training, settings.manipulator_kernels_per_push,
                 settings.contact_cutoff, settings.contact_drop_off, generator,
+                physics=torch.stack([sel.ground_friction, sel.mass], -1),
             )
         )
     meta = dict(meta or {})

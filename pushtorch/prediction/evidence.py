@@ -1,0 +1,147 @@
+"""The evidence of observed pushes about friction and mass (paper, §Conclusions and future work: "comparing
+observed movements of the pushed object with the PDRs already available in the system").
+
+An observed push's condition is built as a prediction builds it, with the robot start given
+(:func:`~pushtorch.prediction.conditions._push_conditions_fast`); its experts weigh the action's kernels by
+their contact weights, and the observed displacement applied to the estimated initial pose is scored under each
+kernel, uncut and normalised (models of different bandwidths are weighed against each other by it).
+:func:`pushtorch.models.conditioning.cell_log_likelihood` pools that into the likelihood of every
+cell of ``(μ, log m)``; :func:`condition_model` and :func:`condition_library` are what
+:meth:`PushModel.condition_on <pushtorch.models.model.PushModel.condition_on>` and
+:meth:`ModelLibrary.condition_on <pushtorch.models.library.ModelLibrary.condition_on>` run. The method and its
+likelihood are written down in :mod:`pushtorch.models.conditioning` and docs/method.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+
+import torch
+
+from pushtorch import se3
+from pushtorch.errors import InvalidParameterError
+from pushtorch.kde import PoseKDE
+from pushtorch.kde.normaliser import NO_CUTOFF, log_kernel_normaliser
+from pushtorch.models.conditioning import (
+    OUTLIER_ANGLE,
+    OUTLIER_DISTANCE,
+    Observation,
+    PhysicsPosterior,
+    cell_log_likelihood,
+    conditioned_model,
+    kernel_physics,
+    log_membership,
+    new_posterior,
+    observation_seed,
+)
+from pushtorch.models.library import ConditionedLibrary, ModelLibrary, PushModel
+from pushtorch.models.motion import contact_log_weights, expert_exponents
+from pushtorch.prediction.conditions import _as_features, _push_conditions_fast
+
+__all__ = [
+    "condition_library",
+    "condition_model",
+    "observation_evidence",
+    "observed_outcome",
+]
+
+log = logging.getLogger(__name__)
+
+
+def _as_list(observations) -> list[Observation]:
+    if isinstance(observations, Observation):
+        return [observations]
+    if isinstance(observations, str | bytes) or not isinstance(observations, Sequence):
+        raise InvalidParameterError(f"observations must be an Observation or a list of them, got "
+                                    f"{type(observations).__name__}")
+    out = list(observations)
+    for o in out:
+        if not isinstance(o, Observation):
+            raise InvalidParameterError(f"observations must be pushtorch Observations, got {type(o).__name__}")
+    return out
+
+
+def observed_outcome(observation: Observation, estimate: se3.Pose) -> se3.Pose:
+    """The observed displacement applied to the model's estimate of the initial pose: ``W ∘ B0'`` ``()``."""
+    w = observation.displacement
+    w = se3.Pose.unchecked(w.p.to(estimate.p), w.q.to(estimate.q))
+    return se3.compose(w, se3.Pose.unchecked(estimate.p.reshape(3), estimate.q.reshape(4)))
+
+
+def observation_evidence(model: PushModel, observation: Observation, posterior: PhysicsPosterior,
+                         generator: torch.Generator | None = None) -> torch.Tensor | None:
+    """``(G,)`` the cell log-likelihood of one observed push under ``model`` (its trained kernels), or None
+    when no kernel its contacts reach explains the outcome (:data:`~pushtorch.models.conditioning.OUTLIER_DISTANCE`,
+    :data:`~pushtorch.models.conditioning.OUTLIER_ANGLE`).
+
+    Raises:
+        InvalidParameterError: an action the model was not trained for.
+        ModelError, InvalidPoseError: a robot start that does not touch the cloud, as ``predict`` refuses it.
+    """
+    settings = model.settings
+    a = model.action_index(observation.action)
+    features = _as_features(observation.cloud, settings, model)
+    start = observation.robot_start
+    if start is not None:
+        start = se3.Pose.unchecked(start.p.reshape(3).to(features.p), start.q.reshape(4).to(features.p))
+    condition = _push_conditions_fast(model, [features], [a], generator, False, [start])[0]
+    y = observed_outcome(observation, condition.object_pose)
+    motion = model.motions[a]
+    to_final = se3.relative(condition.robot_start, condition.object_pose)
+    full = dataclasses.replace(settings.motion_bandwidth, cutoff_std=NO_CUTOFF)
+    memberships, weights, log_kernels, explained = [], [], [], False
+    for frame, kernels in ((condition.manipulator_frame, motion.manipulator),
+                           (condition.environment_frames, motion.environment)):
+        kernels = dataclasses.replace(kernels, log_weight=None)  # the trained kernels: the posterior is the prior
+        log_w = contact_log_weights(frame, kernels, condition.robot_start, settings.contact_bandwidth,
+                                    condition.contact_patch)  # (F, N)
+        finals = se3.compose(se3.compose(condition.robot_start, kernels.m), to_final)  # (N,)
+        kde = PoseKDE(finals, full, validate_args=False)
+        # normalised kernels: models of different bandwidths are compared by their evidence
+        log_k = kde.log_kernels(se3.Pose.unchecked(y.p.reshape(1, 3), y.q.reshape(1, 4))).reshape(-1).double() \
+            - log_kernel_normaliser(kde).reshape(())
+        reached = torch.isfinite(log_w).any(0)
+        distance = (finals.p - y.p.reshape(1, 3)).norm(dim=-1)
+        angle = se3.angle_between(finals.q, y.q.reshape(1, 4).expand_as(finals.q))
+        explained |= bool((reached & (distance <= OUTLIER_DISTANCE) & (angle <= OUTLIER_ANGLE)).any())
+        memberships.append(log_membership(kernel_physics([kernels]), posterior.centres, posterior.scale))
+        weights.append(log_w)
+        log_kernels.append(log_k)
+    if not explained:
+        return None
+    exponents = expert_exponents(len(motion.manipulator), len(motion.environment),
+                                 int(weights[0].shape[0] + weights[1].shape[0]) - 1, settings.pool_sharpness,
+                                 torch.float64)
+    return cell_log_likelihood(memberships, weights, log_kernels, exponents)
+
+
+def condition_model(model: PushModel, observations, seed: int | None = None, prior: tuple | None = None) -> PushModel:
+    """:meth:`PushModel.condition_on <pushtorch.models.model.PushModel.condition_on>`."""
+    observations = _as_list(observations)
+    posterior = model.physics_posterior
+    if posterior is None:
+        kernels = [k for m in model.motions for k in (m.manipulator, m.environment)]
+        posterior = new_posterior(kernels, 0 if seed is None else seed, prior)
+    elif prior is not None:
+        raise InvalidParameterError("de-biasing (prior=...) applies to a model not yet conditioned")
+    elif seed is not None and seed != posterior.seed:
+        raise InvalidParameterError(f"this model was conditioned with seed {posterior.seed}; continue with that seed "
+                                    f"(or None), not {seed}")
+    for obs in observations:
+        index = posterior.observed + posterior.rejected
+        generator = torch.Generator().manual_seed(observation_seed(posterior.seed, index))
+        cells = observation_evidence(model, obs, posterior, generator)
+        if cells is None:
+            log.warning("observation %d of model %s is explained by no kernel (farther than %.2f m or %.0f° from "
+                        "every kernel its contacts reach: a thrown or misplaced object?): left out", index,
+                        model.name, OUTLIER_DISTANCE, OUTLIER_ANGLE * 57.29577951308232)
+        posterior = posterior.with_evidence(cells)
+    return conditioned_model(model, posterior)
+
+
+def condition_library(library: ModelLibrary, observations, seed: int | None = None) -> ConditionedLibrary:
+    """:meth:`ModelLibrary.condition_on <pushtorch.models.library.ModelLibrary.condition_on>`."""
+    observations = _as_list(observations)
+    return ConditionedLibrary([condition_model(m, observations, seed) for m in library.models])
