@@ -15,10 +15,16 @@ chose, the training pushes — unless it is labelled an oracle:
   mass and friction (:func:`physics_from_cloud_prediction`);
 * oracle physics: pybullet pushing the *true* mesh from the *true* initial pose with the prior's mean mass
   and friction (:func:`oracle_physics_prediction`). It knows what the method cannot (the hidden geometry
-  and the exact pose), so reports label it an oracle and leave it out of "beats the baselines" claims.
+  and the exact pose), so reports label it an oracle and leave it out of "beats the baselines" claims;
+* physics from the cloud, online: the equal-information peer of a model conditioned on observed pushes
+  (:func:`fit_cloud_physics`): each observed push is rolled out on the body its own cloud reconstructs, for
+  every ``(μ, m)`` of a grid over the training prior, and the pair whose rollouts best reproduce the observed
+  displacements (:func:`displacement_error`) predicts, as physics from the cloud does.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import torch
@@ -33,6 +39,9 @@ from pushtorch.objects import ObjectModel, Symmetry
 __all__ = [
     "centroid_pose",
     "cloud_body",
+    "displacement_error",
+    "fit_cloud_physics",
+    "physics_grid",
     "mean_motion_prediction",
     "nearest_push_prediction",
     "no_motion_prediction",
@@ -141,3 +150,67 @@ def oracle_physics_prediction(obj: ObjectModel, robot_start: se3.Pose, truth_ini
                               action: torch.Tensor, mass: float, ground_friction: float) -> se3.Pose:
     """An oracle: the true mesh pushed from the true initial pose, once, with the prior's mean parameters."""
     return _simulate_once(obj, robot_start, truth_initial, action, mass, ground_friction)
+
+
+#: The lever arm (m) that weighs a heading error against a position error in :func:`displacement_error`.
+ROTATION_LEVER = 0.1
+
+
+def displacement_error(start: se3.Pose, moved: se3.Pose, observed: se3.Pose) -> torch.Tensor:
+    """How far a simulated world motion (``start`` → ``moved``, ``(...)``) is from an observed one (``observed``,
+    the world motion ``W = B1 ∘ B0⁻¹``): the distance between where each carries the body's centre plus the
+    heading difference times :data:`ROTATION_LEVER` (m), ``(...)``."""
+    centre = start.p.double()
+    simulated = se3.compose(moved, se3.inverse(start))
+    obs = se3.Pose.unchecked(observed.p.double().expand_as(centre), observed.q.double().expand_as(start.q.double()))
+    sim = se3.Pose.unchecked(simulated.p.double(), simulated.q.double())
+    gap = (se3.apply(sim, centre) - se3.apply(obs, centre)).norm(dim=-1)
+    turn = se3.yaw_of(sim.q) - se3.yaw_of(obs.q)
+    turn = torch.atan2(torch.sin(turn), torch.cos(turn)).abs()
+    return gap + ROTATION_LEVER * turn
+
+
+def physics_grid(friction_prior, mass_prior, count: int) -> torch.Tensor:
+    """``(G, 2)`` float64 ``(μ, m)``: ``count`` quantiles of each prior that is not fixed (masses spaced in log),
+    their product, at most ``count²`` points; a fixed prior contributes its value."""
+    def axis(prior, log: bool) -> torch.Tensor:
+        kind = type(prior).__name__
+        if kind == "Fixed":
+            return torch.tensor([prior.mean], dtype=torch.float64)
+        if kind == "Uniform":
+            lo, hi = prior.low, prior.high
+        else:  # Normal: ±2 std, above the physical minimum
+            lo, hi = max(prior.loc - 2 * prior.std, prior.minimum), prior.loc + 2 * prior.std
+        u = (torch.arange(count, dtype=torch.float64) + 0.5) / count
+        if log:
+            return torch.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * u)
+        return lo + (hi - lo) * u
+
+    return torch.cartesian_prod(axis(friction_prior, False), axis(mass_prior, True)).reshape(-1, 2)
+
+
+def fit_cloud_physics(observations, grid: torch.Tensor) -> torch.Tensor:
+    """``(K, G)`` float64 the displacement error (m, :func:`displacement_error`) of every observed push ``(K)``
+    rolled out on the body its own cloud reconstructs (:func:`cloud_body`, from its observed initial pose and
+    robot start) under every ``(μ, m)`` of ``grid (G, 2)``. The peer's fit after ``k`` pushes is
+    ``grid[errors[:k].pow(2).sum(0).argmin()]``.
+
+    Raises:
+        ModelError: an observation without its robot start, or a cloud that spans no volume.
+    """
+    from pushtorch.sim.runner import simulate_pushes
+
+    rows = []
+    for o in observations:
+        if o.robot_start is None:
+            raise ModelError("physics from the cloud needs each observed push's robot start")
+        points = o.cloud.points if hasattr(o.cloud, "points") else o.cloud.p
+        body, start = cloud_body(points, o.initial_pose)
+        g = grid.shape[0]
+        robot = se3.Pose.unchecked(o.robot_start.p.double().reshape(1, 3).expand(g, 3),
+                                   o.robot_start.q.double().reshape(1, 4).expand(g, 4))
+        initial = se3.Pose.unchecked(start.p.reshape(1, 3).expand(g, 3), start.q.reshape(1, 4).expand(g, 4))
+        action = torch.as_tensor(o.action, dtype=torch.float64).reshape(1, 2).expand(g, 2)
+        records = simulate_pushes(body, robot, initial, action, grid[:, 1], grid[:, 0])
+        rows.append(displacement_error(initial, records.object_final, o.displacement))
+    return torch.stack(rows) if rows else torch.zeros(0, grid.shape[0], dtype=torch.float64)
