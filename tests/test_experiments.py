@@ -99,10 +99,13 @@ def test_training_placement_comes_from_the_protocol_and_keeps_its_own_caches(tmp
 def test_quickstart_runs_every_experiment_smaller():
     cfg = _compose(["experiment=quickstart"])
     parts = cfg.experiment.parts
-    assert {p.kind for p in parts.values()} == {"model_selection", "pose_estimation", "biasing"}
+    assert {p.kind for p in parts.values()} == {"model_selection", "pose_estimation", "biasing", "online_adaptation"}
     assert {p.bias for p in parts.values() if p.kind == "biasing"} == {"friction", "mass"}
     assert parts.pose_estimation.runs < 100 and parts.model_selection.test_conditions < 50
     assert cfg.model.samples_per_action < 500
+    online = parts.online_adaptation
+    assert online.test_conditions * cfg.experiment.actions.count >= 30  # scored pushes per object and condition
+    assert set(online.conditions.friction) == set(online.conditions.mass) == {"low", "medium", "high"}
 
 
 def test_object_override_and_sweep_compose():
@@ -178,6 +181,12 @@ TINY = [
     "experiment.parts.mass_biasing.objects=[cube]",
     "experiment.parts.mass_biasing.model.mass=[low]",
     "experiment.parts.mass_biasing.conditions.mass=[low,high]",
+    "experiment.parts.online_adaptation.objects=[cube]",
+    "experiment.parts.online_adaptation.conditions.friction=[low,medium]",
+    "experiment.parts.online_adaptation.conditions.mass=[high]",
+    "experiment.parts.online_adaptation.test_conditions=2",
+    "experiment.parts.online_adaptation.observed=[0,2]",
+    "experiment.parts.online_adaptation.peer_grid=3",
 ]
 
 
@@ -192,13 +201,14 @@ def tiny_run(tmp_path_factory):
 def test_tiny_quickstart_writes_tidy_results(tiny_run):
     cfg, out, summary = tiny_run
     results = json.loads((out / "results.json").read_text())
-    assert set(results) == {"experiment", "config", "overrides", "wall_s", "records", "model_bandwidths"}
+    assert set(results) == {"experiment", "config", "overrides", "wall_s", "records", "model_bandwidths",
+                            "separability"}
     # every trained model chose its bandwidths from its training pushes, and the run says which
     assert results["model_bandwidths"] and all(set(b["chosen"]) == set(b["start"])
                                                for b in results["model_bandwidths"].values())
     assert results["experiment"] == "quickstart" and results["wall_s"] > 0
     assert results["config"]["experiment"]["parts"]["pose_estimation"]["runs"] == 2
-    every = results["records"]
+    every = [r for r in results["records"] if r["task"] != "online"]
     for r in every:
         expected = (RECORD_KEYS | ({"selection_rate"} if r["task"] == "selection" else set())
                     | ({"metric", "nll_mean", "nll_median"} if r["task"] != "pose" else set()))
@@ -241,7 +251,27 @@ def test_tiny_quickstart_writes_tidy_results(tiny_run):
     ours = pool([r for r in friction if r["method"] == "pushtorch"])
     assert still["linear_cm"] > 20 and ours["linear_cm"] < still["linear_cm"]
     assert ours["nll_mean"] < still["nll_mean"]  # a point that stands still is far less likely than our density
-    assert summary["results"] == str(out / "results.json") and summary["records"] == len(every)
+    online = [r for r in results["records"] if r["task"] == "online"]
+    assert summary["results"] == str(out / "results.json") and summary["records"] == len(every) + len(online)
+    # online adaptation: every predictor per condition and k, the posterior beside the conditioned ones
+    methods = {"online", "online_general", "general", "congruent", "incongruent", "physics_from_cloud",
+               "physics_from_cloud_online"}
+    assert {(r["condition"], r["method"], r["observed"]) for r in online} == {
+        (c, m, k) for c in ("friction:low", "friction:medium", "mass:high") for m in methods for k in (0, 2)} | {
+        (c, "debiased", 0) for c in ("friction:low", "friction:medium", "mass:high")}
+    for r in online:
+        assert set(r) >= RECORD_KEYS | {"observed", "metric", "nll_mean", "nll_median"} and r["n"] == 2 * 2
+        assert math.isfinite(r["hacc_mean"]) and math.isfinite(r["nll_mean"])
+        if r["method"] in ("online", "online_general"):
+            assert 0 < r["mu_mean"] < 1 and r["mu_std"] >= 0 and math.isfinite(r["log_mass_mean"])
+            assert r["mass_true"] == (5.0 if r["condition"] == "mass:high" else 0.5)
+    by = {(r["condition"], r["method"], r["observed"]): r for r in online}
+    # without observations, the conditioned predictors are the general model's own predictions
+    assert by[("friction:low", "online_general", 0)]["hacc_mean"] == by[("friction:low", "general", 0)]["hacc_mean"]
+    # adjacent conditions of one parameter only: friction low and medium
+    [separable] = results["separability"]
+    assert (separable["object"], separable["parameter"], separable["pair"]) == ("cube", "friction", "low|medium")
+    assert separable["separability"] >= 0 and separable["mean_gap_cm"] >= 0
 
 
 def test_tiny_quickstart_writes_report_figures_and_recording(tiny_run):
@@ -253,7 +283,7 @@ def test_tiny_quickstart_writes_report_figures_and_recording(tiny_run):
     assert "1.41" in report and "7.06" in report and str(PAPER_LINEAR_CM["cube"]) in report
     figures = sorted((out / "figures").glob("*.png"))
     assert {"model_selection.png", "pose_estimation.png", "friction_biasing.png", "mass_biasing.png",
-            "objects.png", "training_friction_biasing_cube.png"} <= {p.name for p in figures}
+            "objects.png", "training_friction_biasing_cube.png", "online_adaptation.png"} <= {p.name for p in figures}
     for figure in figures:
         assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"figures/{figure.name}" in report
@@ -263,6 +293,11 @@ def test_tiny_quickstart_writes_report_figures_and_recording(tiny_run):
     predictions = {p for p in paths if p.startswith("/world/model/prediction/")}
     assert any(p.endswith("/final_true") for p in predictions)
     assert "/world/model/prediction/model_selection/cylinder/adaptive/c0a1/final_true" in predictions
+    # online adaptation: the posterior on the timeline of observed pushes, with each observed push
+    online = {p for p in paths if p.startswith("/world/experiments/online_adaptation/cube/")}
+    assert any(p.endswith("/posterior/samples") for p in online)
+    assert any(p.endswith("/observed/cloud") for p in online) and any(p.endswith("/observed/final") for p in online)
+    assert "Online adaptation" in report and "Separability" in report
     assert summary["recording"] == str(out / "recording.rrd")
 
 

@@ -2,7 +2,8 @@
 
 Paper, Experimental Results: model selection (50 conditions x 3 actions x 4 samples), pose estimation
 (100 runs per object), friction and mass biasing (4 models x 3 conditions x 6 objects, 100 conditions x
-3 actions x 3 samples, 24,000 training pushes over both), trained with the default placements
+3 actions x 3 samples, 24,000 training pushes over both), and online adaptation (the paper's future work, on the
+biasing experiments' models, linked from their folders when they ran first), trained with the default placements
 (``protocol=spread``) or the paper's single one (``--protocol paper``). Each experiment runs as
 ``python -m pushtorch experiment=<name> hydra.run.dir=<out>/<name> [overrides]``, so a killed run resumes
 when this script is started again with the same ``--out`` (every step is cached in its run directory).
@@ -27,7 +28,9 @@ import sys
 import time
 from pathlib import Path
 
-EXPERIMENTS = ("model_selection", "pose_estimation", "friction_biasing", "mass_biasing")
+EXPERIMENTS = ("model_selection", "pose_estimation", "friction_biasing", "mass_biasing", "online_adaptation")
+#: Experiments that reuse the models (and their training pushes) of earlier ones in the same ``--out``.
+REUSES = {"online_adaptation": ("friction_biasing", "mass_biasing")}
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -45,6 +48,16 @@ def reproduce(out: Path, only: list[str], overrides: list[str],
     timings_path = out / "timings.json"
     timings = json.loads(timings_path.read_text()) if timings_path.is_file() else {}
     for name in only:
+        for earlier in REUSES.get(name, ()):  # the same models, not trained twice: linked, never moved
+            for kind in ("models", "data"):
+                source = out / earlier / kind
+                for path in sorted(source.rglob("*")) if source.is_dir() else []:
+                    target = out / name / kind / path.relative_to(source)
+                    if path.is_dir():
+                        target.mkdir(parents=True, exist_ok=True)
+                    elif not target.exists():
+                        target.parent.mkdir(parents=True, exist_ok=True)
+                        target.hardlink_to(path)
         command = [python, "-m", "pushtorch", f"experiment={name}", f"hydra.run.dir={out / name}", *overrides]
         print("$", " ".join(command), flush=True)
         start = time.perf_counter()

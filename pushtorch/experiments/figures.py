@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from pushtorch.experiments.online_report import online_figure
 from pushtorch.experiments.results import (
     _METHOD_ORDER,
     _POSE_ORDER,
@@ -324,6 +325,10 @@ def make_figures(out_dir: Path, records: Sequence[Mapping[str, Any]],
         stats = {(o, "pushtorch"): _group_stat(matched, samples, object=o) for o in objects}
         chart(objects, ["pushtorch"], stats, "method", "pushtorch per object: model prior = test condition",
               "comparisons", "predictions", "objects.png", "method")
+
+    fig = online_figure(plt, records)
+    if fig is not None:
+        save(fig, "online_adaptation.png")
 
     actions = extras.get("training_actions") or {}
     for part_name, by_object in (extras.get("training_scatter") or {}).items():

@@ -9,6 +9,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from pushtorch.experiments.online_report import online_section
 from pushtorch.experiments.results import (
     _METHOD_ORDER,
     _SELECTION_ORDER,
@@ -180,6 +181,8 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
                   "nll", "frame score (secondary): H_acc, cm, deg", "n"]
         lines += _table(header, rows)
         figure("objects.png", "per object")
+
+    lines += online_section(records, figure_names, extras.get("online_separability") or ())
 
     counts = _thrown_counts(extras.get("thrown") or [])
     if counts:

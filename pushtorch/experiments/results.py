@@ -16,6 +16,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from pushtorch.experiments.online_report import online_checks
+
 __all__ = [
     "ORACLES",
     "PAPER_LINEAR_CM",
@@ -149,6 +151,7 @@ def acceptance_checks(records: Sequence[Mapping[str, Any]],
                        "passed": abs(diff) <= 2 * se + 1e-9,
                        "detail": f"H_acc {adaptive['hacc_mean']:.3f} vs {congruent['hacc_mean']:.3f} "
                                  f"(difference {diff:+.3f}, 2 SE {2 * se:.3f})"})
+    checks += online_checks(records)
     for (part, method), count in _thrown_counts(thrown).items():
         if method != "incongruent":
             checks.append({"check": "no ground-truth push thrown", "object": f"{part}: {method}",
@@ -158,17 +161,21 @@ def acceptance_checks(records: Sequence[Mapping[str, Any]],
 
 def write_results(out_dir: Path, experiment: str, config: Mapping[str, Any], wall_s: float,
                   records: Sequence[Mapping[str, Any]], overrides: Sequence[str] = (),
-                  model_bandwidths: Mapping[str, Any] | None = None) -> Path:
+                  model_bandwidths: Mapping[str, Any] | None = None,
+                  separability: Sequence[Mapping[str, Any]] = ()) -> Path:
     """``results.json`` in the run directory (the layout in the module docstring).
 
     ``overrides`` are the run's command-line overrides (Hydra's task overrides), so a sweep's jobs can be
     told apart and tabulated by what was swept (``python -m pushtorch.collect``). ``model_bandwidths``: per
-    trained model, the bandwidths its search chose (``PushModel.meta["bandwidths"]``).
+    trained model, the bandwidths its search chose (``PushModel.meta["bandwidths"]``). ``separability``: the
+    online-adaptation experiment's separability of adjacent test conditions (key ``separability``, when any).
     """
     path = Path(out_dir) / "results.json"
     payload = {"experiment": experiment, "config": dict(config), "overrides": list(overrides),
                "wall_s": float(wall_s), "records": list(records),
                "model_bandwidths": dict(model_bandwidths or {})}
+    if separability:
+        payload["separability"] = list(separability)
     path.write_text(json.dumps(payload, indent=1, allow_nan=True))
     return path
 

@@ -30,6 +30,7 @@ KINDS = {
     "model_selection": "pushtorch.experiments.model_selection",
     "pose_estimation": "pushtorch.experiments.pose_estimation",
     "biasing": "pushtorch.experiments.biasing",
+    "online_adaptation": "pushtorch.experiments.online_adaptation",
 }
 
 

@@ -42,7 +42,7 @@ SUMMARY = f"{METRICS}/summary"
 GROUP_TIMELINE = "group"
 
 # the group levels of a results.json record, outermost first (absent ones are skipped)
-_GROUP_LEVELS = ("object", "model", "condition", "method", "metric")
+_GROUP_LEVELS = ("object", "model", "condition", "method", "observed", "metric")
 
 
 def hacc_root(part: str) -> str:
@@ -82,7 +82,8 @@ def log_group_hacc(
     colours = _method_colours(records)
     paths = []
     for k, record in enumerate(records):
-        levels = [str(record[level]) for level in _GROUP_LEVELS if record.get(level) is not None]
+        levels = [(f"k{record[level]}" if level == "observed" else str(record[level]))
+                  for level in _GROUP_LEVELS if record.get(level) is not None]
         path = f"{hacc_root(part)}/{entity_name('/'.join(level.replace('/', '_') for level in levels))}"
         method = str(record["method"])
         # one point per entity: markers, since a line needs two points to show

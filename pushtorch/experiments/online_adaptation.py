@@ -1,0 +1,337 @@
+"""Online adaptation: predictions conditioned on k observed pushes of the test object, against the biased,
+general and physics predictors on the same pushes (paper, §Conclusions and future work: "several sample pushes
+in an online fashion"; §Biasing Transferable Push Manipulation Models for the models and conditions).
+
+For each test object (its training object from ``training_object_of``) and each test condition
+(``friction:low|medium|high`` with the mass at the paper's default, ``mass:low|medium|high`` with the friction at
+its default), ``test_conditions`` cases are drawn. A case is one object with one friction and mass drawn from
+the condition: a test pose pushed with every action from a given robot start (the scored pushes, the same starts
+and seeds in every condition: a paired comparison), and ``max(observed)`` pushes of the same object at other
+poses, in the same physics (the observations). Every predictor of a case gets the same observations, their
+first ``k`` for ``k`` in ``observed``; the scored pushes are never observed.
+
+Predictors (results ``method``): ``online`` (the library of the bias's models, general, low, medium, high, of
+the training object, conditioned: the model of highest evidence predicts), ``online_general`` (the general model
+conditioned), ``general``, ``congruent`` (the biased model of the true condition: the oracle's choice),
+``incongruent`` (the biased model farthest from it, in μ or log m), ``debiased`` (the general model de-biased
+to its training prior, ``k = 0``), ``physics_from_cloud`` (the cloud's body at the general prior's means) and
+``physics_from_cloud_online`` (its friction and mass fitted to the observations,
+:func:`pushtorch.evaluation.baselines.fit_cloud_physics`). Independent of ``k``, ``general``, ``congruent``,
+``incongruent`` and ``physics_from_cloud`` are recorded once per ``k`` all the same, for the tables and figures.
+
+The separability of adjacent conditions (the distance between the mean outcomes of two conditions over their
+pooled spread, per action, averaged) says where the outcomes can tell the conditions apart at all.
+
+Run: ``python -m pushtorch experiment=online_adaptation``; it is a part of the quickstart at small sizes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from pushtorch import se3
+from pushtorch.errors import InvalidParameterError
+from pushtorch.experiments.common import (
+    ExperimentContext,
+    as_names,
+    compare_displacement,
+    load_test_objects,
+    plain,
+    progress_bar,
+    sample_test_poses,
+    stable_seed,
+    train_model,
+)
+from pushtorch.experiments.evaluation import observe
+from pushtorch.models.conditioning import Observation
+from pushtorch.models.library import ModelLibrary
+from pushtorch.objects import ObjectModel, load_object
+
+__all__ = ["run", "run_part"]
+
+#: The robot starts of observed and scored pushes: heading within ± this of the object's x axis (deg) …
+HEADING_JITTER_DEG = 5.0
+#: … the bumper's centre line within ± this of the object's centre (m), this far short of touching (m).
+LATERAL_JITTER, GAP = 0.02, 0.002
+LEVELS = ("low", "medium", "high")
+
+
+def _start(obj, pose: se3.Pose, seed: int) -> se3.Pose:
+    from pushtorch.sim.push import place_robot_against
+
+    u = torch.rand(2, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) * 2 - 1
+    heading = float(se3.yaw_of(pose.q.double())) + float(u[0]) * math.radians(HEADING_JITTER_DEG)
+    return place_robot_against(obj.mesh, pose, heading, float(u[1]) * LATERAL_JITTER, GAP)
+
+
+def _incongruent(ctx: ExperimentContext, bias: str, level: str) -> str:
+    """The biased prior farthest from ``level`` (in μ, or in log m): the first of a tie."""
+    def value(name: str) -> float:
+        mean = ctx.prior(bias, name).mean
+        return math.log(mean) if bias == "mass" else mean
+
+    return max((n for n in LEVELS if n != level), key=lambda n: abs(value(n) - value(level)))
+
+
+def _pose(p: se3.Pose) -> se3.Pose:
+    return se3.Pose.unchecked(p.p.reshape(3).float(), p.q.reshape(4).float())
+
+
+@dataclass
+class _Group:
+    """One test object under one bias: its test cases (clouds, starts, poses), the bias's models and the memo of
+    predictions that do not depend on the condition (the same pushes, the same seeds)."""
+
+    ctx: ExperimentContext
+    name: str
+    obj: ObjectModel
+    poses: se3.Pose
+    clouds: list
+    starts: list
+    models: dict
+    general_prior: tuple
+    memo: dict = field(default_factory=dict)
+
+    def predicted(self, model, i: int, j: int, key: str):
+        """``(estimate, final, density)`` of ``model`` on case ``i``, action ``j`` (memoised by ``key``)."""
+        from pushtorch.evaluation.likelihood import motion_product_density
+        from pushtorch.prediction import predict
+
+        if key not in self.memo:
+            seed = stable_seed(self.ctx.seed, self.name, self.obj.name, i, j)
+            pred = predict(model, self.clouds[i][1], self.ctx.actions[j], torch.Generator().manual_seed(seed),
+                           robot_start=self.starts[i][j])
+            scoring = torch.Generator().manual_seed(stable_seed(self.ctx.seed, self.name, self.obj.name, i, j,
+                                                                "likelihood"))
+            self.memo[key] = (pred.condition.object_pose, pred.final_pose,
+                              motion_product_density(pred.motion_density, scoring, pred.candidates))
+        return self.memo[key]
+
+    def cloud_physics(self, i: int, j: int, friction: float, mass: float, key: str):
+        """``(start, final, density)`` of physics on the body case ``i``'s cloud reconstructs (memoised)."""
+        from pushtorch.evaluation.baselines import physics_from_cloud_prediction
+        from pushtorch.evaluation.likelihood import point_density
+
+        if key not in self.memo:
+            estimate = self.predicted(self.models["general"], i, j, f"general|{i}|{j}")[0]
+            start, final = physics_from_cloud_prediction(self.clouds[i][0].points, estimate, self.starts[i][j],
+                                                         self.ctx.actions[j], mass, friction)
+            settings = self.ctx.settings
+            self.memo[key] = (start, final, point_density(final, settings.motion_p_std, settings.motion_rot_std))
+        return self.memo[key]
+
+
+def _observations(group: _Group, condition: str, i: int, count: int, yaw_range, mass: float,
+                  mu: float) -> list[Observation]:
+    """``count`` pushes of the case's object at other poses, in the case's physics, as observations."""
+    from pushtorch.perception import capture_partial_cloud
+    from pushtorch.sim.runner import simulate_pushes
+
+    ctx, obj = group.ctx, group.obj
+    low, high = (math.radians(float(v)) for v in yaw_range)
+    out = []
+    for o in range(count):
+        g = torch.Generator().manual_seed(stable_seed(ctx.seed, group.name, obj.name, condition, i, "obs", o))
+        pose = obj.resting_pose(0.0, 0.0, low + (high - low) * float(torch.rand(1, generator=g, dtype=torch.float64)))
+        a = int(torch.randint(int(ctx.actions.shape[0]), (1,), generator=g))
+        start = _start(obj, pose, stable_seed(ctx.seed, group.name, obj.name, condition, i, "obs-start", o))
+        final = simulate_pushes(obj, start, pose, ctx.actions[a].double(), mass, mu).object_final
+        cloud = capture_partial_cloud(obj, pose, voxel_size=ctx.settings.voxel_size)
+        out.append(Observation(cloud, ctx.actions[a], _pose(pose), _pose(final), _pose(start)))
+    return out
+
+
+@dataclass
+class _Scores:
+    """Per (method, k): each scored push's (H_acc, nll, linear cm, angular deg); the posteriors' summaries."""
+
+    pushes: dict = field(default_factory=dict)
+    posteriors: dict = field(default_factory=dict)
+
+    def add(self, method: str, k: int, prediction, truth_initial: se3.Pose, truth_final: se3.Pose, obj) -> None:
+        from pushtorch.evaluation.likelihood import nll
+
+        estimate, final, density = prediction
+        acc = compare_displacement(estimate.reshape(1, 1), final.reshape(1, 1), truth_initial.unsqueeze(0),
+                                   truth_final.reshape(1, 1, 1), obj)
+        value = nll(density, truth_final.reshape(1), truth_initial, estimate, obj.symmetry)
+        self.pushes.setdefault((method, k), []).append(
+            (float(acc.hacc.reshape(-1)[0]), float(value.reshape(-1)[0]), float(acc.linear_cm.reshape(-1)[0]),
+             float(acc.angular_deg.reshape(-1)[0])))
+
+
+def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int, observed: list[int],
+          scores: _Scores, logged: bool) -> torch.Tensor:
+    """Score every predictor on case ``i`` of one condition; returns the case's true outcomes ``(A, 2)`` (the
+    object's final position in each push's robot start frame) for the separability."""
+    from pushtorch.evaluation.baselines import fit_cloud_physics, physics_grid
+    from pushtorch.sim.runner import simulate_pushes
+
+    ctx, obj, name, models = group.ctx, group.obj, group.name, group.models
+    condition, other = f"{bias}:{level}", ("mass" if bias == "friction" else "friction")
+    default = str(part.get(f"default_{other}", "paper_default"))
+    gen = torch.Generator().manual_seed(stable_seed(ctx.seed, name, obj.name, condition, i))
+    priors = {bias: ctx.prior(bias, level), other: ctx.prior(other, default)}
+    mu = float(priors["friction"].sample((1,), gen)[0])
+    mass = float(priors["mass"].sample((1,), gen)[0])
+    a_count = int(ctx.actions.shape[0])
+    starts = se3.Pose.stack(group.starts[i])
+    initial = se3.Pose.stack([group.poses.take(i)] * a_count)
+    truth = simulate_pushes(obj, starts, initial, ctx.actions.double(), mass, mu).object_final  # the scored pushes
+    obs = _observations(group, condition, i, observed[-1], part["yaw_range_deg"], mass, mu)
+    grid = physics_grid(*group.general_prior, int(part.get("peer_grid", 8)))
+    errors = fit_cloud_physics(obs, grid)
+    # one observation at a time (the same posterior as all at once): chain[k] has seen k of them
+    seed = stable_seed(ctx.seed, name, obj.name, condition, i, "condition")
+    library = ModelLibrary([models[level] for level in ("general", *LEVELS)])
+    chain = [library.condition_on([], seed=seed)]  # selects by H_r, as the library does
+    for o in obs:
+        chain.append(chain[-1].condition_on([o], seed=seed))
+    if logged and ctx.recording is not None:
+        from pushtorch.viz.core import WORLD, entity_name
+        from pushtorch.viz.online import log_online_adaptation
+
+        log_online_adaptation(ctx.recording, f"{WORLD}/experiments/{name}/{entity_name(obj.name)}/"
+                              f"{entity_name(condition)}/case{i}", chain, obs)
+    wrong = _incongruent(ctx, bias, level)
+    means = (group.general_prior[0].mean, group.general_prior[1].mean)
+    debiased = group.memo.setdefault("debiased model", models["general"].condition_on([], prior=group.general_prior))
+    truth_initial = _pose(group.poses.take(i))
+    for k in observed:
+        conditioned = chain[k]
+        for j in range(a_count):
+            fixed = {m: group.predicted(models[lv], i, j, f"{lv}|{i}|{j}")
+                     for m, lv in (("general", "general"), ("congruent", level), ("incongruent", wrong))}
+            fixed["physics_from_cloud"] = group.cloud_physics(i, j, means[0], means[1], f"pfc|{i}|{j}")
+            if k == 0:
+                fixed["debiased"] = group.predicted(debiased, i, j, f"debiased|{i}|{j}")
+                online = online_general = fixed["general"]
+                peer = fixed["physics_from_cloud"]
+            else:
+                online = group.predicted(conditioned, i, j, f"online|{condition}|{i}|{k}|{j}")
+                online_general = group.predicted(conditioned.models[0], i, j, f"online_general|{condition}|{i}|{k}|{j}")
+                best = grid[errors[:k].pow(2).sum(0).argmin()]
+                peer = group.cloud_physics(i, j, float(best[0]), float(best[1]), f"pfco|{condition}|{i}|{k}|{j}")
+            final = se3.Pose.unchecked(truth.p[j].float(), truth.q[j].float())
+            for method, prediction in {**fixed, "online": online, "online_general": online_general,
+                                       "physics_from_cloud_online": peer}.items():
+                scores.add(method, k, prediction, truth_initial, final, obj)
+        summaries = (conditioned.posterior(0).as_record(), conditioned.models[0].posterior(0).as_record())
+        scores.posteriors.setdefault(("online", k), []).append(summaries[0])
+        scores.posteriors.setdefault(("online_general", k), []).append(summaries[1])
+    return torch.stack([se3.relative(group.starts[i][j], se3.Pose.unchecked(truth.p[j], truth.q[j])).p[:2]
+                        for j in range(a_count)])
+
+
+def _condition_records(obj: str, condition: str, scores: _Scores, priors: Mapping[str, Any]) -> list[dict]:
+    """The records of one object and condition: one per method and k, with the posterior and the paired
+    difference to ``congruent`` where they apply."""
+    records = []
+    for (method, k), values in scores.pushes.items():
+        t = torch.tensor(values, dtype=torch.float64)
+        record = _record(obj, method, k, condition, t[:, 0], t[:, 1], t[:, 2:])
+        if method in ("online", "online_general"):
+            summaries = scores.posteriors[(method, k)]
+            record.update({key: float(sum(s[key] for s in summaries) / len(summaries))
+                           for key in ("mu_mean", "mu_std", "log_mass_mean", "log_mass_std")})
+            record.update({"mu_true": priors["friction"].mean, "mass_true": priors["mass"].mean})
+        if method == "online":
+            diff = t[:, 0] - torch.tensor([v[0] for v in scores.pushes[("congruent", k)]], dtype=torch.float64)
+            record["vs_congruent"] = {"difference": float(diff.mean()),
+                                      "se": float(diff.std() / math.sqrt(len(diff))) if len(diff) > 1 else 0.0}
+        records.append(record)
+    return records
+
+
+def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
+             model_cfg: Mapping[str, Any]) -> tuple[list[dict], dict]:
+    """Train (or reuse) the biasing models, condition them on each case's observations and score every
+    predictor; returns the records (``task: online``) and extras: ``online_separability``, per object, parameter
+    and adjacent pair (results.json's ``separability``)."""
+    part = plain(part)
+    name = str(part.get("name", "online_adaptation"))
+    objects = load_test_objects(cfg, as_names(part["objects"]))
+    training_of = {str(k): str(v) for k, v in (part.get("training_object_of") or {}).items()}
+    observed = sorted({int(k) for k in part["observed"]})
+    if not observed or observed[0] < 0 or observed[0] != 0:
+        raise InvalidParameterError(f"observed must list k >= 0 observed pushes, 0 first, got {part['observed']}")
+    n_cases = int(part["test_conditions"])
+    biases = [b for b in ("friction", "mass") if as_names((part.get("conditions") or {}).get(b))]
+    if not biases:
+        raise InvalidParameterError("online_adaptation needs conditions.friction and/or conditions.mass levels")
+    for bias in biases:
+        unknown = [level for level in as_names(part["conditions"][bias]) if level not in LEVELS]
+        if unknown:
+            raise InvalidParameterError(f"online_adaptation's {bias} conditions are {LEVELS}, got {unknown}")
+    a_count = int(ctx.actions.shape[0])
+    records: list[dict] = []
+    separability: list[dict] = []
+    total = sum(len(as_names(part["conditions"][b])) for b in biases) * len(objects) * n_cases
+    # the cases whose posterior timeline the recording shows (the first ones; worst/best choices need the truth)
+    logged = set(ctx.log_examples.known_before_truth(n_cases)) or {0}
+    bar = progress_bar(ctx, total, f"{name}: cases")
+    for obj in objects:
+        trained_on = load_object(training_of.get(obj.name, obj.name))
+        poses = sample_test_poses(obj, n_cases, part["yaw_range_deg"], stable_seed(ctx.seed, name, "poses", obj.name))
+        clouds = [observe(obj, poses.take(i), ctx.settings) for i in range(n_cases)]
+        starts = [[_start(obj, poses.take(i), stable_seed(ctx.seed, name, obj.name, i, j, "start"))
+                   for j in range(a_count)] for i in range(n_cases)]
+        for bias in biases:
+            other = "mass" if bias == "friction" else "friction"
+            default = str(part.get(f"default_{other}", "paper_default"))
+            pairs = {level: ((level, default) if bias == "friction" else (default, level))
+                     for level in ("general", *LEVELS)}
+            models = {level: train_model(ctx, trained_on, *fm) for level, fm in pairs.items()}
+            general_prior = (ctx.prior("friction", pairs["general"][0]), ctx.prior("mass", pairs["general"][1]))
+            group = _Group(ctx, name, obj, poses, clouds, starts, models, general_prior)
+            outcomes = {}
+            for level in as_names(part["conditions"][bias]):
+                scores, cases = _Scores(), []
+                for i in range(n_cases):
+                    cases.append(_case(group, part, bias, level, i, observed, scores, i in logged))
+                    bar.update(1)
+                outcomes[level] = torch.stack(cases)
+                priors = {bias: ctx.prior(bias, level), other: ctx.prior(other, default)}
+                records += _condition_records(obj.name, f"{bias}:{level}", scores, priors)
+            separability.extend(_separability(obj.name, bias, outcomes))
+    bar.close()
+    return records, {"online_separability": separability}
+
+
+def _record(obj: str, method: str, k: int, condition: str, hacc: torch.Tensor, nll: torch.Tensor,
+            errors: torch.Tensor) -> dict[str, Any]:
+    """One results record (``errors``: ``(n, 2)`` linear cm and angular deg of each scored push)."""
+    return {"task": "online", "object": obj, "method": method, "model": None, "condition": condition,
+            "observed": int(k), "metric": "displacement", "n": int(hacc.numel()),
+            "hacc_mean": float(hacc.mean()), "hacc_std": float(hacc.std(unbiased=False)) if hacc.numel() > 1 else 0.0,
+            "linear_cm": float(errors[:, 0].mean()), "angular_deg": float(errors[:, 1].mean()),
+            "nll_mean": float(nll.mean()), "nll_median": float(nll.median())}
+
+
+def _separability(obj: str, bias: str, outcomes: Mapping[str, torch.Tensor]) -> list[dict]:
+    """Adjacent conditions' mean outcomes (the object's final position in the robot's start frame, per action)
+    apart over their pooled spread, averaged over the actions."""
+    out = []
+    for a, b in (("low", "medium"), ("medium", "high")):
+        if a not in outcomes or b not in outcomes:
+            continue
+        x, y = outcomes[a].double(), outcomes[b].double()  # (N, A, 2)
+        gap = (x.mean(0) - y.mean(0)).norm(dim=-1)  # (A,)
+        pooled = ((x.var(0, unbiased=True).sum(-1) + y.var(0, unbiased=True).sum(-1)) / 2).sqrt() if len(x) > 1 \
+            else torch.full_like(gap, math.nan)
+        value = float((gap / pooled.clamp_min(1e-9)).mean())
+        out.append({"object": obj, "parameter": bias, "pair": f"{a}|{b}", "separability": value,
+                    "mean_gap_cm": float(gap.mean() * 100)})
+    return out
+
+
+def run(cfg, out_dir, overrides=()) -> dict:
+    """``python -m pushtorch experiment=online_adaptation`` with its report."""
+    from pushtorch.experiments.suite import run_suite
+
+    return run_suite(cfg, out_dir, [("online_adaptation", cfg.experiment, cfg.model)], overrides)
