@@ -22,15 +22,17 @@ SETTINGS = ModelSettings(query_kernels=400, anneal_candidates=60, anneal_steps=1
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
-    """The cube, its actions, and models trained on real pushes: general friction U(0.085, 0.805), low N(0.1) and
-    high N(0.7)."""
+    """The cube, its actions, and models trained on real pushes: general friction U(0.085, 0.805), low N(0.1),
+    high N(0.7) (mass N(0.5, 0.025) kg), and general mass U(0.085, 5.75) kg (friction N(0.3, 0.05))."""
     from pushtorch.sim import Normal, Uniform, load_records, make_actions, object_spec, plan_training_pushes, run_plan
 
     obj, actions = load_object("cube"), make_actions(3)
     models = {}
-    for name, prior, count in (("general", Uniform(0.085, 0.805), 30), ("low", Normal(0.1, 0.005), 12),
-                               ("high", Normal(0.7, 0.035), 12)):
-        plan = plan_training_pushes(obj, actions, count, Normal(0.5, 0.025), prior, seed=1)
+    for name, friction, mass, count in (("general", Uniform(0.085, 0.805), Normal(0.5, 0.025), 30),
+                                        ("low", Normal(0.1, 0.005), Normal(0.5, 0.025), 12),
+                                        ("high", Normal(0.7, 0.035), Normal(0.5, 0.025), 12),
+                                        ("mass", Normal(0.3, 0.05), Uniform(0.085, 5.75), 30)):
+        plan = plan_training_pushes(obj, actions, count, mass, friction, seed=1)
         folder = tmp_path_factory.mktemp(f"cube_{name}")
         run_plan(object_spec(obj), plan, folder, workers=2, progress=False)
         models[name] = train_push_model(obj, load_records(folder), SETTINGS, name=name,
@@ -38,9 +40,10 @@ def world(tmp_path_factory):
     return obj, actions, models
 
 
-def observe(obj, actions, mu: float, count: int, seed: int) -> list[Observation]:
-    """``count`` real pushes of the cube at ground friction ``mu``, from the start its training pushes had, as
-    observations."""
+def observe(obj, actions, mu: float, count: int, seed: int, mass: float = 0.5,
+            odometry: bool = False) -> list[Observation]:
+    """``count`` real pushes of the cube at ground friction ``mu`` and ``mass``, from the start its training pushes
+    had, as observations (with the robot's own final pose where ``odometry``)."""
     from pushtorch.sim.push import place_robot_against
     from pushtorch.sim.runner import simulate_pushes
 
@@ -51,9 +54,11 @@ def observe(obj, actions, mu: float, count: int, seed: int) -> list[Observation]
         pose = obj.resting_pose(0.0, 0.0, yaw)
         action = actions[int(torch.randint(0, len(actions), (1,), generator=g))]
         start = place_robot_against(obj.mesh, pose, yaw, 0.0, 0.002)  # as the models' training pushes start
-        final = simulate_pushes(obj, start, pose, action, 0.5, mu).object_final
+        pushed = simulate_pushes(obj, start, pose, action, mass, mu)
+        final, robot = pushed.object_final, pushed.robot_trajectory
         cloud = capture_partial_cloud(obj, pose, voxel_size=SETTINGS.voxel_size)
-        out.append(Observation(cloud, action, pose, se3.Pose(final.p[0], final.q[0]), start))
+        out.append(Observation(cloud, action, pose, se3.Pose(final.p[0], final.q[0]), start,
+                               se3.Pose(robot.p[0, -1], robot.q[0, -1]) if odometry else None))
     return out
 
 
@@ -76,6 +81,19 @@ def test_observed_friction_moves_the_posterior_and_chooses_the_library_model(wor
         assert chosen.name == expected
         weights = conditioned.posterior().model_weights
         assert weights[expected] == max(weights.values())
+
+
+def test_the_robots_odometry_tells_light_from_heavy(world):
+    """A loaded robot falls behind its command: its own final pose is evidence about the mass."""
+    obj, actions, models = world
+    model = models["mass"]
+    prior = model.posterior()
+    light = model.condition_on(observe(obj, actions, 0.3, 3, seed=4, mass=0.1, odometry=True)).posterior()
+    heavy = model.condition_on(observe(obj, actions, 0.3, 3, seed=4, mass=5.0, odometry=True)).posterior()
+    assert light.log_mass_mean < prior.log_mass_mean < heavy.log_mass_mean
+    # the same pushes without the odometry say less: the posterior stays wider
+    blind = model.condition_on(observe(obj, actions, 0.3, 3, seed=4, mass=5.0)).posterior()
+    assert heavy.log_mass_std < blind.log_mass_std
 
 
 def test_conditioning_is_sequential_deterministic_and_survives_save_and_load(world, tmp_path):

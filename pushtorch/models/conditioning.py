@@ -57,6 +57,7 @@ Tensor = torch.Tensor
 __all__ = [
     "CELLS",
     "CELL_WIDTH",
+    "ODOMETRY_STD",
     "OUTLIER_ANGLE",
     "OUTLIER_DISTANCE",
     "Observation",
@@ -69,6 +70,7 @@ __all__ = [
     "log_membership",
     "new_posterior",
     "observation_seed",
+    "odometry_log_likelihood",
     "summarise",
 ]
 
@@ -76,6 +78,8 @@ log = logging.getLogger(__name__)
 
 #: Grid centres per parameter (μ and log m) of the posterior's cells.
 CELLS = 16
+#: The robot's odometry noise (m, rad) its own final pose is compared with the kernels' under.
+ODOMETRY_STD = (0.005, 0.01)
 #: The narrowest cell per parameter: 0.05 in μ, 0.25 in log m (a mass 28 % apart).
 CELL_WIDTH = (0.05, 0.25)
 #: An observed outcome farther than this (m) from every kernel its contacts reach is not explained.
@@ -110,8 +114,8 @@ class Observation:
         initial_pose, final_pose: the object's observed poses before and after the push (world; any frame
             attached to the object, the same for both: the observed displacement between them is the evidence).
         robot_start: the robot's start pose, or None when the robot pushed from where the model places it.
-        robot_final: the robot's own final pose from its odometry (kept; not used by the likelihood, see
-            docs/method.md, "Online adaptation").
+        robot_final: the robot's own final pose from its odometry (world), or None: evidence about the mass and
+            friction the push met (:func:`odometry_log_likelihood`).
     """
 
     cloud: object
@@ -320,6 +324,20 @@ def cell_log_likelihood(log_membership: Sequence[Tensor], contact_log_weights: S
     per_expert = torch.cat(rows)  # (E, G)
     per_expert = torch.where(torch.isfinite(per_expert), per_expert, torch.zeros_like(per_expert))
     return (exponents.double().unsqueeze(-1) * per_expert).sum(0)
+
+
+def odometry_log_likelihood(log_membership: Tensor, robot_motion: Tensor, observed: Tensor) -> Tensor:
+    """``(G,)`` log-likelihood per cell of the robot's own observed motion ``(3,)`` (x, y, yaw in its start frame)
+    under the kernels' ``robot_motion (N, 3)``: ``log Σ_j b_jg N(r | r_j, ODOMETRY_STD²) − log Σ_j b_jg``.
+
+    A loaded robot falls behind its command, and the motion it makes barely depends on where the object sat, so
+    every kernel of the action takes part (one per push: the manipulator kernels)."""
+    std = torch.tensor([ODOMETRY_STD[0], ODOMETRY_STD[0], ODOMETRY_STD[1]], dtype=torch.float64)
+    diff = robot_motion.double() - observed.double().reshape(1, 3)
+    diff[:, 2] = torch.atan2(torch.sin(diff[:, 2]), torch.cos(diff[:, 2]))
+    log_n = (-0.5 * (diff / std) ** 2 - torch.log(std * math.sqrt(2 * math.pi))).sum(-1)  # (N,)
+    log_b = log_membership.double()
+    return torch.logsumexp(log_b + log_n.unsqueeze(-1), 0) - torch.logsumexp(log_b, 0)
 
 
 @dataclass

@@ -107,6 +107,9 @@ class MotionKernels:
     #: ``(N, 2)`` the ground friction coefficient and the mass (kg) its push was simulated with (kept in
     #: model files; what :mod:`pushtorch.models.conditioning` groups the kernels by); None where unknown
     physics: Tensor | None = None
+    #: ``(N, 3)`` where the robot itself ended in its push, in its start frame (x, y m, yaw rad): what the
+    #: robot's odometry reports, kept in model files (:mod:`pushtorch.models.conditioning`); None where unknown
+    robot_motion: Tensor | None = None
     #: ``(N,)`` each kernel's log weight from conditioning on observed pushes (0 everywhere, or None: the
     #: trained model; :mod:`pushtorch.models.conditioning`), added to its contact weight in every expert
     log_weight: Tensor | None = None
@@ -119,7 +122,7 @@ class MotionKernels:
             return None if t is None else t[index]
 
         return MotionKernels(self.r[index], self.u.take(index), self.m.take(index), self.g[index], self.patch[index],
-                             pick(self.push), pick(self.physics), pick(self.log_weight))
+                             pick(self.push), pick(self.physics), pick(self.robot_motion), pick(self.log_weight))
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> MotionKernels:
         """The kernels on ``device`` and in the floating ``dtype`` (``push`` keeps its integer dtype)."""
@@ -129,7 +132,7 @@ class MotionKernels:
         return MotionKernels(self.r.to(device, dtype), self.u.to(device, dtype), self.m.to(device, dtype),
                              self.g.to(device, dtype), self.patch.to(device, dtype),
                              None if self.push is None else self.push.to(device), move(self.physics),
-                             move(self.log_weight))
+                             move(self.robot_motion), move(self.log_weight))
 
     def arrays(self, prefix: str) -> dict[str, Tensor]:
         out = {
@@ -139,6 +142,8 @@ class MotionKernels:
         }
         if self.physics is not None:
             out[f"{prefix}.physics"] = self.physics
+        if self.robot_motion is not None:
+            out[f"{prefix}.robot_motion"] = self.robot_motion
         if self.log_weight is not None:
             out[f"{prefix}.log_weight"] = self.log_weight
         return out
@@ -152,6 +157,7 @@ class MotionKernels:
             arrays[f"{prefix}.g"],
             arrays[f"{prefix}.patch"],
             physics=arrays[f"{prefix}.physics"],
+            robot_motion=arrays.get(f"{prefix}.robot_motion"),
             log_weight=arrays.get(f"{prefix}.log_weight"),
         )
 
@@ -201,6 +207,7 @@ def fit_motion_model(
     contact_drop_off: float = 100.0,
     generator: torch.Generator | None = None,
     physics: Tensor | None = None,
+    robot_motion: Tensor | None = None,
 ) -> MotionModel:
     """Motion kernels of one action from its push records (paper, Motion Model; Environment Contact Model).
 
@@ -214,6 +221,7 @@ def fit_motion_model(
         manipulator_kernels_per_push: manipulator frames drawn per push among those touching the bumper.
         physics: ``(P, 2)`` each push's ground friction and mass (kg): every kernel keeps its push's
             (:attr:`MotionKernels.physics`), or None.
+        robot_motion: ``(P, 3)`` where the robot ended in each push, in its start frame (x, y, yaw), or None.
     Raises:
         ModelError: no push has a feature within ``contact_cutoff`` of the bumper.
     """
@@ -255,6 +263,7 @@ def fit_motion_model(
         patches[rows],
         rows,
         None if physics is None else physics[rows].to(x.p.dtype),
+        None if robot_motion is None else robot_motion[rows].to(x.p.dtype),
     )
 
     # Environment frames: drawn per push at the push's initial pose (z above the floor matters).
@@ -271,6 +280,7 @@ def fit_motion_model(
         patches[env_rows],
         env_rows,
         None if physics is None else physics[env_rows].to(x.p.dtype),
+        None if robot_motion is None else robot_motion[env_rows].to(x.p.dtype),
     )
     in_robot = se3.compose(se3.inverse(robot_start), se3.compose(world_motion, robot_start))
     return MotionModel(torch.as_tensor(action, dtype=x.p.dtype), manipulator, environment, se3.mean_pose(in_robot))

@@ -19,6 +19,7 @@ from pushtorch.objects import ObjectModel
 from pushtorch.perception import capture_full_cloud
 
 __all__ = [
+    "robot_motions",
     "train_push_model",
     "training_features",
 ]
@@ -29,6 +30,14 @@ def training_features(obj: ObjectModel, settings: ModelSettings) -> tuple[se3.Po
     pose = obj.resting_pose()
     cloud = capture_full_cloud(obj, pose, voxel_size=settings.voxel_size)
     return pose, compute_surface_features(cloud, radius=settings.feature_radius)
+
+
+def robot_motions(records) -> torch.Tensor:
+    """``(P, 3)`` where the robot ended in each push, in its start frame: ``(x, y, yaw)`` of its last recorded
+    pose relative to its start (what its odometry reports)."""
+    last = se3.Pose.unchecked(records.robot_trajectory.p[:, -1], records.robot_trajectory.q[:, -1])
+    moved = se3.relative(records.robot_start, last)
+    return torch.stack([moved.p[:, 0], moved.p[:, 1], se3.yaw_of(moved.q)], -1)
 
 
 def _in_object_frame(features: SurfaceFeatures, pose: se3.Pose) -> SurfaceFeatures:
@@ -97,6 +106,7 @@ def train_push_model(
                 sel.action[0], settings.environment_contacts_training, settings.manipulator_kernels_per_push,
                 settings.contact_cutoff, settings.contact_drop_off, generator,
                 physics=torch.stack([sel.ground_friction, sel.mass], -1),
+                robot_motion=robot_motions(sel),
             )
         )
     meta = dict(meta or {})

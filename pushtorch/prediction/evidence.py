@@ -4,7 +4,9 @@ observed movements of the pushed object with the PDRs already available in the s
 An observed push's condition is built as a prediction builds it, with the robot start given
 (:func:`~pushtorch.prediction.conditions._push_conditions_fast`); its experts weigh the action's kernels by
 their contact weights, and the observed displacement applied to the estimated initial pose is scored under each
-kernel, uncut and normalised (models of different bandwidths are weighed against each other by it).
+kernel, uncut and normalised (models of different bandwidths are weighed against each other by it). Where the
+observation has the robot's own final pose (its odometry), the robot's motion is scored too, under the kernels'
+(:func:`~pushtorch.models.conditioning.odometry_log_likelihood`).
 :func:`pushtorch.models.conditioning.cell_log_likelihood` pools that into the likelihood of every
 cell of ``(μ, log m)``; :func:`condition_model` and :func:`condition_library` are what
 :meth:`PushModel.condition_on <pushtorch.models.model.PushModel.condition_on>` and
@@ -30,6 +32,7 @@ from pushtorch.models.conditioning import (
     Observation,
     PhysicsPosterior,
     cell_log_likelihood,
+    odometry_log_likelihood,
     conditioned_model,
     kernel_physics,
     log_membership,
@@ -45,6 +48,7 @@ __all__ = [
     "condition_model",
     "observation_evidence",
     "observed_outcome",
+    "robot_motion_of",
 ]
 
 log = logging.getLogger(__name__)
@@ -114,7 +118,19 @@ def observation_evidence(model: PushModel, observation: Observation, posterior: 
     exponents = expert_exponents(len(motion.manipulator), len(motion.environment),
                                  int(weights[0].shape[0] + weights[1].shape[0]) - 1, settings.pool_sharpness,
                                  torch.float64)
-    return cell_log_likelihood(memberships, weights, log_kernels, exponents)
+    cells = cell_log_likelihood(memberships, weights, log_kernels, exponents)
+    if observation.robot_final is not None and motion.manipulator.robot_motion is not None:
+        cells = cells + odometry_log_likelihood(memberships[0], motion.manipulator.robot_motion,
+                                                robot_motion_of(condition.robot_start, observation.robot_final))
+    return cells
+
+
+def robot_motion_of(robot_start: se3.Pose, robot_final: se3.Pose) -> torch.Tensor:
+    """``(3,)`` float64 the robot's final pose in its start frame: x, y (m) and yaw (rad)."""
+    start = se3.Pose.unchecked(robot_start.p.reshape(3).double(), robot_start.q.reshape(4).double())
+    final = se3.Pose.unchecked(robot_final.p.reshape(3).double(), robot_final.q.reshape(4).double())
+    moved = se3.relative(start, final)
+    return torch.stack([moved.p[0], moved.p[1], se3.yaw_of(moved.q)])
 
 
 def condition_model(model: PushModel, observations, seed: int | None = None, prior: tuple | None = None) -> PushModel:
