@@ -132,7 +132,8 @@ _RULES: list[tuple[str, Rule]] = [
     ("**.log_examples", _int(0, 100)),
     ("recording.conditions", Rule("conditions", nullable=True)),  # experiments.common.LogConditions
     ("**.test_conditions", _int(1, 100_000)),
-    ("**.peer_grid", _int(1, 32)),  # physics_from_cloud_online: at most 32 rollouts per observation and parameter
+    ("**.peer_grid", _int(1, 32)),
+    ("**.odometry", _BOOL),  # physics_from_cloud_online: at most 32 rollouts per observation and parameter
     ("**.runs", _int(1, 100_000)),
     ("**.yaw_range_deg", Rule("pair", -360.0, 360.0)),
     ("**.objects", Rule("names")),

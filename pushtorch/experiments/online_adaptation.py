@@ -7,7 +7,8 @@ For each test object (its training object from ``training_object_of``) and each 
 its default), ``test_conditions`` cases are drawn. A case is one object with one friction and mass drawn from
 the condition: a test pose pushed with every action from a given robot start (the scored pushes, the same starts
 and seeds in every condition: a paired comparison), and ``max(observed)`` pushes of the same object at other
-poses, in the same physics (the observations). Every predictor of a case gets the same observations, their
+poses, in the same physics (the observations, with the robot's own final pose unless ``odometry: false``). Every
+predictor of a case gets the same observations, their
 first ``k`` for ``k`` in ``observed``; the scored pushes are never observed.
 
 Predictors (results ``method``): ``online`` (the library of the bias's models, general, low, medium, high, of
@@ -22,14 +23,18 @@ to its training prior, ``k = 0``), ``physics_from_cloud`` (the cloud's body at t
 The separability of adjacent conditions (the distance between the mean outcomes of two conditions over their
 pooled spread, per action, averaged) says where the outcomes can tell the conditions apart at all.
 
+Each object and condition's scores are written to ``<run_dir>/online/`` as soon as they are done, with what made
+them: a killed run resumes there, and a run with more objects reuses the ones it has.
+
 Run: ``python -m pushtorch experiment=online_adaptation``; it is a part of the quickstart at small sizes.
 """
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import torch
@@ -40,6 +45,7 @@ from pushtorch.experiments.common import (
     ExperimentContext,
     as_names,
     compare_displacement,
+    fingerprint,
     load_test_objects,
     plain,
     progress_bar,
@@ -48,9 +54,11 @@ from pushtorch.experiments.common import (
     train_model,
 )
 from pushtorch.experiments.evaluation import observe
+from pushtorch.io import atomic_write_bytes
 from pushtorch.models.conditioning import Observation
 from pushtorch.models.library import ModelLibrary
 from pushtorch.objects import ObjectModel, load_object
+from pushtorch.paths import contained_path
 
 __all__ = ["run", "run_part"]
 
@@ -59,6 +67,8 @@ HEADING_JITTER_DEG = 5.0
 #: … the bumper's centre line within ± this of the object's centre (m), this far short of touching (m).
 LATERAL_JITTER, GAP = 0.02, 0.002
 LEVELS = ("low", "medium", "high")
+#: Bump when a condition's cached scores (``<run_dir>/online/*.json``) would come out differently.
+ONLINE_VERSION = 1
 
 
 def _start(obj, pose: se3.Pose, seed: int) -> se3.Pose:
@@ -127,8 +137,9 @@ class _Group:
 
 
 def _observations(group: _Group, condition: str, i: int, count: int, yaw_range, mass: float,
-                  mu: float) -> list[Observation]:
-    """``count`` pushes of the case's object at other poses, in the case's physics, as observations."""
+                  mu: float, odometry: bool) -> list[Observation]:
+    """``count`` pushes of the case's object at other poses, in the case's physics, as observations (with the
+    robot's own final pose where ``odometry``)."""
     from pushtorch.perception import capture_partial_cloud
     from pushtorch.sim.runner import simulate_pushes
 
@@ -140,9 +151,11 @@ def _observations(group: _Group, condition: str, i: int, count: int, yaw_range, 
         pose = obj.resting_pose(0.0, 0.0, low + (high - low) * float(torch.rand(1, generator=g, dtype=torch.float64)))
         a = int(torch.randint(int(ctx.actions.shape[0]), (1,), generator=g))
         start = _start(obj, pose, stable_seed(ctx.seed, group.name, obj.name, condition, i, "obs-start", o))
-        final = simulate_pushes(obj, start, pose, ctx.actions[a].double(), mass, mu).object_final
+        pushed = simulate_pushes(obj, start, pose, ctx.actions[a].double(), mass, mu)
         cloud = capture_partial_cloud(obj, pose, voxel_size=ctx.settings.voxel_size)
-        out.append(Observation(cloud, ctx.actions[a], _pose(pose), _pose(final), _pose(start)))
+        robot = se3.Pose.unchecked(pushed.robot_trajectory.p[0, -1], pushed.robot_trajectory.q[0, -1])
+        out.append(Observation(cloud, ctx.actions[a], _pose(pose), _pose(pushed.object_final), _pose(start),
+                               _pose(robot) if odometry else None))
     return out
 
 
@@ -183,7 +196,8 @@ def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int,
     starts = se3.Pose.stack(group.starts[i])
     initial = se3.Pose.stack([group.poses.take(i)] * a_count)
     truth = simulate_pushes(obj, starts, initial, ctx.actions.double(), mass, mu).object_final  # the scored pushes
-    obs = _observations(group, condition, i, observed[-1], part["yaw_range_deg"], mass, mu)
+    obs = _observations(group, condition, i, observed[-1], part["yaw_range_deg"], mass, mu,
+                        bool(part.get("odometry", True)))
     grid = physics_grid(*group.general_prior, int(part.get("peer_grid", 8)))
     errors = fit_cloud_physics(obs, grid)
     # one observation at a time (the same posterior as all at once): chain[k] has seen k of them
@@ -291,13 +305,29 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             group = _Group(ctx, name, obj, poses, clouds, starts, models, general_prior)
             outcomes = {}
             for level in as_names(part["conditions"][bias]):
-                scores, cases = _Scores(), []
-                for i in range(n_cases):
-                    cases.append(_case(group, part, bias, level, i, observed, scores, i in logged))
-                    bar.update(1)
-                outcomes[level] = torch.stack(cases)
-                priors = {bias: ctx.prior(bias, level), other: ctx.prior(other, default)}
-                records += _condition_records(obj.name, f"{bias}:{level}", scores, priors)
+                path = contained_path(ctx.run_dir, "online", f"{name}_{obj.name}_{bias}_{level}.json",
+                                      what="experiment or object name")
+                made_from = fingerprint(version=ONLINE_VERSION, seed=ctx.seed, settings=asdict(ctx.settings),
+                                        samples_per_action=ctx.samples_per_action, actions=ctx.actions.tolist(),
+                                        models=[m.name for m in models.values()], cases=n_cases, observed=observed,
+                                        part={k: v for k, v in part.items() if k not in ("objects", "name")},
+                                        priors=[repr(ctx.prior(k, n)) for k in ("friction", "mass")
+                                                for n in (*LEVELS, "general", default)],
+                                        sim=asdict(ctx.sim), duration=ctx.duration)
+                cached = json.loads(path.read_text()) if path.is_file() else None
+                if cached is not None and cached.get("made_from") == made_from:
+                    bar.update(n_cases)
+                else:
+                    scores, cases = _Scores(), []
+                    for i in range(n_cases):
+                        cases.append(_case(group, part, bias, level, i, observed, scores, i in logged))
+                        bar.update(1)
+                    priors = {bias: ctx.prior(bias, level), other: ctx.prior(other, default)}
+                    cached = {"made_from": made_from, "outcomes": torch.stack(cases).tolist(),
+                              "records": _condition_records(obj.name, f"{bias}:{level}", scores, priors)}
+                    atomic_write_bytes(path, json.dumps(cached).encode())  # a killed run resumes from here
+                outcomes[level] = torch.tensor(cached["outcomes"], dtype=torch.float64)
+                records += cached["records"]
             separability.extend(_separability(obj.name, bias, outcomes))
     bar.close()
     return records, {"online_separability": separability}
