@@ -313,7 +313,7 @@ class FinalPoseDistribution(Distribution):
             # a draw on a cut-off's boundary may round outside every kernel: it weighs nothing
             log_ratio = torch.where(torch.isfinite(mixture), target - mixture, torch.full_like(mixture, -math.inf))
             weights = torch.softmax(log_ratio.reshape(-1, pool.p.shape[-2]), -1)  # (prod B, M)
-            index = torch.multinomial(weights, n, replacement=True, generator=generator)
+            index = se3.multinomial(weights, n, generator)
             flat = pool.vector().reshape(-1, pool.p.shape[-2], 7)
             drawn = torch.gather(flat, 1, index.unsqueeze(-1).expand(-1, n, 7))  # (prod B, n, 7)
         drawn = drawn.reshape(*self.batch_shape, n, 7).movedim(nb, 0)

@@ -256,18 +256,33 @@ def angle_between(q1: Tensor, q2: Tensor) -> Tensor:
 DRAW_DTYPE = torch.float32
 
 
+def draw_device(generator: torch.Generator | None, device=None):
+    """Where a draw from ``generator`` runs: on the generator's own device (the draws are moved after), so a CPU
+    generator seeds a model on any device, with the same numbers on each; without a generator, on ``device``."""
+    return device if generator is None else generator.device
+
+
+def multinomial(weights: Tensor, n: int, generator: torch.Generator | None = None,
+                replacement: bool = True) -> Tensor:
+    """``torch.multinomial`` drawn where the generator is (:func:`draw_device`), indices on ``weights``' device."""
+    where = draw_device(generator, weights.device)
+    return torch.multinomial(weights.to(where), n, replacement=replacement, generator=generator).to(weights.device)
+
+
 def random_normal(shape, generator: torch.Generator | None = None, dtype: torch.dtype = torch.float32,
                   device=None) -> Tensor:
     """Standard normal draws of ``shape``, the same numbers for every floating ``dtype``
-    (:data:`DRAW_DTYPE`)."""
-    return torch.randn(shape, generator=generator, dtype=DRAW_DTYPE, device=device).to(dtype)
+    (:data:`DRAW_DTYPE`) and device (:func:`draw_device`)."""
+    draws = torch.randn(shape, generator=generator, dtype=DRAW_DTYPE, device=draw_device(generator, device))
+    return draws.to(device=device, dtype=dtype)
 
 
 def random_uniform(shape, generator: torch.Generator | None = None, dtype: torch.dtype = torch.float32,
                    device=None) -> Tensor:
     """Uniform draws on [0, 1) of ``shape``, the same numbers for every floating ``dtype``
-    (:data:`DRAW_DTYPE`)."""
-    return torch.rand(shape, generator=generator, dtype=DRAW_DTYPE, device=device).to(dtype)
+    (:data:`DRAW_DTYPE`) and device (:func:`draw_device`)."""
+    draws = torch.rand(shape, generator=generator, dtype=DRAW_DTYPE, device=draw_device(generator, device))
+    return draws.to(device=device, dtype=dtype)
 
 
 def random_quaternion(
@@ -305,7 +320,8 @@ def truncated_gamma_1p5(upper: Tensor, generator: torch.Generator | None = None)
     (``gammainc``) but no truncated or inverse-CDF gamma sampler.
     """
     upper = upper.clamp(max=80.0)  # P(3/2, 80) = 1 in float64: beyond is the untruncated law
-    u = torch.rand(upper.shape, generator=generator, dtype=torch.float64, device=upper.device)
+    u = torch.rand(upper.shape, generator=generator, dtype=torch.float64,
+                   device=draw_device(generator, upper.device)).to(upper.device)
     target = u * _gamma_1p5_cdf(upper)
     lo = torch.zeros_like(upper)
     hi = upper.clone()
@@ -350,18 +366,21 @@ def vmf_offsets(kappa: float | Tensor, shape: tuple[int, ...] | torch.Size, gene
         if not bool(cheap.all()):  # only where a cut-off is within reach: the inverse CDF costs 20 Newton steps
             proposal[~cheap] = truncated_gamma_1p5(bound[~cheap], generator)
         s = proposal / kappa
-        u = torch.rand(s.shape, generator=generator, dtype=torch.float64, device=device)
+        u = torch.rand(s.shape, generator=generator, dtype=torch.float64, device=draw_device(generator, device))
+        u = u.to(s.device)
         return s, (proposal < bound) & (2.0 * u * u < 2.0 - s)
 
     # every row at once, then the rejected ones (~1/(4κ) of them, more near a tight cut-off) again
-    n = torch.randn(*shape, 3, generator=generator, dtype=torch.float64, device=device)
+    n = torch.randn(*shape, 3, generator=generator, dtype=torch.float64,
+                    device=draw_device(generator, device)).to(device)
     s, accepted = propose(n, kappa, bound, cheap)
     pending = ~accepted
     for _ in range(max_rounds):
         if not bool(pending.any()):
             break
         rows = pending.nonzero(as_tuple=True)
-        fresh = torch.randn(rows[0].shape[0], 3, generator=generator, dtype=torch.float64, device=device)
+        fresh = torch.randn(rows[0].shape[0], 3, generator=generator, dtype=torch.float64,
+                            device=draw_device(generator, device)).to(device)
         s_try, ok = propose(fresh, kappa[rows], bound[rows], cheap[rows])
         chosen = tuple(i[ok] for i in rows)
         s[chosen], n[chosen] = s_try[ok], fresh[ok]

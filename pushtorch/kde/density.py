@@ -29,7 +29,7 @@ from pushtorch.kde.reductions import logsumexp_last, needs_grad, neg_scaled_squa
 from pushtorch.kde.rounds import fit_trial_rounds
 from pushtorch.kde.sampling import _sample_rotation_offsets, _sample_translation_offsets
 from pushtorch.kde.straightforward import straightforward_active, straightforward_log_prob
-from pushtorch.se3 import Pose, check_unit_quaternion
+from pushtorch.se3 import Pose, check_unit_quaternion, multinomial
 
 Tensor = torch.Tensor
 
@@ -638,7 +638,7 @@ class PoseKDE:
         flat = self._log_w.reshape(-1, self.num_kernels).double().exp()
         if n == 0:
             return torch.zeros(*self.batch_shape, 0, dtype=torch.int64, device=self.device)
-        idx = torch.multinomial(flat, n, replacement=True, generator=generator)
+        idx = multinomial(flat, n, generator)
         return idx.reshape(*self.batch_shape, n)
 
     def kernel_means(self, index: Tensor) -> Pose:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from pushtorch.se3 import truncated_gamma_1p5, vmf_offsets
+from pushtorch.se3 import draw_device, truncated_gamma_1p5, vmf_offsets
 
 Tensor = torch.Tensor
 
@@ -15,7 +15,8 @@ Tensor = torch.Tensor
 
 
 def _unit_vectors(shape: tuple[int, ...], generator, device) -> Tensor:
-    v = torch.randn(*shape, 3, generator=generator, dtype=torch.float64, device=device)
+    v = torch.randn(*shape, 3, generator=generator, dtype=torch.float64,
+                    device=draw_device(generator, device)).to(device)
     return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-300)
 
 

@@ -222,7 +222,7 @@ def sample_environment_contacts(
         weight = environment_feature_weights(flat, chosen)
         # a degenerate cloud (all weight zero) falls back to a uniform draw rather than failing
         weight = torch.where(weight.sum(-1, keepdim=True) > 0, weight, torch.ones_like(weight))
-        pick = torch.multinomial(weight, 1, generator=generator)
+        pick = se3.multinomial(weight, 1, generator)
         chosen_idx = torch.cat([chosen_idx, pick], -1)
     return chosen_idx.reshape(*batch, count)
 
@@ -256,7 +256,8 @@ def place_environment_contacts(
     if count < 1 or samples < 1:
         raise InvalidParameterError(f"need at least one contact and one sample, got {count}, {samples}")
     density = PoseKDE(kernels_u, bandwidth, descriptors=embed_descriptors(kernels_r))
-    pick = torch.randint(len(features), (count, samples), generator=generator, device=features.p.device)
+    pick = torch.randint(len(features), (count, samples), generator=generator,
+                         device=se3.draw_device(generator, features.p.device)).to(features.p.device)
     v = se3.Pose.unchecked(features.p[pick], features.q[pick])  # (count, samples)
     u = floor_relations(v)
     r = embed_descriptors(features.r[pick])

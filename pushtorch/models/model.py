@@ -153,7 +153,7 @@ class PushModel:
         Raises:
             InvalidParameterError: not two finite numbers, or an action the model was not trained for.
         """
-        a = check_action(action).to(self.actions.dtype)
+        a = check_action(action).to(self.actions)  # dtype and device: a CPU action for a model on the GPU
         d = (self.actions - a).abs().amax(-1)
         i = int(d.argmin())
         if not d[i] <= 1e-6:

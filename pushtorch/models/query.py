@@ -320,7 +320,7 @@ def _dense_kernel_draws(
     choice = torch.randint(found, (n_kernels,), generator=generator).to(pool.device)
     pick = pool[choice]
     log_wn = torch.cat(pool_log_wn)[choice]  # (K, Nc)
-    frame_idx = torch.multinomial(torch.softmax(log_wn, -1), 1, generator=generator).squeeze(-1)
+    frame_idx = se3.multinomial(torch.softmax(log_wn, -1), 1, generator).squeeze(-1)
     kernel_log_w = torch.logsumexp(log_wn, -1)
     return pick, frame_idx, kernel_log_w, rounds
 
