@@ -13,12 +13,13 @@ centre where the kernels share one value); a kernel belongs to the cells by a Ga
 spacing, normalised over the cells: ``b_jg``.
 
 *The likelihood of one observation* (:func:`cell_log_likelihood`, evaluated by
-:func:`pushtorch.prediction.evidence.observation_evidence`): the observed push's condition is built as a
-prediction builds it (the robot start given), and each expert ``e`` of the product (the manipulator frame and the
+:func:`pushtorch.prediction.evidence.observation_evidence`): the observed push's contacts are placed as a
+prediction places them at its robot start, and each expert ``e`` of the product (the manipulator frame and the
 environment frames) weighs kernel ``j`` by its contact weight ``w_ej = K^c(c_e | c_j)``. The observed outcome
-``y`` (the observed displacement applied to the estimated initial pose) has, in cell ``g``, the likelihood
+``y`` (the observed world motion applied at the observed cloud's centroid) has, in cell ``g``, the likelihood
 ``L_e(g) = Σ_j b_jg w_ej K(y | f_j) / Σ_j b_jg w_ej`` under the kernels ``f_j`` the prediction would use, with
-the motion kernel ``K`` uncut (so no observation has likelihood 0). The experts pool as the prediction does,
+the motion kernel ``K`` uncut and normalised (so no observation has likelihood 0, and models of other bandwidths
+compare), the kernels' world motions applied at the same centroid. The experts pool as the prediction does,
 ``log L(g) = Σ_e γ_e log L_e(g)`` with the exponents ``γ_e`` (:func:`~pushtorch.models.motion.expert_exponents`);
 an expert whose contacts reach no kernel of a cell says nothing about it (its own marginal likelihood stands in).
 
@@ -315,7 +316,8 @@ def cell_log_likelihood(log_membership: Sequence[Tensor], contact_log_weights: S
     """
     rows = []
     for log_b, log_w, log_k in zip(log_membership, contact_log_weights, log_kernels, strict=True):
-        log_b, log_w, log_k = log_b.double(), log_w.double(), log_k.double()
+        # the posterior lives on the CPU in float64, whatever device the model predicts on
+        log_b, log_w, log_k = log_b.double().cpu(), log_w.double().cpu(), log_k.double().cpu()
         num = torch.logsumexp(log_w.unsqueeze(-1) + (log_k.unsqueeze(-1) + log_b).unsqueeze(0), 1)  # (F, G)
         den = torch.logsumexp(log_w.unsqueeze(-1) + log_b.unsqueeze(0), 1)
         marginal = torch.logsumexp(log_w + log_k, -1) - torch.logsumexp(log_w, -1)  # (F,)
@@ -323,7 +325,7 @@ def cell_log_likelihood(log_membership: Sequence[Tensor], contact_log_weights: S
         rows.append(torch.where(supported, num - den, marginal.unsqueeze(-1)))
     per_expert = torch.cat(rows)  # (E, G)
     per_expert = torch.where(torch.isfinite(per_expert), per_expert, torch.zeros_like(per_expert))
-    return (exponents.double().unsqueeze(-1) * per_expert).sum(0)
+    return (exponents.double().cpu().unsqueeze(-1) * per_expert).sum(0)
 
 
 def odometry_log_likelihood(log_membership: Tensor, robot_motion: Tensor, observed: Tensor) -> Tensor:
@@ -333,10 +335,10 @@ def odometry_log_likelihood(log_membership: Tensor, robot_motion: Tensor, observ
     A loaded robot falls behind its command, and the motion it makes barely depends on where the object sat, so
     every kernel of the action takes part (one per push: the manipulator kernels)."""
     std = torch.tensor([ODOMETRY_STD[0], ODOMETRY_STD[0], ODOMETRY_STD[1]], dtype=torch.float64)
-    diff = robot_motion.double() - observed.double().reshape(1, 3)
+    diff = robot_motion.double().cpu() - observed.double().cpu().reshape(1, 3)
     diff[:, 2] = torch.atan2(torch.sin(diff[:, 2]), torch.cos(diff[:, 2]))
     log_n = (-0.5 * (diff / std) ** 2 - torch.log(std * math.sqrt(2 * math.pi))).sum(-1)  # (N,)
-    log_b = log_membership.double()
+    log_b = log_membership.double().cpu()
     return torch.logsumexp(log_b + log_n.unsqueeze(-1), 0) - torch.logsumexp(log_b, 0)
 
 

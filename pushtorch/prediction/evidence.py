@@ -1,14 +1,16 @@
 """The evidence of observed pushes about friction and mass (paper, §Conclusions and future work: "comparing
 observed movements of the pushed object with the PDRs already available in the system").
 
-An observed push's condition is built as a prediction builds it, with the robot start given
-(:func:`~pushtorch.prediction.conditions._push_conditions_fast`); its experts weigh the action's kernels by
-their contact weights, and the observed displacement applied to the estimated initial pose is scored under each
-kernel, uncut and normalised (models of different bandwidths are weighed against each other by it). Where the
-observation has the robot's own final pose (its odometry), the robot's motion is scored too, under the kernels'
+An observed push's contacts are placed as a prediction places them at a given robot start (the manipulator frame
+the bumper touches, the environment frames, the contact patch; without a start, the model's own push condition);
+its experts weigh the action's kernels by their contact weights. The observed world motion and each kernel's
+carry the observed cloud's centroid (:func:`reference_pose`: no pose estimate, no object frame to agree on), and
+the observed outcome is scored under each kernel, uncut and normalised (models of different bandwidths are
+weighed against each other by it). Where the observation has the robot's own final pose (its odometry), the
+robot's motion is scored too, under the kernels'
 (:func:`~pushtorch.models.conditioning.odometry_log_likelihood`).
-:func:`pushtorch.models.conditioning.cell_log_likelihood` pools that into the likelihood of every
-cell of ``(μ, log m)``; :func:`condition_model` and :func:`condition_library` are what
+:func:`pushtorch.models.conditioning.cell_log_likelihood` pools that into the likelihood of every cell of
+``(μ, log m)``; :func:`condition_model` and :func:`condition_library` are what
 :meth:`PushModel.condition_on <pushtorch.models.model.PushModel.condition_on>` and
 :meth:`ModelLibrary.condition_on <pushtorch.models.library.ModelLibrary.condition_on>` run. The method and its
 likelihood are written down in :mod:`pushtorch.models.conditioning` and docs/method.md.
@@ -32,22 +34,29 @@ from pushtorch.models.conditioning import (
     Observation,
     PhysicsPosterior,
     cell_log_likelihood,
-    odometry_log_likelihood,
     conditioned_model,
     kernel_physics,
     log_membership,
     new_posterior,
     observation_seed,
+    odometry_log_likelihood,
 )
+from pushtorch.models.contact import bumper_contact_patch
 from pushtorch.models.library import ConditionedLibrary, ModelLibrary, PushModel
 from pushtorch.models.motion import contact_log_weights, expert_exponents
-from pushtorch.prediction.conditions import _as_features, _push_conditions_fast
+from pushtorch.prediction.conditions import (
+    _as_features,
+    _environment_frames,
+    _given_start_frame,
+    _push_conditions_fast,
+)
 
 __all__ = [
     "condition_library",
     "condition_model",
     "observation_evidence",
     "observed_outcome",
+    "reference_pose",
     "robot_motion_of",
 ]
 
@@ -67,11 +76,32 @@ def _as_list(observations) -> list[Observation]:
     return out
 
 
-def observed_outcome(observation: Observation, estimate: se3.Pose) -> se3.Pose:
-    """The observed displacement applied to the model's estimate of the initial pose: ``W ∘ B0'`` ``()``."""
+def reference_pose(features) -> se3.Pose:
+    """``()`` where an observed push's motions are compared: the observed cloud's centroid, unrotated. Kernels'
+    and observed world motions alike carry it (``W ∘ B``), so no object frame has to agree with the model's."""
+    p = features.p.reshape(-1, 3).mean(0)
+    return se3.Pose.unchecked(p, torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=p.dtype, device=p.device))
+
+
+def observed_outcome(observation: Observation, reference: se3.Pose) -> se3.Pose:
+    """The observed world motion applied to the reference pose: ``W ∘ B`` ``()``."""
     w = observation.displacement
-    w = se3.Pose.unchecked(w.p.to(estimate.p), w.q.to(estimate.q))
-    return se3.compose(w, se3.Pose.unchecked(estimate.p.reshape(3), estimate.q.reshape(4)))
+    w = se3.Pose.unchecked(w.p.to(reference.p), w.q.to(reference.q))
+    return se3.compose(w, se3.Pose.unchecked(reference.p.reshape(3), reference.q.reshape(4)))
+
+
+def _contacts(model: PushModel, features, a: int, start: se3.Pose | None, generator):
+    """The robot start, the manipulator and environment frames and the contact patch of an observed push: from
+    its given start without any annealing, or the model's own push condition when the start is unknown."""
+    if start is None:
+        condition = _push_conditions_fast(model, [features], [a], generator, False, [None])[0]
+        return condition.robot_start, condition.manipulator_frame, condition.environment_frames, \
+            condition.contact_patch
+    start = se3.Pose.unchecked(start.p.reshape(3).to(features.p), start.q.reshape(4).to(features.p))
+    frame = _given_start_frame(start, features, model)
+    environment = _environment_frames(model, features, a, generator)
+    patch = bumper_contact_patch(se3.apply(se3.inverse(start), features.p), model.settings.contact_cutoff)
+    return start, frame, environment, patch
 
 
 def observation_evidence(model: PushModel, observation: Observation, posterior: PhysicsPosterior,
@@ -87,21 +117,18 @@ def observation_evidence(model: PushModel, observation: Observation, posterior: 
     settings = model.settings
     a = model.action_index(observation.action)
     features = _as_features(observation.cloud, settings, model)
-    start = observation.robot_start
-    if start is not None:
-        start = se3.Pose.unchecked(start.p.reshape(3).to(features.p), start.q.reshape(4).to(features.p))
-    condition = _push_conditions_fast(model, [features], [a], generator, False, [start])[0]
-    y = observed_outcome(observation, condition.object_pose)
+    start, manipulator_frame, environment_frames, patch = _contacts(model, features, a, observation.robot_start,
+                                                                    generator)
+    reference = reference_pose(features)
+    y = observed_outcome(observation, reference)
     motion = model.motions[a]
-    to_final = se3.relative(condition.robot_start, condition.object_pose)
+    to_final = se3.relative(start, reference)
     full = dataclasses.replace(settings.motion_bandwidth, cutoff_std=NO_CUTOFF)
     memberships, weights, log_kernels, explained = [], [], [], False
-    for frame, kernels in ((condition.manipulator_frame, motion.manipulator),
-                           (condition.environment_frames, motion.environment)):
+    for frame, kernels in ((manipulator_frame, motion.manipulator), (environment_frames, motion.environment)):
         kernels = dataclasses.replace(kernels, log_weight=None)  # the trained kernels: the posterior is the prior
-        log_w = contact_log_weights(frame, kernels, condition.robot_start, settings.contact_bandwidth,
-                                    condition.contact_patch)  # (F, N)
-        finals = se3.compose(se3.compose(condition.robot_start, kernels.m), to_final)  # (N,)
+        log_w = contact_log_weights(frame, kernels, start, settings.contact_bandwidth, patch)  # (F, N)
+        finals = se3.compose(se3.compose(start, kernels.m), to_final)  # (N,)
         kde = PoseKDE(finals, full, validate_args=False)
         # normalised kernels: models of different bandwidths are compared by their evidence
         log_k = kde.log_kernels(se3.Pose.unchecked(y.p.reshape(1, 3), y.q.reshape(1, 4))).reshape(-1).double() \
@@ -121,7 +148,7 @@ def observation_evidence(model: PushModel, observation: Observation, posterior: 
     cells = cell_log_likelihood(memberships, weights, log_kernels, exponents)
     if observation.robot_final is not None and motion.manipulator.robot_motion is not None:
         cells = cells + odometry_log_likelihood(memberships[0], motion.manipulator.robot_motion,
-                                                robot_motion_of(condition.robot_start, observation.robot_final))
+                                                robot_motion_of(start, observation.robot_final))
     return cells
 
 
