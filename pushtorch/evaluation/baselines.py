@@ -18,8 +18,9 @@ chose, the training pushes — unless it is labelled an oracle:
   and the exact pose), so reports label it an oracle and leave it out of "beats the baselines" claims;
 * physics from the cloud, online: the equal-information peer of a model conditioned on observed pushes
   (:func:`fit_cloud_physics`): each observed push is rolled out on the body its own cloud reconstructs, for
-  every ``(μ, m)`` of a grid over the training prior, and the pair whose rollouts best reproduce the observed
-  displacements (:func:`displacement_error`) predicts, as physics from the cloud does.
+  every ``(μ, m)`` of a grid over the training prior's uniform parameters (:func:`physics_grid`), and the pair
+  whose rollouts best reproduce the observed displacements (:func:`displacement_error`) predicts, as physics
+  from the cloud does.
 """
 
 from __future__ import annotations
@@ -171,20 +172,15 @@ def displacement_error(start: se3.Pose, moved: se3.Pose, observed: se3.Pose) -> 
 
 
 def physics_grid(friction_prior, mass_prior, count: int) -> torch.Tensor:
-    """``(G, 2)`` float64 ``(μ, m)``: ``count`` quantiles of each prior that is not fixed (masses spaced in log),
-    their product, at most ``count²`` points; a fixed prior contributes its value."""
+    """``(G, 2)`` float64 ``(μ, m)``: ``count`` quantiles of each uniform prior (masses spaced in log) and the mean
+    of each other one (a general prior's narrow or fixed second parameter), their product."""
     def axis(prior, log: bool) -> torch.Tensor:
-        kind = type(prior).__name__
-        if kind == "Fixed":
+        if type(prior).__name__ != "Uniform":
             return torch.tensor([prior.mean], dtype=torch.float64)
-        if kind == "Uniform":
-            lo, hi = prior.low, prior.high
-        else:  # Normal: ±2 std, above the physical minimum
-            lo, hi = max(prior.loc - 2 * prior.std, prior.minimum), prior.loc + 2 * prior.std
         u = (torch.arange(count, dtype=torch.float64) + 0.5) / count
         if log:
-            return torch.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * u)
-        return lo + (hi - lo) * u
+            return torch.exp(math.log(prior.low) + (math.log(prior.high) - math.log(prior.low)) * u)
+        return prior.low + (prior.high - prior.low) * u
 
     return torch.cartesian_prod(axis(friction_prior, False), axis(mass_prior, True)).reshape(-1, 2)
 

@@ -68,7 +68,7 @@ HEADING_JITTER_DEG = 5.0
 LATERAL_JITTER, GAP = 0.02, 0.002
 LEVELS = ("low", "medium", "high")
 #: Bump when a condition's cached scores (``<run_dir>/online/*.json``) would come out differently.
-ONLINE_VERSION = 1
+ONLINE_VERSION = 2
 
 
 def _start(obj, pose: se3.Pose, seed: int) -> se3.Pose:
@@ -123,17 +123,24 @@ class _Group:
         return self.memo[key]
 
     def cloud_physics(self, i: int, j: int, friction: float, mass: float, key: str):
-        """``(start, final, density)`` of physics on the body case ``i``'s cloud reconstructs (memoised)."""
-        from pushtorch.evaluation.baselines import physics_from_cloud_prediction
+        """``(start, final, density)`` of physics on the body case ``i``'s cloud reconstructs, action ``j`` (every
+        action of the case pushed in one call and memoised under ``key``)."""
+        from pushtorch.evaluation.baselines import cloud_body
         from pushtorch.evaluation.likelihood import point_density
+        from pushtorch.sim.runner import simulate_pushes
 
-        if key not in self.memo:
-            estimate = self.predicted(self.models["general"], i, j, f"general|{i}|{j}")[0]
-            start, final = physics_from_cloud_prediction(self.clouds[i][0].points, estimate, self.starts[i][j],
-                                                         self.ctx.actions[j], mass, friction)
+        if (key, j) not in self.memo:
+            estimate = self.predicted(self.models["general"], i, 0, f"general|{i}|0")[0]  # names the body only
+            body, start = cloud_body(self.clouds[i][0].points, estimate)
+            count = len(self.starts[i])
+            finals = simulate_pushes(body, se3.Pose.stack(self.starts[i]), se3.Pose.stack([start] * count),
+                                     self.ctx.actions.double(), mass, friction).object_final
             settings = self.ctx.settings
-            self.memo[key] = (start, final, point_density(final, settings.motion_p_std, settings.motion_rot_std))
-        return self.memo[key]
+            for a in range(count):
+                final = se3.Pose.unchecked(finals.p[a].float(), finals.q[a].float())
+                self.memo[(key, a)] = (start.to(torch.float32), final,
+                                       point_density(final, settings.motion_p_std, settings.motion_rot_std))
+        return self.memo[(key, j)]
 
 
 def _observations(group: _Group, condition: str, i: int, count: int, yaw_range, mass: float,
@@ -145,16 +152,23 @@ def _observations(group: _Group, condition: str, i: int, count: int, yaw_range, 
 
     ctx, obj = group.ctx, group.obj
     low, high = (math.radians(float(v)) for v in yaw_range)
-    out = []
+    poses, starts, actions = [], [], []
     for o in range(count):
         g = torch.Generator().manual_seed(stable_seed(ctx.seed, group.name, obj.name, condition, i, "obs", o))
-        pose = obj.resting_pose(0.0, 0.0, low + (high - low) * float(torch.rand(1, generator=g, dtype=torch.float64)))
-        a = int(torch.randint(int(ctx.actions.shape[0]), (1,), generator=g))
-        start = _start(obj, pose, stable_seed(ctx.seed, group.name, obj.name, condition, i, "obs-start", o))
-        pushed = simulate_pushes(obj, start, pose, ctx.actions[a].double(), mass, mu)
-        cloud = capture_partial_cloud(obj, pose, voxel_size=ctx.settings.voxel_size)
-        robot = se3.Pose.unchecked(pushed.robot_trajectory.p[0, -1], pushed.robot_trajectory.q[0, -1])
-        out.append(Observation(cloud, ctx.actions[a], _pose(pose), _pose(pushed.object_final), _pose(start),
+        poses.append(obj.resting_pose(0.0, 0.0, low + (high - low) * float(torch.rand(1, generator=g,
+                                                                                       dtype=torch.float64))))
+        actions.append(int(torch.randint(int(ctx.actions.shape[0]), (1,), generator=g)))
+        starts.append(_start(obj, poses[-1], stable_seed(ctx.seed, group.name, obj.name, condition, i, "obs-start", o)))
+    if not count:
+        return []
+    pushed = simulate_pushes(obj, se3.Pose.stack(starts), se3.Pose.stack(poses), ctx.actions.double()[actions],
+                             mass, mu)  # every observed push in one call
+    out = []
+    for o in range(count):
+        cloud = capture_partial_cloud(obj, poses[o], voxel_size=ctx.settings.voxel_size)
+        robot = se3.Pose.unchecked(pushed.robot_trajectory.p[o, -1], pushed.robot_trajectory.q[o, -1])
+        final = se3.Pose.unchecked(pushed.object_final.p[o], pushed.object_final.q[o])
+        out.append(Observation(cloud, ctx.actions[actions[o]], _pose(poses[o]), _pose(final), _pose(starts[o]),
                                _pose(robot) if odometry else None))
     return out
 
@@ -165,17 +179,23 @@ class _Scores:
 
     pushes: dict = field(default_factory=dict)
     posteriors: dict = field(default_factory=dict)
+    #: one case's scores by (prediction, action): a prediction every k shares is scored once
+    scored: dict = field(default_factory=dict)
 
-    def add(self, method: str, k: int, prediction, truth_initial: se3.Pose, truth_final: se3.Pose, obj) -> None:
+    def add(self, method: str, k: int, prediction, truth_initial: se3.Pose, truth_final: se3.Pose, obj,
+            j: int) -> None:
         from pushtorch.evaluation.likelihood import nll
 
-        estimate, final, density = prediction
-        acc = compare_displacement(estimate.reshape(1, 1), final.reshape(1, 1), truth_initial.unsqueeze(0),
-                                   truth_final.reshape(1, 1, 1), obj)
-        value = nll(density, truth_final.reshape(1), truth_initial, estimate, obj.symmetry)
-        self.pushes.setdefault((method, k), []).append(
-            (float(acc.hacc.reshape(-1)[0]), float(value.reshape(-1)[0]), float(acc.linear_cm.reshape(-1)[0]),
-             float(acc.angular_deg.reshape(-1)[0])))
+        key = (id(prediction), j)
+        if key not in self.scored:
+            estimate, final, density = prediction
+            acc = compare_displacement(estimate.reshape(1, 1), final.reshape(1, 1), truth_initial.unsqueeze(0),
+                                       truth_final.reshape(1, 1, 1), obj)
+            value = nll(density, truth_final.reshape(1), truth_initial, estimate, obj.symmetry)
+            numbers = (float(acc.hacc.reshape(-1)[0]), float(value.reshape(-1)[0]),
+                       float(acc.linear_cm.reshape(-1)[0]), float(acc.angular_deg.reshape(-1)[0]))
+            self.scored[key] = (prediction, numbers)  # the prediction kept: its id stays its own
+        self.pushes.setdefault((method, k), []).append(self.scored[key][1])
 
 
 def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int, observed: list[int],
@@ -216,6 +236,7 @@ def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int,
     means = (group.general_prior[0].mean, group.general_prior[1].mean)
     debiased = group.memo.setdefault("debiased model", models["general"].condition_on([], prior=group.general_prior))
     truth_initial = _pose(group.poses.take(i))
+    scores.scored.clear()  # the truth is this case's
     for k in observed:
         conditioned = chain[k]
         for j in range(a_count):
@@ -234,7 +255,7 @@ def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int,
             final = se3.Pose.unchecked(truth.p[j].float(), truth.q[j].float())
             for method, prediction in {**fixed, "online": online, "online_general": online_general,
                                        "physics_from_cloud_online": peer}.items():
-                scores.add(method, k, prediction, truth_initial, final, obj)
+                scores.add(method, k, prediction, truth_initial, final, obj, j)
         summaries = (conditioned.posterior(0).as_record(), conditioned.models[0].posterior(0).as_record())
         scores.posteriors.setdefault(("online", k), []).append(summaries[0])
         scores.posteriors.setdefault(("online_general", k), []).append(summaries[1])
