@@ -67,6 +67,8 @@ HEADING_JITTER_DEG = 5.0
 #: … the bumper's centre line within ± this of the object's centre (m), this far short of touching (m).
 LATERAL_JITTER, GAP = 0.02, 0.002
 LEVELS = ("low", "medium", "high")
+#: Part keys that do not change a condition's scores (left out of its cache's fingerprint).
+RUN_CONTROL = ("objects", "name", "progress", "workers", "shard_size", "log_examples", "kind")
 #: Bump when a condition's cached scores (``<run_dir>/online/*.json``) would come out differently.
 ONLINE_VERSION = 2
 
@@ -331,7 +333,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
                 made_from = fingerprint(version=ONLINE_VERSION, seed=ctx.seed, settings=asdict(ctx.settings),
                                         samples_per_action=ctx.samples_per_action, actions=ctx.actions.tolist(),
                                         models=[m.name for m in models.values()], cases=n_cases, observed=observed,
-                                        part={k: v for k, v in part.items() if k not in ("objects", "name")},
+                                        part={k: v for k, v in part.items() if k not in RUN_CONTROL},
                                         priors=[repr(ctx.prior(k, n)) for k in ("friction", "mass")
                                                 for n in (*LEVELS, "general", default)],
                                         sim=asdict(ctx.sim), duration=ctx.duration)

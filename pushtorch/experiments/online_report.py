@@ -78,6 +78,7 @@ def online_section(records: Sequence[Mapping[str, Any]], figure_names: set[str],
                   "|" + "---|" * (2 + len(conditions))]
         lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
         lines.append("")
+    lines += _gap_table(online)
     posterior = [r for r in online if r["method"] in ("online", "online_general") and r["observed"] > 0]
     if posterior:
         lines += ["Posterior against the truth (means over the cases of each posterior's mean ± spread; μ on its "
@@ -100,6 +101,33 @@ def online_section(records: Sequence[Mapping[str, Any]], figure_names: set[str],
     if "online_adaptation.png" in figure_names:
         lines += ["![online adaptation](figures/online_adaptation.png)", ""]
     return lines
+
+
+def _gap_table(online: Sequence[Mapping[str, Any]]) -> list[str]:
+    """At k = 3 (or the largest k below it): how much of the gap from ``general`` to ``congruent`` the conditioned
+    general model closes, and ``online`` over ``congruent``, per object and condition; the gap counts where it
+    exceeds two standard errors of the difference."""
+    ks = sorted({r["observed"] for r in online if r["observed"] > 0})
+    if not ks:
+        return []
+    k = 3 if 3 in ks else ks[-1]
+    by = {(r["object"], r["condition"], r["method"], r["observed"]): r for r in online}
+    rows = []
+    for obj, condition in dict.fromkeys((r["object"], r["condition"]) for r in online):
+        cells = [by.get((obj, condition, m, k)) for m in ("general", "congruent", "online_general", "online")]
+        if None in cells:
+            continue
+        general, congruent, conditioned, chosen = cells
+        gap = general["hacc_mean"] - congruent["hacc_mean"]
+        se = math.sqrt(general["hacc_std"] ** 2 / general["n"] + congruent["hacc_std"] ** 2 / congruent["n"])
+        closed = (general["hacc_mean"] - conditioned["hacc_mean"]) / gap if gap else math.nan
+        rows.append(f"| {obj} | {condition} | {general['hacc_mean']:.4f} | {congruent['hacc_mean']:.4f} | "
+                    f"{gap:+.4f} | {2 * se:.4f} | {'yes' if gap > 2 * se else 'no'} | {conditioned['hacc_mean']:.4f} | "
+                    f"{closed:+.2f} | {chosen['hacc_mean'] / congruent['hacc_mean']:.3f} |")
+    return [f"At k = {k}: the share of the gap from `general` to `congruent` that `online_general` closes, and "
+            "`online` over `congruent`. A gap counts where it exceeds two standard errors of the difference.", "",
+            "| object | condition | general | congruent | gap | 2 SE | counts | online_general | closed | "
+            "online / congruent |", "|---|---|---|---|---|---|---|---|---|---|", *rows, ""]
 
 
 def online_figure(plt, records: Sequence[Mapping[str, Any]]):
