@@ -306,7 +306,10 @@ BAD = [
      RecordFormatError, "version 2"),
     # a model trained before issue 17 (no contact patches, paper bandwidths) is refused, sealed or not
     ("model_before_contact_patches", lambda e: load_model(_resaved(e, lambda h, a: _set(h, "version", 3))),
-     RecordFormatError, "version 3, this pushtorch reads version 4: retrain"),
+     RecordFormatError, "version 3, this pushtorch reads version 5: retrain"),
+    # a model whose kernels do not know their push's friction and mass (before online adaptation) is refused
+    ("model_before_kernel_physics", lambda e: load_model(_resaved(e, lambda h, a: _set(h, "version", 4))),
+     RecordFormatError, "version 4, this pushtorch reads version 5: retrain"),
     ("model_array_edited", lambda e: load_model(_resaved(e, lambda h, a: a.update(
         {"contact.weight": a["contact.weight"] * 0.5}), sealed=False)), RecordFormatError, "checksum"),
     ("model_action_count_edited", lambda e: load_model(_resaved(e, lambda h, a: _set(h, "actions", 1),

@@ -105,7 +105,8 @@ def test_quickstart_runs_every_experiment_smaller():
     assert cfg.model.samples_per_action < 500
     online = parts.online_adaptation
     assert online.test_conditions * cfg.experiment.actions.count >= 30  # scored pushes per object and condition
-    assert set(online.conditions.friction) == set(online.conditions.mass) == {"low", "medium", "high"}
+    # the extreme conditions of both parameters at least
+    assert {"low", "high"} <= set(online.conditions.friction) and {"low", "high"} <= set(online.conditions.mass)
 
 
 def test_object_override_and_sweep_compose():
