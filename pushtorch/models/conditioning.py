@@ -8,9 +8,9 @@ Every motion kernel keeps the friction ``μ`` and mass ``m`` its training push w
 parameters ``θ_j = (μ_j, log m_j)`` are the particles of the posterior, each weighted by how well the kernels of
 its neighbourhood in ``θ`` explain the observed outcomes (self-normalised importance weights).
 
-*Cells.* The parameters are binned on a grid of :data:`CELLS` centres per parameter over the kernels' range (one
-centre where the kernels share one value); a kernel belongs to the cells by a Gaussian membership of one grid
-spacing, normalised over the cells: ``b_jg``.
+*Cells.* The parameters are binned on a grid of up to :data:`CELLS` centres per parameter over the kernels' range,
+no closer than :data:`CELL_WIDTH` (one centre where the range is narrower); a kernel belongs to the cells by a
+Gaussian membership of one grid spacing, normalised over the cells: ``b_jg``.
 
 *The likelihood of one observation* (:func:`cell_log_likelihood`, evaluated by
 :func:`pushtorch.prediction.evidence.observation_evidence`): the observed push's contacts are placed as a
@@ -22,14 +22,16 @@ the motion kernel ``K`` uncut and normalised (so no observation has likelihood 0
 compare), the kernels' world motions applied at the same centroid. The experts pool as the prediction does,
 ``log L(g) = Σ_e γ_e log L_e(g)`` with the exponents ``γ_e`` (:func:`~pushtorch.models.motion.expert_exponents`);
 an expert whose contacts reach no kernel of a cell says nothing about it (its own marginal likelihood stands in).
+Where the observation has the robot's own final pose, its motion adds :func:`odometry_log_likelihood`.
 
 *The posterior.* ``ℓ_g = Σ_o log L(o | g)`` over the observations, in float64 and in their order, so conditioning
 on one push at a time gives the sum conditioning on all at once gives. Each kernel's weight is
 ``ρ_j = Σ_g b_jg exp(τ ℓ_g) π_g / q_g``, where ``q_g = mean_j b_jg`` is where the kernels crowd and ``π_g`` the
-prior: ``q`` itself (the default; then ``ρ_j = 1`` without observations), or the training prior's density with
-``debias``. The tempering ``τ ∈ (0, 1]`` is 1 unless the weights' effective sample size would fall below
-:func:`ess_floor` kernels; then it is the largest ``τ`` that keeps the floor (the posterior never collapses onto
-one push). The posterior's summary is the weighted mean and spread of the kernels' ``μ`` and ``log m``.
+prior: ``q`` itself (the default; then ``ρ_j = 1`` without observations), or the training prior's density
+(de-biasing: ``condition_on([], prior=(friction, mass))``). The tempering ``τ ∈ (0, 1]`` is 1 unless the
+weights' effective sample size would fall below :func:`ess_floor` kernels; then it is the largest ``τ`` that
+keeps the floor (the posterior never collapses onto one push). The posterior's summary is the weighted mean and
+spread of the kernels' ``μ`` and ``log m``.
 
 *An observation no kernel explains* (no contact-weighted kernel within :data:`OUTLIER_DISTANCE` and
 :data:`OUTLIER_ANGLE` of the observed outcome: a thrown object, a pose a metre away) is left out with a warning
@@ -42,7 +44,6 @@ evidence ``log p_M(O) = log Σ_g π_g exp(ℓ_g)`` (untempered): prediction uses
 
 from __future__ import annotations
 
-import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -74,8 +75,6 @@ __all__ = [
     "odometry_log_likelihood",
     "summarise",
 ]
-
-log = logging.getLogger(__name__)
 
 #: Grid centres per parameter (μ and log m) of the posterior's cells.
 CELLS = 16
