@@ -29,7 +29,7 @@ test: $(STAMP)
 
 # The numerical tests again with MKL pinned to the code paths other CPUs take (AVX-512 hosts round matmuls and
 # reductions differently from AVX2 ones): a tolerance that holds on one host only fails here, on any host.
-FLOAT_TESTS := tests/test_kde.py tests/test_se3.py tests/test_anneal.py tests/test_distribution.py \
+FLOAT_TESTS := tests/test_conditioning.py tests/test_kde.py tests/test_se3.py tests/test_anneal.py tests/test_distribution.py \
 	tests/test_likelihood.py tests/test_fast_path.py tests/test_metrics.py
 test-float-paths: $(STAMP)
 	MKL_CBWR=COMPATIBLE $(PY) -m pytest -n 2 -q $(FLOAT_TESTS)

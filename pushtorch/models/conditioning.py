@@ -386,8 +386,7 @@ def summarise(theta: Tensor, log_weights: Tensor, n: int, generator: torch.Gener
 def conditioned_model(model, posterior: PhysicsPosterior):
     """A copy of ``model`` (a :class:`~pushtorch.models.model.PushModel`) whose kernels carry the posterior's
     weights (every action, both kinds) and which keeps ``posterior``."""
-    kernels = [k for m in model.motions for k in (m.manipulator, m.environment)]
-    theta = kernel_physics(kernels)
+    theta = kernel_physics(model.motion_kernels)
     log_w, _ = posterior.kernel_log_weights(theta)
     motions, start = [], 0
     for m in model.motions:

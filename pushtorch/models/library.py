@@ -110,12 +110,13 @@ class ConditionedLibrary(ModelLibrary):
         from pushtorch.models.conditioning import kernel_physics, summarise
 
         thetas, weights = [], []
-        for m, log_pm in zip(self.models, self.model_log_posterior(), strict=True):
-            theta = kernel_physics([k for mo in m.motions for k in (mo.manipulator, mo.environment)])
+        log_post = self.model_log_posterior()
+        for m, log_pm in zip(self.models, log_post, strict=True):
+            theta = kernel_physics(m.motion_kernels)
             log_w, _ = m.physics_posterior.kernel_log_weights(theta)
             thetas.append(theta)
             weights.append(torch.log_softmax(log_w, 0) + log_pm)
-        post = self.model_log_posterior().exp()
+        post = log_post.exp()
         return summarise(torch.cat(thetas), torch.cat(weights), n, as_generator(generator), self.observed,
                          max(m.physics_posterior.rejected for m in self.models),
                          model_weights={m.name: float(p) for m, p in zip(self.models, post, strict=True)})

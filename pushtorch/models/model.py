@@ -101,6 +101,12 @@ class PushModel:
 
     # -- online adaptation ---------------------------------------------------------------------
 
+    @property
+    def motion_kernels(self) -> list[MotionKernels]:
+        """Every action's motion kernels, manipulator then environment, action by action: the order a
+        conditioned model's kernel weights follow (:mod:`pushtorch.models.conditioning`)."""
+        return [k for m in self.motions for k in (m.manipulator, m.environment)]
+
     def condition_on(self, observations: Observation | list[Observation], seed: int | None = None,
                      prior: tuple | None = None) -> PushModel:
         """This model conditioned on observed pushes of the object it will predict
@@ -129,9 +135,8 @@ class PushModel:
         ``n`` draws, the mean and spread of ``μ`` and of ``log m`` (:class:`PosteriorSummary`)."""
         from pushtorch.models.settings import as_generator
 
-        kernels = [k for m in self.motions for k in (m.manipulator, m.environment)]
-        theta = kernel_physics(kernels)
-        post = self.physics_posterior or new_posterior(kernels)
+        theta = kernel_physics(self.motion_kernels)
+        post = self.physics_posterior or new_posterior(self.motion_kernels)
         log_w, tau = post.kernel_log_weights(theta)
         return summarise(theta, log_w, n, as_generator(generator), post.observed, post.rejected, tau)
 

@@ -165,8 +165,7 @@ def condition_model(model: PushModel, observations, seed: int | None = None, pri
     observations = _as_list(observations)
     posterior = model.physics_posterior
     if posterior is None:
-        kernels = [k for m in model.motions for k in (m.manipulator, m.environment)]
-        posterior = new_posterior(kernels, 0 if seed is None else seed, prior)
+        posterior = new_posterior(model.motion_kernels, 0 if seed is None else seed, prior)
     elif prior is not None:
         raise InvalidParameterError("de-biasing (prior=...) applies to a model not yet conditioned")
     elif seed is not None and seed != posterior.seed:
