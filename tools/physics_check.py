@@ -11,10 +11,12 @@ Prints, for the chosen ``sim.robot`` drive (default: the library's default):
   (and the yaw mismatch), each push in a fresh world;
 * the simulation throughput on all cores, as tools/bench_sim.py measures it.
 
-The last line is exactly ``mass_effect_cm=<X> mirror_mm=<Y> pushes_per_s=<Z>`` (targets of issue 16 on a
-2-core machine: X >= 5, Y <= 5, Z >= 40).
+The last line is exactly ``mass_effect_cm=<X> mirror_mm=<Y> pushes_per_s=<Z>`` (targets on a 2-core
+machine: X >= 5, Y <= 5, Z >= 40). ``--engine mujoco`` checks the MuJoCo world instead and also times
+pybullet in the same run, printing the ratio of the two throughputs (target: MuJoCo >= 0.7 x pybullet).
 
-    .venv/bin/python tools/physics_check.py [--robot p3dx|ideal] [--pushes 300] [--wheel-friction MU]
+    .venv/bin/python tools/physics_check.py [--engine pybullet|mujoco] [--robot p3dx|ideal] [--pushes 300]
+                                            [--wheel-friction MU]
 
 ``--wheel-friction`` replaces the documented tyre friction (0.5) to show what a slipping drive would do; it
 is not a setting any experiment uses.
@@ -26,6 +28,7 @@ import argparse
 import math
 import os
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -37,6 +40,7 @@ from pushtorch.objects import load_object
 from pushtorch.sim import SimSettings, default_workers, place_robot_against
 from pushtorch.sim.drive import DriveSettings
 from pushtorch.sim.runner import simulate_pushes
+from pushtorch.sim.world import ENGINES
 
 MIRROR_OBJECTS = ("cube", "cylinder", "prism_thin", "hybrid")
 
@@ -80,13 +84,17 @@ def mirror_gap(name: str, settings: SimSettings) -> tuple[float, float]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--engine", default=SimSettings().engine, choices=ENGINES,
+                        help="world.engine (default: the library's)")
     parser.add_argument("--robot", default=SimSettings().robot, help="sim.robot (default: the library's)")
     parser.add_argument("--pushes", type=int, default=300, help="pushes of the throughput run (default 300)")
     parser.add_argument("--wheel-friction", type=float, default=DriveSettings().wheel_friction,
                         help="p3dx tyre-floor friction (default: the documented 0.5)")
     args = parser.parse_args()
-    settings = SimSettings(robot=args.robot, drive=DriveSettings(wheel_friction=args.wheel_friction))
-    print(f"CPU: {cpu_name()} ({os.cpu_count()} logical CPUs); sim.robot={settings.robot} "
+    settings = SimSettings(engine=args.engine, robot=args.robot,
+                           drive=DriveSettings(wheel_friction=args.wheel_friction))
+    print(f"CPU: {cpu_name()} ({os.cpu_count()} logical CPUs); world.engine={settings.engine} "
+          f"sim.robot={settings.robot} "
           f"wheel_friction={settings.drive.wheel_friction}")
     straight = mass_effect_cm(settings, 0.0)
     turning = [mass_effect_cm(settings, rate) for rate in (-10.0, 10.0)]
@@ -102,6 +110,13 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="pushtorch-physics-") as tmp:
         rate, seconds, _ = measure(load_object("cube"), default_workers(), args.pushes, 10, Path(tmp), settings)
     print(f"throughput: {args.pushes} pushes in {seconds:.1f} s on {default_workers()} workers")
+    if settings.engine != "pybullet":
+        reference = replace(settings, engine="pybullet")
+        with tempfile.TemporaryDirectory(prefix="pushtorch-physics-") as tmp:
+            pybullet_rate, _, _ = measure(load_object("cube"), default_workers(), args.pushes, 10, Path(tmp),
+                                          reference)
+        print(f"pybullet in the same run: {pybullet_rate:.1f} pushes/s; {settings.engine}/pybullet ="
+              f" {rate / pybullet_rate:.2f}")
     worst = max(g for g, _ in gaps.values())
     print(f"mass_effect_cm={straight:.2f} mirror_mm={worst:.1f} pushes_per_s={rate:.1f}")
 

@@ -522,6 +522,9 @@ def _read_run_manifest(folder: Path) -> dict | None:
             f"this pushtorch simulates world {WORLD_VERSION}); they are never mixed with new ones: simulate them "
             "again into a fresh folder"
         )
+    settings = manifest.get("settings")
+    if isinstance(settings, dict) and "engine" not in settings:  # written before the world named its engine
+        settings["engine"] = "pybullet"
     for key in ("pushes", "shard_size"):
         value = manifest.get(key)
         if not isinstance(value, int) or isinstance(value, bool) or value < (1 if key == "shard_size" else 0):

@@ -46,7 +46,7 @@ from pushtorch.sim.records import (
     records_from_arrays,
     write_shard,
 )
-from pushtorch.sim.world import WORLD_VERSION, ObjectSpec, PushWorld, SimSettings, check_inside_world, object_spec
+from pushtorch.sim.world import WORLD_VERSION, ObjectSpec, SimSettings, check_inside_world, make_world, object_spec
 
 __all__ = [
     "PushPool",
@@ -70,7 +70,7 @@ def default_workers() -> int:
     return core_share()
 
 
-def simulate_arrays(world: PushWorld, plan_arrays: dict[str, np.ndarray], object_name: str, seed: int,
+def simulate_arrays(world, plan_arrays: dict[str, np.ndarray], object_name: str, seed: int,
                     duration: float) -> dict[str, np.ndarray]:
     """Simulate the pushes of one plan slice in ``world``; return the shard arrays (numpy, no torch)."""
     n = len(plan_arrays["index"])
@@ -139,7 +139,7 @@ def simulate_plan(spec: ObjectSpec, plan: PushPlan, settings: SimSettings | None
     if plan.object_name != spec.name:
         raise InvalidParameterError(f"the plan pushes {plan.object_name!r} but the spec is {spec.name!r}")
     _check_plan_inside_world(spec, settings or SimSettings(), plan)
-    with PushWorld(spec, settings) as world:
+    with make_world(spec, settings) as world:
         arrays = simulate_arrays(world, plan.arrays(), spec.name, plan.seed, plan.duration)
     return records_from_arrays(arrays, dtype=torch.float64)
 
@@ -200,12 +200,12 @@ def simulate_pushes(
 
 # --- worker processes ------------------------------------------------------------------------------
 
-_WORKER_WORLD: PushWorld | None = None
+_WORKER_WORLD = None  # the worker's world (make_world)
 
 
 def _init_worker(spec: ObjectSpec, settings: SimSettings) -> None:
     global _WORKER_WORLD
-    _WORKER_WORLD = PushWorld(spec, settings)
+    _WORKER_WORLD = make_world(spec, settings)
 
 
 def _run_shard(task: tuple[int, str, dict[str, np.ndarray], str, int, float]) -> tuple[int, int, int]:
@@ -394,7 +394,7 @@ def _run_claimed(plan: PushPlan, folder: Path, spec: ObjectSpec, settings: SimSe
         if pool is None:
             global _WORKER_WORLD
             previous = _WORKER_WORLD
-            _WORKER_WORLD = PushWorld(spec, settings)
+            _WORKER_WORLD = make_world(spec, settings)
             try:
                 results = (_run_shard(task) for task in tasks)
                 for _, count, ok in results:

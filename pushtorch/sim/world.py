@@ -47,11 +47,13 @@ from pushtorch.errors import InvalidParameterError, SimulationError
 from pushtorch.sim.drive import DRIVES, DriveSettings, DriveState, wheel_forces
 
 __all__ = [
+    "ENGINES",
     "ObjectSpec",
     "PushWorld",
     "SimSettings",
     "WORLD_VERSION",
     "check_inside_world",
+    "make_world",
     "object_spec",
     "support_points",
     "quat_conjugate",
@@ -71,6 +73,9 @@ WORLD_VERSION = 3
 #: Joint indices of pushtorch/assets/pioneer_bumper.urdf as pybullet numbers them.
 JOINT_X, JOINT_Y, JOINT_YAW = 0, 1, 2
 BASE_LINK_INDEX, BUMPER_LINK_INDEX = 2, 3
+#: The engines a world runs in (``world.engine``; pushtorch.sim.mujoco_world for MuJoCo). Part of the world's
+#: identity: pushes, models and caches of one engine are never mixed with another's.
+ENGINES = ("pybullet", "mujoco")
 
 
 @dataclass(frozen=True)
@@ -78,6 +83,7 @@ class SimSettings:
     """Physics and controller settings of the push simulator (the ``sim`` config group).
 
     Attributes:
+        engine: ``pybullet`` (default) or ``mujoco``, the engine the world runs in (:func:`make_world`).
         time_step: physics step in s. 1/240 s keeps 0.1 m/s pushes quasi-static and stable.
         solver_iterations: constraint-solver iterations per step.
         control_every: physics steps between two updates of the robot's velocity targets.
@@ -98,6 +104,7 @@ class SimSettings:
     """
 
     time_step: float = 1.0 / 240.0
+    engine: str = "pybullet"
     solver_iterations: int = 50
     control_every: int = 4
     record_rate: float = 10.0
@@ -113,6 +120,8 @@ class SimSettings:
     drive: DriveSettings = field(default_factory=DriveSettings)
 
     def __post_init__(self) -> None:
+        if self.engine not in ENGINES:
+            raise InvalidParameterError(f"world.engine must be one of {', '.join(ENGINES)}, got {self.engine!r}")
         if self.robot not in DRIVES:
             raise InvalidParameterError(f"sim.robot must be one of {', '.join(DRIVES)}, got {self.robot!r}")
         if not isinstance(self.drive, DriveSettings):
@@ -379,6 +388,83 @@ def support_points(parts: list[np.ndarray], count: int = SUPPORT_SPHERES, radius
     return d * (reach - radius)[:, None]
 
 
+@dataclass(frozen=True)
+class ObjectPieces:
+    """The collision pieces of an object, the same in every engine (:func:`object_pieces`).
+
+    Attributes:
+        parts: one entry per part of the spec, in its order: ``("box", centre (3,), half extents (3,))`` for
+            an axis-aligned box, else ``("hull", vertices (V, 3), faces (F, 3))`` with the bottom lifted by
+            :data:`SUPPORT_LIFT` where it touches the ground.
+        spheres: ``("sphere", centre (3,), radius)`` the hulls stand on.
+    """
+
+    parts: tuple
+    spheres: tuple
+
+
+def object_pieces(spec: ObjectSpec, max_children: int | None = None) -> ObjectPieces:
+    """Exact boxes as box primitives, other pieces as convex hulls standing on a ring of small spheres.
+
+    Box primitives are exact and collide several times faster than an 8-vertex hull. A hull keeps few
+    ground contact points, chosen in an order the engine's collider settles (pybullet: at most four, added one
+    per step; MuJoCo: the deepest vertices of a flat bottom, all equally deep): round objects' pushes then
+    depend on their history or on the vertices' order, and mirrored pushes do not mirror. A hull piece's
+    bottom is therefore lifted by :data:`SUPPORT_LIFT` and the object stands on :data:`SUPPORT_SPHERES`
+    spheres spread round its footprint (:func:`support_points`), as many as ``max_children`` pieces leave
+    room for (pybullet keeps 16 children of a compound shape).
+
+    Raises:
+        SimulationError: too many pieces to leave room for three support spheres.
+    """
+    parts = [np.asarray(p, dtype=np.float64) for p in spec.parts]
+    bottom = min(float(p[:, 2].min()) for p in parts)
+    pieces = []
+    hull_on_ground = False
+    for vertices, faces in zip(parts, spec.part_faces, strict=True):
+        box = _as_axis_aligned_box(vertices)
+        if box is not None:
+            pieces.append(("box", box[0], box[1]))
+            continue
+        low = vertices[:, 2] < bottom + SUPPORT_LIFT
+        hull_on_ground |= bool((vertices[:, 2] <= bottom + 1e-6).any())
+        lifted = vertices.copy()
+        lifted[low, 2] = bottom + SUPPORT_LIFT  # exact for the vertical walls of the catalogue's pieces
+        pieces.append(("hull", lifted, np.asarray(faces, dtype=np.int64)))
+    room = SUPPORT_SPHERES if max_children is None else max_children - len(pieces)
+    count = min(SUPPORT_SPHERES, room) if hull_on_ground else 0
+    if hull_on_ground and count < 3:
+        raise SimulationError(
+            f"{spec.name!r} has {len(pieces)} convex pieces: too many to stand on support spheres "
+            f"within the engine's {max_children} collision pieces"
+        )
+    spheres = tuple(("sphere", np.array([x, y, bottom + SUPPORT_RADIUS]), SUPPORT_RADIUS)
+                    for x, y in support_points(parts, count))
+    return ObjectPieces(tuple(pieces), spheres)
+
+
+def make_world(spec: ObjectSpec, settings: SimSettings | None = None):
+    """The world of ``settings.engine`` for ``spec``: a :class:`PushWorld` (pybullet) or a
+    :class:`pushtorch.sim.mujoco_world.MujocoWorld`; both run :func:`pushtorch.sim.push.execute_push`.
+
+    Raises:
+        MissingDependencyError: the engine's package is not installed.
+        SimulationError: the engine cannot build the world.
+    """
+    settings = settings or SimSettings()
+    if settings.engine == "mujoco":
+        try:
+            import mujoco  # noqa: F401
+        except ImportError as exc:
+            from pushtorch.errors import MissingDependencyError
+
+            raise MissingDependencyError(f"world.engine=mujoco needs MuJoCo: pip install mujoco ({exc})") from exc
+        from pushtorch.sim.mujoco_world import MujocoWorld
+
+        return MujocoWorld(spec, settings)
+    return PushWorld(spec, settings)
+
+
 class PushWorld:
     """One pybullet DIRECT client holding the ground, the robot and one object.
 
@@ -404,6 +490,9 @@ class PushWorld:
         self.pb = pb
         self.spec = spec
         self.settings = settings or SimSettings()
+        if self.settings.engine != "pybullet":
+            raise InvalidParameterError(f"PushWorld is the pybullet world; make_world builds a {self.settings.engine}"
+                                        " one")
         self.client = pb.connect(pb.DIRECT)
         if self.client < 0:
             raise SimulationError("pybullet could not start a DIRECT physics client")
@@ -460,57 +549,37 @@ class PushWorld:
     def _shape_arguments(self, folder: str) -> dict:
         """The arguments of ``createCollisionShapeArray`` for the object: one compound collision shape, exact
         boxes as box primitives, other pieces as convex hulls (written as OBJ files into ``folder``) standing
-        on a ring of small spheres. Made once per world; :meth:`_create_object_shape` builds a fresh shape
-        from them for every push.
-
-        Box primitives are exact and collide several times faster than an 8-vertex hull. A hull keeps at
-        most four ground contact points, added one per step wherever the solver finds them (on a cylinder's
-        96-gon rim sometimes all on one side), which made round objects' pushes depend on their history: a
-        hull piece's bottom is therefore lifted by :data:`SUPPORT_LIFT` and the object stands on
-        :data:`SUPPORT_SPHERES` spheres spread round its footprint (:func:`support_points`), as many as
-        pybullet's 16 compound children leave room for.
+        on a ring of small spheres (:func:`object_pieces`). Made once per world; :meth:`_create_object_shape`
+        builds a fresh shape from them for every push.
         """
         pb = self.pb
-        parts = [np.asarray(p, dtype=np.float64) for p in self.spec.parts]
-        bottom = min(float(p[:, 2].min()) for p in parts)
         types, half_extents, files, positions, radii = [], [], [], [], []
-        hull_on_ground = False
-        for i, (vertices, faces) in enumerate(zip(parts, self.spec.part_faces, strict=True)):
-            box = _as_axis_aligned_box(vertices)
-            if box is not None:
-                centre, half = box
+        pieces = object_pieces(self.spec, MAX_COMPOUND_CHILDREN)
+        for i, piece in enumerate(pieces.parts + pieces.spheres):
+            kind = piece[0]
+            if kind == "box":
                 types.append(pb.GEOM_BOX)
-                half_extents.append([float(v) for v in half])
+                half_extents.append([float(v) for v in piece[2]])
                 files.append("")
-                positions.append([float(v) for v in centre])
+                positions.append([float(v) for v in piece[1]])
                 radii.append(0.0)
-                continue
-            low = vertices[:, 2] < bottom + SUPPORT_LIFT
-            hull_on_ground |= bool((vertices[:, 2] <= bottom + 1e-6).any())
-            lifted = vertices.copy()
-            lifted[low, 2] = bottom + SUPPORT_LIFT  # exact for the vertical walls of the catalogue's pieces
-            path = os.path.join(folder, f"part{i}.obj")
-            # pybullet builds a dynamic mesh's convex hull from the vertices its faces reference
-            with open(path, "w") as f:
-                f.write("".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in lifted))
-                f.write("".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces))
-            types.append(pb.GEOM_MESH)
-            half_extents.append([0.0, 0.0, 0.0])
-            files.append(path)
-            positions.append([0.0, 0.0, 0.0])
-            radii.append(0.0)
-        count = min(SUPPORT_SPHERES, MAX_COMPOUND_CHILDREN - len(types)) if hull_on_ground else 0
-        if hull_on_ground and count < 3:
-            raise SimulationError(
-                f"{self.spec.name!r} has {len(types)} convex pieces: too many to stand on support spheres "
-                f"within pybullet's {MAX_COMPOUND_CHILDREN} compound children"
-            )
-        for x, y in support_points(parts, count):
-            types.append(pb.GEOM_SPHERE)
-            half_extents.append([0.0, 0.0, 0.0])
-            files.append("")
-            positions.append([float(x), float(y), bottom + SUPPORT_RADIUS])
-            radii.append(SUPPORT_RADIUS)
+            elif kind == "hull":
+                path = os.path.join(folder, f"part{i}.obj")
+                # pybullet builds a dynamic mesh's convex hull from the vertices its faces reference
+                with open(path, "w") as f:
+                    f.write("".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in piece[1]))
+                    f.write("".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in piece[2]))
+                types.append(pb.GEOM_MESH)
+                half_extents.append([0.0, 0.0, 0.0])
+                files.append(path)
+                positions.append([0.0, 0.0, 0.0])
+                radii.append(0.0)
+            else:
+                types.append(pb.GEOM_SPHERE)
+                half_extents.append([0.0, 0.0, 0.0])
+                files.append("")
+                positions.append([float(v) for v in piece[1]])
+                radii.append(float(piece[2]))
         return {"shapeTypes": types, "halfExtents": half_extents, "fileNames": files, "radii": radii,
                 "meshScales": [[1.0, 1.0, 1.0]] * len(types), "collisionFramePositions": positions,
                 "collisionFrameOrientations": [[0.0, 0.0, 0.0, 1.0]] * len(types)}
