@@ -11,6 +11,7 @@ when this script is started again with the same ``--out`` (every step is cached 
     .venv/bin/python tools/reproduce_paper.py --out runs/paper
     .venv/bin/python tools/reproduce_paper.py --out runs/paper_protocol --protocol paper
     .venv/bin/python tools/reproduce_paper.py --out runs/paper --only pose_estimation
+    .venv/bin/python tools/reproduce_paper.py --out runs/paper_mujoco --world mujoco --only friction_biasing
     .venv/bin/python tools/reproduce_paper.py --out runs/scaled -- ++experiment.test_conditions=5
 
 Overrides after ``--`` go to every experiment; ``++key=value`` sets a key even where an experiment does
@@ -78,10 +79,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--protocol", choices=("spread", "paper"), default="spread",
                         help="training placements (conf/protocol): spread (the default model) or paper (the "
                              "paper's single placement)")
+    parser.add_argument("--world", choices=("pybullet", "mujoco"), default="pybullet",
+                        help="conf/world: where training pushes and ground truth run (mujoco: the physics peers "
+                             "stay in pybullet, across the gap)")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every experiment (after --)")
     args = parser.parse_args(argv)
     timings = reproduce(args.out.resolve(), [s for s in args.only.split(",") if s],
-                        [f"protocol={args.protocol}", *args.overrides])
+                        [f"protocol={args.protocol}", f"world={args.world}", *args.overrides])
     print(json.dumps(timings, indent=1))
 
 

@@ -90,6 +90,8 @@ _RULES: list[tuple[str, Rule]] = [
     ("sim.lift_tolerance", _float(1e-6, 1.0)),
     ("sim.ground_half_extent", _float(1.0, 1000.0)),
     ("sim.robot", Rule("str", choices=("p3dx", "ideal"))),
+    ("world.engine", Rule("str", choices=("pybullet", "mujoco"))),
+    ("physics.engine", Rule("str", choices=("pybullet", "mujoco"))),
     ("sim.drive.robot_mass", _float(0.1, 1000.0)),
     ("sim.drive.wheel_radius", _float(1e-3, 2.0)),
     ("sim.drive.wheel_separation", _float(1e-2, 5.0)),

@@ -70,7 +70,7 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
     from pushtorch.prediction import predict
     from pushtorch.sim.priors import prior_from_config
     from pushtorch.sim.runner import simulate_pushes
-    from pushtorch.sim.world import SimSettings
+    from pushtorch.sim.world import settings_from_config
 
     check_config(cfg, "predict")  # types and bounds first, as the command line does
     c = plain(cfg)
@@ -85,7 +85,7 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
                                          math.radians(float(c.get("yaw_deg", 0.0))))
         samples = int(c.get("truth_samples", 3))
         mass_prior, friction_prior = prior_from_config(c["mass"]), prior_from_config(c["friction"])
-        sim = SimSettings(**(c.get("sim") or {}))
+        sim = settings_from_config(c, "world")
         seed = int(c.get("seed", 0))
     except (KeyError, TypeError) as exc:
         raise InvalidParameterError(f"predict config is missing or mistypes a key: {exc}") from exc

@@ -62,7 +62,7 @@ def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Pat
     from pushtorch.sim.push import make_actions
     from pushtorch.sim.records import load_records
     from pushtorch.sim.runner import run_plan
-    from pushtorch.sim.world import SimSettings, object_spec
+    from pushtorch.sim.world import object_spec, settings_from_config
 
     check_config(cfg, "simulate")  # types and bounds first, as the command line does
     c = _plain(cfg)
@@ -74,7 +74,7 @@ def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Pat
         actions = make_actions(
             int(actions_cfg["count"]), tuple(actions_cfg["angle_range_deg"]), float(actions_cfg["speed"])
         )
-        settings = SimSettings(**c.get("sim", {}))
+        settings = settings_from_config(c, "world")
         placement = Placement(**c.get("placement", {}))
         plan = plan_training_pushes(
             model,

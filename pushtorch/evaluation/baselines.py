@@ -126,31 +126,34 @@ def cloud_body(points: torch.Tensor, initial_estimate: se3.Pose,
 
 
 def _simulate_once(obj: ObjectModel, robot_start: se3.Pose, start: se3.Pose, action: torch.Tensor, mass: float,
-                   ground_friction: float) -> se3.Pose:
+                   ground_friction: float, settings=None) -> se3.Pose:
     from pushtorch.sim.runner import simulate_pushes
 
-    records = simulate_pushes(obj, robot_start, start, action, mass, ground_friction)
+    records = simulate_pushes(obj, robot_start, start, action, mass, ground_friction, settings=settings)
     final = records.object_final
     return se3.Pose.unchecked(final.p[0].float(), final.q[0].float())
 
 
 def physics_from_cloud_prediction(points: torch.Tensor, initial_estimate: se3.Pose, robot_start: se3.Pose,
                                   action: torch.Tensor, mass: float,
-                                  ground_friction: float) -> tuple[se3.Pose, se3.Pose]:
-    """Simulate the push once on the body :func:`cloud_body` reconstructs from the observed ``points``.
+                                  ground_friction: float, settings=None) -> tuple[se3.Pose, se3.Pose]:
+    """Simulate the push once on the body :func:`cloud_body` reconstructs from the observed ``points``, in the
+    engine of ``settings`` (a :class:`~pushtorch.sim.world.SimSettings`; the experiments' ``physics.engine``).
 
     Returns:
         ``(start, final)``: the reconstructed body's pose before and after the push (score the displacement
         between them).
     """
     body, start = cloud_body(points, initial_estimate)
-    return start.to(torch.float32), _simulate_once(body, robot_start, start, action, mass, ground_friction)
+    return start.to(torch.float32), _simulate_once(body, robot_start, start, action, mass, ground_friction, settings)
 
 
 def oracle_physics_prediction(obj: ObjectModel, robot_start: se3.Pose, truth_initial: se3.Pose,
-                              action: torch.Tensor, mass: float, ground_friction: float) -> se3.Pose:
-    """An oracle: the true mesh pushed from the true initial pose, once, with the prior's mean parameters."""
-    return _simulate_once(obj, robot_start, truth_initial, action, mass, ground_friction)
+                              action: torch.Tensor, mass: float, ground_friction: float,
+                              settings=None) -> se3.Pose:
+    """An oracle: the true mesh pushed from the true initial pose, once, with the prior's mean parameters, in the
+    engine of ``settings`` (an oracle of the object and its pose, not of the world's engine)."""
+    return _simulate_once(obj, robot_start, truth_initial, action, mass, ground_friction, settings)
 
 
 #: The lever arm (m) that weighs a heading error against a position error in :func:`displacement_error`.
@@ -185,11 +188,11 @@ def physics_grid(friction_prior, mass_prior, count: int) -> torch.Tensor:
     return torch.cartesian_prod(axis(friction_prior, False), axis(mass_prior, True)).reshape(-1, 2)
 
 
-def fit_cloud_physics(observations, grid: torch.Tensor) -> torch.Tensor:
+def fit_cloud_physics(observations, grid: torch.Tensor, settings=None) -> torch.Tensor:
     """``(K, G)`` float64 the displacement error (m, :func:`displacement_error`) of every observed push ``(K)``
     rolled out on the body its own cloud reconstructs (:func:`cloud_body`, from its observed initial pose and
     robot start) under every ``(μ, m)`` of ``grid (G, 2)``. The peer's fit after ``k`` pushes is
-    ``grid[errors[:k].pow(2).sum(0).argmin()]``.
+    ``grid[errors[:k].pow(2).sum(0).argmin()]``. ``settings``: the engine the peer rolls out in.
 
     Raises:
         ModelError: an observation without its robot start, or a cloud that spans no volume.
@@ -207,6 +210,6 @@ def fit_cloud_physics(observations, grid: torch.Tensor) -> torch.Tensor:
                                    o.robot_start.q.double().reshape(1, 4).expand(g, 4))
         initial = se3.Pose.unchecked(start.p.reshape(1, 3).expand(g, 3), start.q.reshape(1, 4).expand(g, 4))
         action = torch.as_tensor(o.action, dtype=torch.float64).reshape(1, 2).expand(g, 2)
-        records = simulate_pushes(body, robot, initial, action, grid[:, 1], grid[:, 0])
+        records = simulate_pushes(body, robot, initial, action, grid[:, 1], grid[:, 0], settings=settings)
         rows.append(displacement_error(initial, records.object_final, o.displacement))
     return torch.stack(rows) if rows else torch.zeros(0, grid.shape[0], dtype=torch.float64)

@@ -23,7 +23,7 @@ from pushtorch.models.library import ModelSettings, PushModel
 from pushtorch.objects import ObjectModel, load_object
 from pushtorch.sim.plan import Placement
 from pushtorch.sim.priors import Prior, prior_from_config
-from pushtorch.sim.world import SimSettings
+from pushtorch.sim.world import SimSettings, settings_from_config
 
 __all__ = [
     "ExperimentContext",
@@ -179,7 +179,8 @@ class ExperimentContext:
         samples_per_action: training pushes per action (paper: 500).
         actions: ``(A, 2)`` the actions (ẋ m/s, θ̇ rad/s), float32.
         duration: s per push.
-        sim: simulator settings (training and ground truth alike).
+        sim: simulator settings of the world (training pushes and ground truth alike; ``world.engine``).
+        physics: the same settings in the engine the physics peers roll out in (``physics.engine``).
         priors: ``{"friction": {name: Prior}, "mass": {name: Prior}}``.
         workers: simulation processes (0: all cores); shard_size: pushes per shard.
         progress: show tqdm progress bars.
@@ -203,6 +204,7 @@ class ExperimentContext:
     duration: float
     sim: SimSettings
     priors: dict[str, dict[str, Prior]]
+    physics: SimSettings = field(default_factory=SimSettings)
     workers: int = 0
     shard_size: int = 100
     progress: bool = True
@@ -307,7 +309,8 @@ def context_from_config(cfg: DictConfig | Mapping[str, Any], run_dir: str | Path
             float(actions_cfg.get("speed", 0.1)),
         ),
         duration=float(actions_cfg.get("duration", 4.0)),
-        sim=SimSettings(**(c.get("sim") or {})),
+        sim=settings_from_config(c, "world"),
+        physics=settings_from_config(c, "physics"),
         priors=priors,
         workers=int(exp.get("workers", 0)),
         shard_size=int(exp.get("shard_size", 100)),

@@ -206,8 +206,11 @@ class Examples:
 
 
 def _cache_name(ctx: ExperimentContext, key: str) -> str:
-    """A group's cache name: its key, tagged when the test pushes start off-centre (``test_placement``), so
-    both test sets' predictions, scores and ground truth keep apart in one run folder."""
+    """A group's cache name: its key, tagged when the test pushes start off-centre (``test_placement``) and
+    outside the default pybullet world (``_mujoco``), so both test sets' and both engines' predictions, scores
+    and ground truth keep apart in one run folder."""
+    if ctx.sim.engine != "pybullet":
+        key = f"{key}_{ctx.sim.engine}"
     if ctx.test_placement is None:
         return key
     return f"{key}_test_spread{_placement_tag(ctx.test_placement)}"
@@ -305,6 +308,7 @@ def predict_set(
         choice=[choose(i) for i in range(n)], settings=asdict(ctx.settings),
         poses=poses.p.tolist() + poses.q.tolist(), actions=ctx.actions.tolist(),
         physics=physics, samples_per_action=ctx.samples_per_action, version=PREDICTION_VERSION,
+        engines=[ctx.sim.engine, ctx.physics.engine],
     )
     path = contained_path(ctx.run_dir, "predictions", f"{_cache_name(ctx, key)}.npz",
                           what="experiment, object or prior name")
@@ -403,9 +407,10 @@ def predict_set(
             backoff[i, j] = poses_ij["backoff"]
             if physics is not None:
                 fields["oracle"].append(oracle_physics_prediction(
-                    obj, poses_ij["robot_start"], poses.take(i), ctx.actions[j], *physics))
+                    obj, poses_ij["robot_start"], poses.take(i), ctx.actions[j], *physics, settings=ctx.physics))
                 cloud_start, cloud_final = physics_from_cloud_prediction(
-                    features.p, poses_ij["estimate"], poses_ij["robot_start"], ctx.actions[j], *physics)
+                    features.p, poses_ij["estimate"], poses_ij["robot_start"], ctx.actions[j], *physics,
+                    settings=ctx.physics)
                 fields["cloud_start"].append(cloud_start)
                 fields["cloud_final"].append(cloud_final)
             if bar is not None:

@@ -53,12 +53,15 @@ def _score_text(score: float | None) -> str:
 
 def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequence[Mapping[str, Any]],
                  extras: Mapping[str, Any], figures: Sequence[Path],
-                 checks: Sequence[Mapping[str, Any]], test_placement: Mapping[str, Any] | None = None) -> Path:
+                 checks: Sequence[Mapping[str, Any]], test_placement: Mapping[str, Any] | None = None,
+                 engines: Mapping[str, Mapping[str, str]] | None = None) -> Path:
     """``report.md``: the paper's tables with our numbers (and the paper's where it gives them).
 
     ``records`` may hold both metrics: the tables read the primary (displacement) records, and the
     per-object table adds the frame score as a labelled secondary column. ``test_placement``: the run's
-    ``test_placement`` config; a spread one is stated at the top (the starts are not the model's)."""
+    ``test_placement`` config; a spread one is stated at the top (the starts are not the model's). ``engines``:
+    where the world and the physics peers ran (:func:`pushtorch.experiments.results.engines`), stated at the
+    top."""
     out_dir = Path(out_dir)
     frame = frame_scores(records)
     records = primary(records)
@@ -77,6 +80,12 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
              "\"Likelihood score\"). `oracle_physics` simulates the true mesh from the true pose, which the "
              "method never sees: it is an oracle, not a peer. Every number is in `results.json`; the "
              "resolved configuration is in `resolved_config.yaml`.", ""]
+    world = (engines or {}).get("world", {}).get("engine", "pybullet")
+    physics = (engines or {}).get("physics", {}).get("engine", "pybullet")
+    lines += [f"**World: {world}. Physics peers: {physics}.** The training pushes and the ground truth ran in "
+              f"{world}; `physics_from_cloud` and `oracle_physics` rolled out in {physics}"
+              + (" (the same engine as the truth)." if world == physics else
+                 ", across the gap between the two engines (docs/method.md \"Two engines\")."), ""]
     if test_placement and test_placement.get("spread"):
         yaw, lateral = test_placement["yaw_jitter_deg"], test_placement["lateral_jitter"]
         lines += [f"**Test set: placement_spread.** Every test push starts where the experimenter placed the "

@@ -136,7 +136,7 @@ class _Group:
             body, start = cloud_body(self.clouds[i][0].points, estimate)
             count = len(self.starts[i])
             finals = simulate_pushes(body, se3.Pose.stack(self.starts[i]), se3.Pose.stack([start] * count),
-                                     self.ctx.actions.double(), mass, friction).object_final
+                                     self.ctx.actions.double(), mass, friction, settings=self.ctx.physics).object_final
             settings = self.ctx.settings
             for a in range(count):
                 final = se3.Pose.unchecked(finals.p[a].float(), finals.q[a].float())
@@ -164,7 +164,7 @@ def _observations(group: _Group, condition: str, i: int, count: int, yaw_range, 
     if not count:
         return []
     pushed = simulate_pushes(obj, se3.Pose.stack(starts), se3.Pose.stack(poses), ctx.actions.double()[actions],
-                             mass, mu)  # every observed push in one call
+                             mass, mu, settings=ctx.sim)  # every observed push in one call, in the world
     out = []
     for o in range(count):
         cloud = capture_partial_cloud(obj, poses[o], voxel_size=ctx.settings.voxel_size)
@@ -217,11 +217,12 @@ def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int,
     a_count = int(ctx.actions.shape[0])
     starts = se3.Pose.stack(group.starts[i])
     initial = se3.Pose.stack([group.poses.take(i)] * a_count)
-    truth = simulate_pushes(obj, starts, initial, ctx.actions.double(), mass, mu).object_final  # the scored pushes
+    truth = simulate_pushes(obj, starts, initial, ctx.actions.double(), mass, mu,
+                            settings=ctx.sim).object_final  # the scored pushes
     obs = _observations(group, condition, i, observed[-1], part["yaw_range_deg"], mass, mu,
                         bool(part.get("odometry", True)))
     grid = physics_grid(*group.general_prior, int(part.get("peer_grid", 8)))
-    errors = fit_cloud_physics(obs, grid)
+    errors = fit_cloud_physics(obs, grid, ctx.physics)
     # one observation at a time (the same posterior as all at once): chain[k] has seen k of them
     seed = stable_seed(ctx.seed, name, obj.name, condition, i, "condition")
     library = ModelLibrary([models[level] for level in ("general", *LEVELS)])
@@ -336,7 +337,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
                                         part={k: v for k, v in part.items() if k not in RUN_CONTROL},
                                         priors=[repr(ctx.prior(k, n)) for k in ("friction", "mass")
                                                 for n in (*LEVELS, "general", default)],
-                                        sim=asdict(ctx.sim), duration=ctx.duration)
+                                        sim=asdict(ctx.sim), physics=ctx.physics.engine, duration=ctx.duration)
                 cached = json.loads(path.read_text()) if path.is_file() else None
                 if cached is not None and cached.get("made_from") == made_from:
                     bar.update(n_cases)

@@ -44,6 +44,7 @@ from pushtorch.experiments.results import (  # noqa: F401  (re-exported: the out
     PAPER_POSE_LINEAR_CM,
     _select,
     acceptance_checks,
+    engines,
     frame_scores,
     pool,
     primary,
@@ -101,6 +102,6 @@ def write_outputs(out_dir: Path, experiment: str, config: Mapping[str, Any], wal
     figure_data = write_figure_data(out_dir, extras)  # what tools/redraw_figures.py redraws them from
     checks = acceptance_checks(primary(records), extras.get("thrown") or ())
     report = write_report(out_dir, experiment, wall_s, records, extras, figures, checks,
-                          config.get("test_placement"))
+                          config.get("test_placement"), engines(config))
     return {"results": results, "report": report, "figures": figures, "figure_data": figure_data,
             "checks": checks}

@@ -159,6 +159,13 @@ def acceptance_checks(records: Sequence[Mapping[str, Any]],
     return checks
 
 
+def engines(config: Mapping[str, Any]) -> dict[str, dict[str, str]]:
+    """``{"world": {"engine": ...}, "physics": {"engine": ...}}`` of a run's config (pybullet where it names
+    none): where the training pushes and the ground truth ran, and where the physics peers rolled out."""
+    return {which: {"engine": str((config.get(which) or {}).get("engine", "pybullet")).lower()}
+            for which in ("world", "physics")}
+
+
 def write_results(out_dir: Path, experiment: str, config: Mapping[str, Any], wall_s: float,
                   records: Sequence[Mapping[str, Any]], overrides: Sequence[str] = (),
                   model_bandwidths: Mapping[str, Any] | None = None,
@@ -171,7 +178,7 @@ def write_results(out_dir: Path, experiment: str, config: Mapping[str, Any], wal
     online-adaptation experiment's separability of adjacent test conditions (key ``separability``, when any).
     """
     path = Path(out_dir) / "results.json"
-    payload = {"experiment": experiment, "config": dict(config), "overrides": list(overrides),
+    payload = {"experiment": experiment, **engines(config), "config": dict(config), "overrides": list(overrides),
                "wall_s": float(wall_s), "records": list(records),
                "model_bandwidths": dict(model_bandwidths or {})}
     if separability:

@@ -37,8 +37,16 @@ def _placement_tag(placement: Placement) -> str:
     return "".join(f"_{k}{v:g}" for k, v in asdict(placement).items() if v != paper[k])
 
 
+def _cache_tag(ctx: ExperimentContext) -> str:
+    """What names a run's cached pushes and models besides object and priors: the placement and, outside the
+    default pybullet world, the engine (``_mujoco``): one engine's pushes and models never stand in for
+    another's, and a run directory may hold both."""
+    engine = "" if ctx.sim.engine == "pybullet" else f"_{ctx.sim.engine}"
+    return _placement_tag(ctx.placement) + engine
+
+
 def _training_folder(ctx: ExperimentContext, obj_name: str, friction: str, mass: str) -> Path:
-    return contained_path(ctx.run_dir, "data", _model_key(obj_name, friction, mass) + _placement_tag(ctx.placement),
+    return contained_path(ctx.run_dir, "data", _model_key(obj_name, friction, mass) + _cache_tag(ctx),
                           what="object or prior name")
 
 
@@ -76,11 +84,13 @@ def train_model(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: s
             "seed": ctx.seed}
     if ctx.placement != Placement():  # absent at the paper's placement, so earlier caches stay valid
         meta["placement"] = asdict(ctx.placement)
+    if ctx.sim.engine != "pybullet":  # likewise absent in the default world
+        meta["engine"] = ctx.sim.engine
     cache_key = (f"{key}|{json.dumps(asdict(ctx.settings), sort_keys=True)}|{ctx.samples_per_action}"
-                 f"|{_placement_tag(ctx.placement)}")
+                 f"|{_cache_tag(ctx)}")
     if cache_key in ctx._models:
         return ctx._models[cache_key]
-    path = contained_path(ctx.run_dir, "models", f"{key}{_placement_tag(ctx.placement)}.npz",
+    path = contained_path(ctx.run_dir, "models", f"{key}{_cache_tag(ctx)}.npz",
                           what="object or prior name")
     model = None
     if path.is_file():

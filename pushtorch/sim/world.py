@@ -39,6 +39,7 @@ import math
 import os
 import shutil
 import tempfile
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -54,6 +55,7 @@ __all__ = [
     "WORLD_VERSION",
     "check_inside_world",
     "make_world",
+    "settings_from_config",
     "object_spec",
     "support_points",
     "quat_conjugate",
@@ -441,6 +443,21 @@ def object_pieces(spec: ObjectSpec, max_children: int | None = None) -> ObjectPi
     spheres = tuple(("sphere", np.array([x, y, bottom + SUPPORT_RADIUS]), SUPPORT_RADIUS)
                     for x, y in support_points(parts, count))
     return ObjectPieces(tuple(pieces), spheres)
+
+
+def settings_from_config(config: Mapping, which: str = "world") -> SimSettings:
+    """The :class:`SimSettings` of a composed config: its ``sim`` group in the engine of ``world.engine``
+    (``which="world"``: training pushes and ground truth) or ``physics.engine`` (``which="physics"``: the
+    physics peers); pybullet where the config names none.
+
+    Raises:
+        InvalidParameterError: an unknown engine or simulator setting.
+    """
+    engine = (config.get(which) or {}).get("engine", "pybullet")
+    try:
+        return SimSettings(**{**(config.get("sim") or {}), "engine": engine})
+    except TypeError as exc:
+        raise InvalidParameterError(f"sim: {exc}") from exc
 
 
 def make_world(spec: ObjectSpec, settings: SimSettings | None = None):
