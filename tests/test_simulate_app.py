@@ -108,6 +108,15 @@ def test_real_run_writes_shards_summary_and_recording(tmp_path):
     assert OmegaConf.load(run_dir / "resolved_config.yaml").friction.kind == "uniform"
 
 
+def test_world_mujoco_simulates_in_mujoco_and_says_so(tmp_path):
+    cfg = _compose(["world=mujoco", "samples_per_action=1", "rerun_pushes=0", "progress=false", "workers=1"])
+    simulate_from_config(cfg, tmp_path)
+    manifest = json.loads((tmp_path / "pushes" / "manifest.json").read_text())
+    assert manifest["settings"]["engine"] == "mujoco"
+    records = load_records(tmp_path)
+    assert len(records) == 3 and bool(records.touched.all()) and bool(records.valid.all())
+
+
 def test_user_error_exits_with_one_line(tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "pushtorch.simulate", "object=mesh", f"object.path={tmp_path / 'missing.stl'}",
