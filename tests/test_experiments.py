@@ -384,6 +384,25 @@ def test_the_mujoco_world_runs_beside_the_pybullet_one_in_one_folder(tiny_run, t
     assert "**World: mujoco. Physics peers: pybullet.**" in (run / "report.md").read_text()
 
 
+def test_the_friction_biasing_part_on_ray_writes_the_same_records(tiny_run, tmp_path):
+    """executor=ray: the training and ground-truth pushes as Ray tasks (a real local instance), the same records."""
+    ray = pytest.importorskip("ray")
+    _, out, _ = tiny_run
+    cfg = _compose([*TINY, "executor=ray", "executor.num_cpus=2", "~experiment.parts.model_selection",
+                    "~experiment.parts.pose_estimation", "~experiment.parts.mass_biasing",
+                    "~experiment.parts.online_adaptation"])
+    try:
+        quickstart.run(cfg, tmp_path / "ray")
+    finally:
+        ray.shutdown()
+
+    def friction(path):
+        return [r for r in json.loads((path / "results.json").read_text())["records"]
+                if str(r.get("model", "")).startswith("friction:")]
+
+    assert friction(tmp_path / "ray") and friction(tmp_path / "ray") == friction(out)
+
+
 def test_train_and_predict_apps_on_the_runs_data(tiny_run, tmp_path):
     _, out, _ = tiny_run
     base = {"object": {"name": "cube", "path": None, "scale": 1.0},

@@ -92,6 +92,7 @@ _RULES: list[tuple[str, Rule]] = [
     ("sim.robot", Rule("str", choices=("p3dx", "ideal"))),
     ("world.engine", Rule("str", choices=("pybullet", "mujoco"))),
     ("physics.engine", Rule("str", choices=("pybullet", "mujoco"))),
+    ("executor.kind", Rule("str", choices=("local", "ray", "slurm"))),
     ("sim.drive.robot_mass", _float(0.1, 1000.0)),
     ("sim.drive.wheel_radius", _float(1e-3, 2.0)),
     ("sim.drive.wheel_separation", _float(1e-2, 5.0)),

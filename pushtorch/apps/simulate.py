@@ -57,6 +57,7 @@ def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Pat
         PushtorchError: any invalid setting (unknown object, bad prior, bad sizes, a foreign shard folder).
     """
     from pushtorch.objects import load_object
+    from pushtorch.sim.executors import executor_from_config
     from pushtorch.sim.plan import Placement, plan_training_pushes
     from pushtorch.sim.priors import prior_from_config
     from pushtorch.sim.push import make_actions
@@ -98,6 +99,7 @@ def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Pat
         shard_size=int(c.get("shard_size", 100)),
         progress=bool(c.get("progress", True)),
         start_method=c.get("start_method"),
+        executor=executor_from_config(c.get("executor")),
         resume=_resume_command(out_dir),
     )
     result: dict[str, Any] = {

@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from pushtorch.errors import InvalidParameterError, RecordFormatError
 from pushtorch.models.library import ModelSettings, PushModel
 from pushtorch.objects import ObjectModel, load_object
+from pushtorch.sim.executors import Executor, executor_from_config
 from pushtorch.sim.plan import Placement
 from pushtorch.sim.priors import Prior, prior_from_config
 from pushtorch.sim.world import SimSettings, settings_from_config
@@ -181,6 +182,7 @@ class ExperimentContext:
         duration: s per push.
         sim: simulator settings of the world (training pushes and ground truth alike; ``world.engine``).
         physics: the same settings in the engine the physics peers roll out in (``physics.engine``).
+        executor: where the training and ground-truth pushes' shards run (``executor``: local, ray, slurm).
         priors: ``{"friction": {name: Prior}, "mass": {name: Prior}}``.
         workers: simulation processes (0: all cores); shard_size: pushes per shard.
         progress: show tqdm progress bars.
@@ -205,6 +207,7 @@ class ExperimentContext:
     sim: SimSettings
     priors: dict[str, dict[str, Prior]]
     physics: SimSettings = field(default_factory=SimSettings)
+    executor: Executor = field(default_factory=Executor)
     workers: int = 0
     shard_size: int = 100
     progress: bool = True
@@ -311,6 +314,7 @@ def context_from_config(cfg: DictConfig | Mapping[str, Any], run_dir: str | Path
         duration=float(actions_cfg.get("duration", 4.0)),
         sim=settings_from_config(c, "world"),
         physics=settings_from_config(c, "physics"),
+        executor=executor_from_config(c.get("executor")),
         priors=priors,
         workers=int(exp.get("workers", 0)),
         shard_size=int(exp.get("shard_size", 100)),

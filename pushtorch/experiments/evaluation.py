@@ -536,8 +536,9 @@ def simulate_truth(
     folder = contained_path(ctx.run_dir, "truth", _cache_name(ctx, key), what="experiment, object or prior name")
     # small plans run in this process: a worker pool costs more than it saves
     workers = 1 if len(plan) < 4 * ctx.shard_size else ctx.workers
+    executor = ctx.executor if len(plan) >= 4 * ctx.shard_size else None
     run_plan(object_spec(obj), plan, folder, ctx.sim, workers=workers, shard_size=ctx.shard_size,
-             progress=False)
+             progress=False, executor=executor)
     records = load_records(folder)
     final = se3.Pose.unchecked(records.object_final.p.reshape(*shape, 3), records.object_final.q.reshape(*shape, 4))
     return final, (records.tipped | records.left_ground).reshape(shape)

@@ -69,7 +69,7 @@ def training_records(ctx: ExperimentContext, obj: ObjectModel, friction: str, ma
     )
     folder = _training_folder(ctx, obj.name, friction, mass)
     run_plan(object_spec(obj), plan, folder, ctx.sim, workers=ctx.workers, shard_size=ctx.shard_size,
-             progress=ctx.progress if progress is None else progress)
+             progress=ctx.progress if progress is None else progress, executor=ctx.executor)
     return load_records(folder)
 
 

@@ -53,6 +53,7 @@ __all__ = [
     "RunSummary",
     "default_workers",
     "run_plan",
+    "run_shard_in",
     "simulate_arrays",
     "simulate_plan",
     "simulate_pushes",
@@ -209,9 +210,15 @@ def _init_worker(spec: ObjectSpec, settings: SimSettings) -> None:
 
 
 def _run_shard(task: tuple[int, str, dict[str, np.ndarray], str, int, float]) -> tuple[int, int, int]:
-    shard_id, folder, arrays, object_name, seed, duration = task
     assert _WORKER_WORLD is not None, "worker used before its initializer ran"
-    result = simulate_arrays(_WORKER_WORLD, arrays, object_name, seed, duration)
+    return run_shard_in(_WORKER_WORLD, task)
+
+
+def run_shard_in(world, task: tuple[int, str, dict[str, np.ndarray], str, int, float]) -> tuple[int, int, int]:
+    """Simulate one task's shard in ``world`` and write it (atomically) into the task's folder; returns
+    ``(shard id, pushes, valid pushes)``. Every executor's workers run this."""
+    shard_id, folder, arrays, object_name, seed, duration = task
+    result = simulate_arrays(world, arrays, object_name, seed, duration)
     write_shard(folder, shard_id, result)
     valid = int((result["touched"] & ~result["tipped"] & ~result["left_ground"]).sum())
     return shard_id, len(result["index"]), valid
@@ -421,6 +428,7 @@ def run_plan(
     progress: bool = True,
     start_method: str | None = None,
     resume: str | None = None,
+    executor=None,
 ) -> RunSummary:
     """Simulate every push of ``plan`` into shards in ``folder``, in parallel, resuming a killed run.
 
@@ -438,6 +446,8 @@ def run_plan(
         start_method: see :class:`PushPool`.
         resume: how a user resumes this run if it is killed (e.g. the command line), kept in the run
             manifest for the message of :func:`pushtorch.sim.records.load_records`.
+        executor: where the shards run (:class:`pushtorch.sim.executors.Executor`; None or ``local``: this
+            machine's processes, ``workers`` of them). The records do not depend on it.
 
     Returns:
         A :class:`RunSummary`.
@@ -449,6 +459,11 @@ def run_plan(
     """
     settings = settings or SimSettings()
     folder = Path(folder)
+    if executor is not None and executor.kind != "local":
+        from pushtorch.sim.executors import executor_pool
+
+        with executor_pool(executor, spec, settings) as pool:  # refused before anything is written
+            return _run(plan, folder, spec, settings, shard_size, progress, pool, resume)
     workers = int(workers) if workers else default_workers()
     if workers == 1:
         return _run(plan, folder, spec, settings, shard_size, progress, None, resume)

@@ -1,0 +1,251 @@
+"""Where a run's shards are simulated: this machine's process pool, a Ray cluster, or a Slurm array job.
+
+Paper, Experimental Setup (tens of thousands of simulated pushes per experiment). A run's shards are a pure
+function of its plan (:mod:`pushtorch.sim.runner`), so any worker on any node may simulate any shard: each
+task simulates one shard and writes it atomically into the run folder, which every node shares. The run that
+submitted the tasks holds the folder's lock, checks the manifest once, and merges nothing: the folder *is*
+the result (:func:`pushtorch.sim.records.load_records`).
+
+``executor`` (the config group ``conf/executor``; :class:`Executor`):
+
+* ``local`` (default): worker processes on this machine (:class:`pushtorch.sim.runner.PushPool`).
+* ``ray``: Ray tasks, retried when a worker dies (``max_retries``). ``address``: ``auto`` or a head node's
+  ``host:port`` to join a running cluster; none starts a local instance with ``num_cpus`` (0: all cores).
+* ``slurm``: one submitit array job, a task per block of shards (``tasks`` blocks; ``timeout_min``,
+  ``partition``, ``array_parallelism``). A pre-empted task is requeued by submitit and skips the shards it
+  had finished. ``cluster=local`` runs the array as local processes (tests, laptops).
+
+Ray and submitit are optional extras (``pip install "pushtorch[ray]"`` / ``"pushtorch[slurm]"``); a missing
+one, or a Ray address nobody answers at, is a one-line :class:`~pushtorch.errors.InvalidParameterError` raised
+before any file is written.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import socket
+import time
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+from pushtorch.errors import InvalidParameterError, MissingDependencyError
+
+__all__ = ["EXECUTORS", "Executor", "executor_from_config"]
+
+#: The executors ``executor.kind`` may name.
+EXECUTORS = ("local", "ray", "slurm")
+
+
+@dataclass(frozen=True)
+class Executor:
+    """Where shards run (see the module notes). Every field but ``kind`` belongs to one executor.
+
+    Attributes:
+        kind: ``local``, ``ray`` or ``slurm``.
+        address: ray: ``auto`` or ``host:port`` of a running cluster's head; None starts a local instance.
+        num_cpus: ray: CPUs of a local instance (0: all cores).
+        max_retries: ray: how often a task whose worker died is run again.
+        cluster: slurm: submitit's cluster (None: Slurm; ``local``: local processes).
+        folder: slurm: where submitit keeps its job files (None: ``<run folder>/.submitit``).
+        timeout_min: slurm: minutes per array task.
+        partition: slurm: the partition (None: the site's default).
+        array_parallelism: slurm: array tasks running at once.
+        tasks: slurm: array tasks, each a block of consecutive shards (0: one per shard, at most 256).
+    """
+
+    kind: str = "local"
+    address: str | None = None
+    num_cpus: int = 0
+    max_retries: int = 3
+    cluster: str | None = None
+    folder: str | None = None
+    timeout_min: int = 60
+    partition: str | None = None
+    array_parallelism: int = 64
+    tasks: int = 0
+
+    def __post_init__(self) -> None:
+        if self.kind not in EXECUTORS:
+            raise InvalidParameterError(f"executor.kind must be one of {', '.join(EXECUTORS)}, got {self.kind!r}")
+        for name in ("num_cpus", "max_retries", "tasks"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise InvalidParameterError(f"executor.{name} must be a non-negative integer, got {value!r}")
+        for name in ("timeout_min", "array_parallelism"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise InvalidParameterError(f"executor.{name} must be a positive integer, got {value!r}")
+
+
+def executor_from_config(config: Mapping | None) -> Executor:
+    """The :class:`Executor` of a config's ``executor`` mapping (None or empty: local).
+
+    Raises:
+        InvalidParameterError: an unknown key or value.
+    """
+    entry = dict(config or {})
+    known = {f.name for f in fields(Executor)}
+    unknown = sorted(set(entry) - known)
+    if unknown:
+        raise InvalidParameterError(f"unknown executor keys {unknown}; known: {', '.join(sorted(known))}")
+    return Executor(**entry)
+
+
+def _require(module: str, extra: str):
+    try:
+        return __import__(module)
+    except ImportError as exc:
+        raise MissingDependencyError(
+            f"executor={extra} needs {module}, which is not installed: pip install \"pushtorch[{extra}]\""
+        ) from exc
+
+
+# --- the worker side: one world per (object, settings) and process ---------------------------------------
+
+_WORLDS: dict[str, object] = {}
+
+
+def _spec_key(spec, settings) -> str:
+    digest = hashlib.sha256(repr(settings).encode())
+    digest.update(spec.name.encode())
+    for part in spec.parts:
+        digest.update(part.tobytes())
+    return digest.hexdigest()
+
+
+def run_shard_task(spec, settings, task) -> tuple[int, int, int]:
+    """Simulate and write one shard (a runner task) in this process, building its world on first use."""
+    from pushtorch.sim import runner
+    from pushtorch.sim.world import make_world
+
+    key = _spec_key(spec, settings)
+    if key not in _WORLDS:
+        for old in _WORLDS.values():
+            old.close()
+        _WORLDS.clear()
+        _WORLDS[key] = make_world(spec, settings)
+    return runner.run_shard_in(_WORLDS[key], task)
+
+
+def run_shard_block(spec, settings, tasks) -> list[tuple[int, int, int]]:
+    """An array task: its block of shards, skipping those already finished (a requeued task resumes)."""
+    from pushtorch.sim.records import complete_shards
+
+    out = []
+    for task in tasks:
+        done = complete_shards(Path(task[1]), verify=False)
+        if task[0] in done:
+            continue
+        out.append(run_shard_task(spec, settings, task))
+    return out
+
+
+# --- the submitting side -------------------------------------------------------------------------------
+
+
+def _check_address(address: str) -> None:
+    """Refuse a Ray head that does not answer within 5 s (``ray.init`` would wait for minutes)."""
+    if address == "auto":
+        return
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    try:
+        with socket.create_connection((host or "localhost", int(port)), timeout=5.0):
+            pass
+    except (OSError, ValueError) as exc:
+        raise InvalidParameterError(
+            f"executor.address={address!r}: no Ray head answers there ({exc}); start one with `ray start --head`"
+            " or give its host:port"
+        ) from exc
+
+
+class RayPool:
+    """Shards as Ray tasks (retried when a worker dies); :meth:`imap_unordered` yields as they finish."""
+
+    def __init__(self, spec, settings, executor: Executor):
+        ray = _require("ray", "ray")
+        self.ray = ray
+        if not ray.is_initialized():
+            if executor.address:
+                _check_address(executor.address)
+                try:
+                    ray.init(address=executor.address, include_dashboard=False, log_to_driver=False)
+                except ConnectionError as exc:
+                    raise InvalidParameterError(f"executor.address={executor.address!r}: {exc}") from exc
+            else:
+                ray.init(num_cpus=executor.num_cpus or os.cpu_count(), include_dashboard=False,
+                         log_to_driver=False)
+        self._spec = ray.put(spec)
+        self._settings = settings
+        self._remote = ray.remote(num_cpus=1, max_retries=int(executor.max_retries))(run_shard_task)
+
+    def imap_unordered(self, _function, tasks) -> Iterator[tuple[int, int, int]]:
+        pending = [self._remote.remote(self._spec, self._settings, task) for task in tasks]
+        while pending:
+            done, pending = self.ray.wait(pending, num_returns=1)
+            yield self.ray.get(done[0])
+
+    def close(self) -> None:
+        """Leave the Ray instance running: a local one ends with this process, a cluster is the user's."""
+
+    terminate = close
+
+    def __enter__(self) -> RayPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class SlurmPool:
+    """Shards as one submitit array job, a task per block of shards; yields each block's results as it ends."""
+
+    def __init__(self, spec, settings, executor: Executor):
+        self.submitit = _require("submitit", "slurm")
+        self.spec, self.settings, self.executor = spec, settings, executor
+
+    def imap_unordered(self, _function, tasks) -> Iterator[tuple[int, int, int]]:
+        tasks = list(tasks)
+        if not tasks:
+            return
+        e = self.executor
+        blocks = min(len(tasks), e.tasks or 256)
+        chunks = [tasks[k * len(tasks) // blocks:(k + 1) * len(tasks) // blocks] for k in range(blocks)]
+        folder = Path(e.folder) if e.folder else Path(tasks[0][1]) / ".submitit"
+        runner = self.submitit.AutoExecutor(folder=str(folder), cluster=e.cluster)
+        parameters = {"timeout_min": e.timeout_min, "slurm_array_parallelism": e.array_parallelism}
+        if e.partition:
+            parameters["slurm_partition"] = e.partition
+        if runner.cluster != "slurm":
+            parameters = {"timeout_min": e.timeout_min}
+        runner.update_parameters(**parameters)
+        jobs = runner.map_array(run_shard_block, [self.spec] * blocks, [self.settings] * blocks, chunks)
+        pending = list(jobs)
+        while pending:
+            finished = [job for job in pending if job.done()]
+            for job in finished:
+                pending.remove(job)
+                yield from job.result()
+            if pending and not finished:
+                time.sleep(0.2)
+
+    def close(self) -> None:
+        pass
+
+    terminate = close
+
+    def __enter__(self) -> SlurmPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def executor_pool(executor: Executor, spec, settings):
+    """The pool of a non-local executor (:class:`RayPool` or :class:`SlurmPool`)."""
+    if executor.kind == "ray":
+        return RayPool(spec, settings, executor)
+    if executor.kind == "slurm":
+        return SlurmPool(spec, settings, executor)
+    raise InvalidParameterError(f"executor {executor.kind!r} has no remote pool")
