@@ -206,3 +206,36 @@ def test_killed_run_resumes_and_matches_an_uninterrupted_run(tmp_path):
     killed, whole = _all_arrays(folder), _all_arrays(tmp_path / "whole" / "pushes")
     for name in ARRAYS:  # identical records: same seed, any worker count, interrupted or not
         assert np.array_equal(killed[name], whole[name], equal_nan=name == "first_contact_time"), name
+
+
+def test_records_without_trajectories_keep_only_the_final_sample(tmp_path):
+    """What training loads: every per-push value, and of the trajectories only their last sample (the robot's
+    final pose), bit for bit."""
+    from pushtorch.sim import Normal, make_actions, object_spec, plan_training_pushes, run_plan
+
+    cube = load_object("cube")
+    plan = plan_training_pushes(cube, make_actions(2), 2, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=0)
+    run_plan(object_spec(cube), plan, tmp_path / "pushes", workers=1, progress=False)
+    full, light = load_records(tmp_path), load_records(tmp_path, trajectories=False)
+    assert light.robot_trajectory.p.shape == (4, 1, 3) and light.time.shape == (1,)
+    assert torch.equal(light.robot_trajectory.q[:, 0], full.robot_trajectory.q[:, -1])
+    assert torch.equal(light.object_trajectory.p[:, 0], full.object_trajectory.p[:, -1])
+    assert torch.equal(light.object_final.p, full.object_final.p) and torch.equal(light.valid, full.valid)
+
+
+def test_a_finished_run_leaves_its_per_push_table_as_parquet(tmp_path):
+    """pushes.parquet beside the shards: one row per push, the values of the records, readable by pyarrow alone."""
+    import pyarrow.parquet as pq
+
+    from pushtorch.sim import Normal, make_actions, object_spec, plan_training_pushes, run_plan
+
+    cube = load_object("cube")
+    plan = plan_training_pushes(cube, make_actions(3), 2, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=1)
+    run_plan(object_spec(cube), plan, tmp_path / "pushes", workers=1, shard_size=4, progress=False)
+    table = pq.read_table(tmp_path / "pushes" / "pushes.parquet").to_pydict()
+    records = load_records(tmp_path, dtype=torch.float64)
+    assert table["index"] == records.index.tolist() and len(table["index"]) == 6
+    assert table["object_final_x"] == records.object_final.p[:, 0].tolist()
+    assert table["robot_final_qw"] == records.robot_trajectory.q[:, -1, 0].tolist()
+    assert table["mass"] == records.mass.tolist() and table["valid"] == records.valid.tolist()
+    assert set(table["object_name"]) == {"cube"}

@@ -80,7 +80,8 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
         raise InvalidParameterError(f"allow_partial must be true or false, got {allow_partial!r}")
     start = time.perf_counter()
     statuses = [run_status(folder) for folder in folders]
-    records = PushRecords.cat([load_records(folder, allow_partial=allow_partial) for folder in folders])
+    records = PushRecords.cat([load_records(folder, allow_partial=allow_partial, trajectories=False)
+                               for folder in folders])  # training uses the final poses only
     unfinished = [st for st in statuses if st is not None and not st.complete]
     partial_data = None
     if unfinished:  # only reachable with allow_partial

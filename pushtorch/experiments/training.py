@@ -70,7 +70,7 @@ def training_records(ctx: ExperimentContext, obj: ObjectModel, friction: str, ma
     folder = _training_folder(ctx, obj.name, friction, mass)
     run_plan(object_spec(obj), plan, folder, ctx.sim, workers=ctx.workers, shard_size=ctx.shard_size,
              progress=ctx.progress if progress is None else progress, executor=ctx.executor)
-    return load_records(folder)
+    return load_records(folder, trajectories=False)  # training uses the final poses only
 
 
 def train_model(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str) -> PushModel:

@@ -59,6 +59,8 @@ __all__ = [
     "plan_digests",
     "read_shard",
     "records_from_arrays",
+    "records_table",
+    "write_table",
     "run_status",
     "shard_stem",
     "temporary_files",
@@ -627,11 +629,23 @@ def _shard_folder(path: Path) -> Path:
     return path
 
 
+def _trimmed(arrays: dict[str, np.ndarray], trajectories: bool) -> dict[str, np.ndarray]:
+    """The shard's arrays, its trajectories cut to their last sample unless ``trajectories``."""
+    if trajectories:
+        return arrays
+    out = dict(arrays)
+    for name in ("object_trajectory_p", "object_trajectory_q", "robot_trajectory_p", "robot_trajectory_q"):
+        out[name] = np.ascontiguousarray(arrays[name][:, -1:])
+    out["time"] = np.ascontiguousarray(arrays["time"][-1:])
+    return out
+
+
 def load_records(
     path: str | Path,
     dtype: torch.dtype = torch.float32,
     device: str | torch.device = "cpu",
     allow_partial: bool = False,
+    trajectories: bool = True,
 ) -> PushRecords:
     """Load push records: one shard (``.json``/``.npz``), a shard folder, or a run folder (its ``pushes/``).
 
@@ -642,6 +656,8 @@ def load_records(
     Args:
         allow_partial: load the finished shards of an unfinished run instead of refusing it (check with
             :func:`run_status` what is missing).
+        trajectories: keep the recorded trajectories; False keeps only their last sample (``T = 1``: the
+            robot's final pose, all training uses), a sixteenth of the memory at the paper's 41 samples.
 
     Returns:
         :class:`PushRecords` with every push of every finished shard.
@@ -652,7 +668,7 @@ def load_records(
     """
     path = Path(path)
     if path.is_file():
-        return records_from_arrays(read_shard(path), dtype, device)
+        return records_from_arrays(_trimmed(read_shard(path), trajectories), dtype, device)
     if not path.exists():
         raise RecordFormatError(f"{path} does not exist: give a pushtorch.simulate run folder (or its pushes/)")
     folder = _shard_folder(path)
@@ -662,7 +678,7 @@ def load_records(
     shards = complete_shards(folder, verify=False)
     if not shards:
         raise RecordFormatError(f"no finished push-record shard in {path}")
-    arrays = {k: read_shard(p) for k, p in sorted(shards.items())}
+    arrays = {k: _trimmed(read_shard(p), trajectories) for k, p in sorted(shards.items())}
     if status is not None:
         _check_against_manifest(arrays, _read_run_manifest(folder), folder, status.complete)
     records = PushRecords.cat([records_from_arrays(a, dtype, device) for a in arrays.values()])
@@ -678,3 +694,55 @@ def load_records(
     if not torch.equal(order, torch.arange(len(records))):
         records = records.take(order)
     return records
+
+
+#: The per-push table beside a finished run's shards (:func:`write_table`): Parquet, readable without pushtorch.
+TABLE = "pushes.parquet"
+
+
+def records_table(records: PushRecords):
+    """The per-push table of ``records`` as a ``pyarrow.Table``: one row per push, the columns ``index``,
+    ``seed``, ``object_name``, ``action_index``, ``speed``, ``yaw_rate`` (m/s, rad/s), the poses
+    ``object_initial_*``, ``object_final_*``, ``robot_start_*`` and ``robot_final_*`` as ``x, y, z`` (m) and
+    ``qw, qx, qy, qz``, then ``mass``, ``ground_friction``, ``object_friction``, ``touched``, ``tipped``,
+    ``left_ground``, ``valid`` and ``first_contact_time`` (s). No trajectories: those stay in the shards.
+    """
+    import pyarrow as pa
+
+    columns: dict[str, np.ndarray] = {
+        "index": records.index.numpy(), "seed": records.seed.numpy(),
+        "object_name": np.asarray(records.object_name, dtype=object),
+        "action_index": records.action_index.numpy(),
+        "speed": records.action[:, 0].double().numpy(), "yaw_rate": records.action[:, 1].double().numpy(),
+    }
+    final_robot = se3.Pose.unchecked(records.robot_trajectory.p[:, -1], records.robot_trajectory.q[:, -1])
+    for name, pose in (("object_initial", records.object_initial), ("object_final", records.object_final),
+                       ("robot_start", records.robot_start), ("robot_final", final_robot)):
+        for k, axis in enumerate("xyz"):
+            columns[f"{name}_{axis}"] = pose.p[:, k].double().numpy()
+        for k, axis in enumerate(("qw", "qx", "qy", "qz")):
+            columns[f"{name}_{axis}"] = pose.q[:, k].double().numpy()
+    for name in ("mass", "ground_friction", "object_friction", "first_contact_time"):
+        columns[name] = getattr(records, name).double().numpy()
+    for name in ("touched", "tipped", "left_ground", "valid"):
+        columns[name] = getattr(records, name).numpy()
+    return pa.table(columns)
+
+
+def write_table(folder: str | Path) -> Path:
+    """Write :data:`TABLE` (Parquet) beside a finished run's shards, atomically; returns its path.
+
+    ``pandas.read_parquet(path)`` or ``pyarrow.parquet.read_table(path)`` read it without pushtorch.
+
+    Raises:
+        IncompleteRunError: the run is not finished.
+    """
+    import pyarrow.parquet as pq
+
+    folder = _shard_folder(Path(folder))
+    table = records_table(load_records(folder, dtype=torch.float64, trajectories=False))
+    buffer = io.BytesIO()
+    pq.write_table(table, buffer)
+    path = folder / TABLE
+    atomic_write_bytes(path, buffer.getvalue())
+    return path

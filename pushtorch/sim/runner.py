@@ -36,6 +36,7 @@ from pushtorch.sim.push import execute_push
 from pushtorch.sim.records import (
     FORMAT,
     RUN_MANIFEST,
+    TABLE,
     VERSION,
     PushRecords,
     _read_run_manifest,
@@ -45,6 +46,7 @@ from pushtorch.sim.records import (
     plan_digests,
     records_from_arrays,
     write_shard,
+    write_table,
 )
 from pushtorch.sim.world import WORLD_VERSION, ObjectSpec, SimSettings, check_inside_world, make_world, object_spec
 
@@ -415,6 +417,8 @@ def _run_claimed(plan: PushPlan, folder: Path, spec: ObjectSpec, settings: SimSe
                 simulated, valid = simulated + count, valid + ok
                 bar.update(count)
     seconds = time.perf_counter() - start
+    if not (folder / TABLE).is_file() or todo:  # the per-push table of the finished run (records.TABLE)
+        write_table(folder)
     return RunSummary(folder, n, n_shards, len(done), simulated, valid, seconds)
 
 
