@@ -239,3 +239,31 @@ def test_a_finished_run_leaves_its_per_push_table_as_parquet(tmp_path):
     assert table["robot_final_qw"] == records.robot_trajectory.q[:, -1, 0].tolist()
     assert table["mass"] == records.mass.tolist() and table["valid"] == records.valid.tolist()
     assert set(table["object_name"]) == {"cube"}
+
+
+def test_a_resumed_run_does_not_hash_its_verified_shards_again(tmp_path, monkeypatch):
+    """complete_shards keeps what it verified (size, mtime, SHA-256): unchanged shards are not hashed again, and
+    a shard whose data changed since is hashed and, if corrupt, not finished."""
+    import hashlib
+
+    from pushtorch.sim import Normal, make_actions, object_spec, plan_training_pushes, run_plan
+    from pushtorch.sim import records as records_module
+
+    cube = load_object("cube")
+    plan = plan_training_pushes(cube, make_actions(3), 2, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=2)
+    folder = tmp_path / "pushes"
+    run_plan(object_spec(cube), plan, folder, workers=1, shard_size=2, progress=False)
+    assert len(complete_shards(folder)) == 3 and (folder / ".verified.json").is_file()
+    hashed, sha256 = [], hashlib.sha256
+
+    def counting(data=b""):
+        hashed.append(len(data))
+        return sha256(data)
+
+    monkeypatch.setattr(records_module.hashlib, "sha256", counting)
+    assert len(complete_shards(folder)) == 3 and hashed == []  # nothing hashed again
+    npz = sorted(folder.glob("shard-*.npz"))[1]
+    data = bytearray(npz.read_bytes())
+    data[-10] ^= 0xFF
+    npz.write_bytes(bytes(data))
+    assert sorted(complete_shards(folder)) == [0, 2] and len(hashed) == 1  # only the changed shard

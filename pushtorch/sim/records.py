@@ -351,15 +351,32 @@ def _check_values(arrays: Mapping[str, np.ndarray], where: str) -> None:
             raise RecordFormatError(f"{where}: {name} holds NaN or infinite values")
 
 
+#: Beside the shards: what :func:`complete_shards` already verified (file size, modification time and the
+#: manifest's SHA-256 per shard), so a resumed run does not hash its finished shards again.
+VERIFIED = ".verified.json"
+
+
+def _read_verified(folder: Path) -> dict:
+    try:
+        cached = json.loads((folder / VERIFIED).read_text())
+    except (OSError, ValueError):
+        return {}
+    return cached if isinstance(cached, dict) else {}
+
+
 def complete_shards(folder: str | Path, verify: bool = True) -> dict[int, Path]:
     """Shard id → manifest path of every finished shard in ``folder`` (hash-checked if ``verify``).
 
-    A shard whose manifest is missing, unreadable or does not match its data is not finished.
+    A shard whose manifest is missing, unreadable or does not match its data is not finished. A shard whose
+    data file has the size and modification time it had when it was last verified against the same SHA-256
+    (:data:`VERIFIED`) is not hashed again; :func:`load_records` still hashes everything it reads.
     """
     folder = Path(folder)
     found: dict[int, Path] = {}
     if not folder.is_dir():
         return found
+    cache = _read_verified(folder) if verify else {}
+    verified: dict[str, list] = {}
     for entry in sorted(folder.iterdir()):
         match = _SHARD_RE.match(entry.name)
         if not match:
@@ -367,12 +384,21 @@ def complete_shards(folder: str | Path, verify: bool = True) -> dict[int, Path]:
         try:
             if verify:
                 manifest = _read_manifest(entry)
-                data = entry.with_name(str(manifest.get("npz", ""))).read_bytes()
-                if hashlib.sha256(data).hexdigest() != manifest.get("sha256"):
-                    continue
+                npz = entry.with_name(str(manifest.get("npz", "")))
+                stat = npz.stat()
+                key = [stat.st_size, stat.st_mtime_ns, manifest.get("sha256")]
+                if cache.get(npz.name) != key:
+                    if hashlib.sha256(npz.read_bytes()).hexdigest() != manifest.get("sha256"):
+                        continue
+                verified[npz.name] = key
         except (RecordFormatError, OSError):
             continue
         found[int(match.group(1))] = entry
+    if verify and verified != cache:
+        try:
+            atomic_write_bytes(folder / VERIFIED, json.dumps(verified).encode())
+        except OSError:  # a read-only folder: verified again next time
+            pass
     return found
 
 
