@@ -1,8 +1,9 @@
 """An experiment's figures, laid out as the paper's (paper, Experimental Results: Fig. adaptive_results,
 position_accuracy_results, the biasing figures, object_results, the training distributions).
 
-``results.json`` is ``{"experiment", "config", "overrides", "wall_s", "records", "model_bandwidths"}`` (the last:
-per trained model, the bandwidths it chose from its training pushes); one record per group with the keys
+``results.json`` is ``{"experiment", "world", "physics", "config", "overrides", "wall_s", "records",
+"model_bandwidths"}`` (``world`` and ``physics``: ``{"engine": ...}``, where the truth and the physics peers ran;
+the last: per trained model, the bandwidths it chose from its training pushes); one record per group with the keys
 ``task, object, method, model, condition, n, hacc_mean, hacc_std, linear_cm, angular_deg`` (and
 ``selection_rate`` for the selection task), so ``pandas.DataFrame(json.load(f)["records"])`` is a tidy
 table. ``hacc_std`` is the population standard deviation over the group's ``n`` comparisons.
