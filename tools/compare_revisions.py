@@ -29,11 +29,11 @@ only the public API (``load_object``, ``plan_training_pushes``, ``run_plan``, ``
 or in the modules that have held them, and it fails if any ``pushtorch`` module it loaded lies outside its
 worktree.
 
-Then it compares, bit for bit: ``results.json``'s ``records`` (run metadata such as the config, overrides and
-wall time is not compared) and ``model_bandwidths``; the model files' arrays and their headers (less the
-per-array digests); the predictions' arrays. One line per item, ``identical`` or ``DIFFERENT: <where, max
-abs diff>``, then ``identical=<0|1> records=<n> model_arrays=<n> predictions=<n>``. Exit status 0:
-identical; 1: different; 2: a revision could not be checked out or run (its log is named).
+Then it compares, bit for bit: ``results.json``'s ``records`` (run metadata such as the config, the engines it
+names, overrides and wall time is not compared) and ``model_bandwidths``; the model files' arrays and their
+headers (less the per-array digests); the predictions' arrays. One line per item, ``identical`` or
+``DIFFERENT: <where, max abs diff>``, then ``identical=<0|1> records=<n> model_arrays=<n> predictions=<n>``.
+Exit status 0: identical; 1: different; 2: a revision could not be checked out or run (its log is named).
 
     .venv/bin/python tools/compare_revisions.py REV_A REV_B [--out runs/compare] [--pushes-per-action 30]
         [--conditions 4] [--no-quickstart]
@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 
 #: results.json keys that describe the run rather than its results (never compared).
-RUN_METADATA = ("experiment", "config", "overrides", "wall_s")
+RUN_METADATA = ("experiment", "world", "physics", "config", "overrides", "wall_s")
 #: record keys that would carry run metadata if a revision added them (none do today): never compared.
 RECORD_METADATA = frozenset({"wall_s", "seconds", "time", "time_s", "timestamp", "date", "started", "finished",
                              "host", "hostname", "path", "run_dir", "version", "pushtorch_version"})
