@@ -50,6 +50,7 @@ __all__ = [
     "bumper_triangles",
     "joints_to_base_pose",
     "kinematic_chain",
+    "link_inertial",
     "robot_mesh",
     "robot_boxes",
     "start_clearance",
@@ -115,6 +116,25 @@ def _box_of(link: ET.Element, what: str = "collision") -> tuple[np.ndarray, np.n
         raise InvalidPoseError(f"URDF link {link.get('name')!r} has no {what} box")
     origin = element.find("origin")
     return _floats(box.get("size")), _floats(origin.get("xyz") if origin is not None else None)
+
+
+def link_inertial(name: str) -> tuple[float, np.ndarray, np.ndarray]:
+    """``(mass kg, centre of mass (3,), principal moments (3,))`` of a URDF link, as the URDF gives them (the
+    MuJoCo world writes its robot from these; the URDF's inertia tensors are diagonal).
+
+    Raises:
+        InvalidPoseError: no such link, or a link without a diagonal inertia.
+    """
+    links = {link.get("name"): link for link in ET.fromstring(urdf_text()).findall("link")}
+    inertial = links[name].find("inertial") if name in links else None
+    if inertial is None:
+        raise InvalidPoseError(f"URDF link {name!r} has no inertial")
+    tensor = inertial.find("inertia").attrib
+    if any(float(tensor.get(k, 0.0)) for k in ("ixy", "ixz", "iyz")):
+        raise InvalidPoseError(f"URDF link {name!r} has an inertia with products of inertia")
+    origin = inertial.find("origin")
+    return (float(inertial.find("mass").get("value")), _floats(origin.get("xyz") if origin is not None else None),
+            np.array([float(tensor[k]) for k in ("ixx", "iyy", "izz")]))
 
 
 @functools.lru_cache(maxsize=1)

@@ -26,7 +26,7 @@ from pushtorch.experiments.context import (
     save_arrays,
     stable_seed,
 )
-from pushtorch.experiments.training import _placement_tag
+from pushtorch.experiments.training import _engine_tag, _placement_tag
 from pushtorch.features import SurfaceFeatures, compute_surface_features
 from pushtorch.models.library import ModelLibrary, ModelSettings, PushModel
 from pushtorch.objects import ObjectModel
@@ -209,8 +209,7 @@ def _cache_name(ctx: ExperimentContext, key: str) -> str:
     """A group's cache name: its key, tagged when the test pushes start off-centre (``test_placement``) and
     outside the default pybullet world (``_mujoco``), so both test sets' and both engines' predictions, scores
     and ground truth keep apart in one run folder."""
-    if ctx.sim.engine != "pybullet":
-        key = f"{key}_{ctx.sim.engine}"
+    key += _engine_tag(ctx)
     if ctx.test_placement is None:
         return key
     return f"{key}_test_spread{_placement_tag(ctx.test_placement)}"
@@ -535,10 +534,9 @@ def simulate_truth(
         ctx._truth_plan = (predictions.fingerprint, plan, shape)
     folder = contained_path(ctx.run_dir, "truth", _cache_name(ctx, key), what="experiment, object or prior name")
     # small plans run in this process: a worker pool costs more than it saves
-    workers = 1 if len(plan) < 4 * ctx.shard_size else ctx.workers
-    executor = ctx.executor if len(plan) >= 4 * ctx.shard_size else None
-    run_plan(object_spec(obj), plan, folder, ctx.sim, workers=workers, shard_size=ctx.shard_size,
-             progress=False, executor=executor)
+    small = len(plan) < 4 * ctx.shard_size
+    run_plan(object_spec(obj), plan, folder, ctx.sim, workers=1 if small else ctx.workers, shard_size=ctx.shard_size,
+             progress=False, executor=None if small else ctx.executor)
     records = load_records(folder)
     final = se3.Pose.unchecked(records.object_final.p.reshape(*shape, 3), records.object_final.q.reshape(*shape, 4))
     return final, (records.tipped | records.left_ground).reshape(shape)

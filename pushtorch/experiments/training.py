@@ -37,12 +37,15 @@ def _placement_tag(placement: Placement) -> str:
     return "".join(f"_{k}{v:g}" for k, v in asdict(placement).items() if v != paper[k])
 
 
+def _engine_tag(ctx: ExperimentContext) -> str:
+    """'' in the default pybullet world, else ``_<engine>`` (``_mujoco``): a run's cached pushes, models, truth
+    and scores of one engine never stand in for another's, and a run directory may hold both."""
+    return "" if ctx.sim.engine == "pybullet" else f"_{ctx.sim.engine}"
+
+
 def _cache_tag(ctx: ExperimentContext) -> str:
-    """What names a run's cached pushes and models besides object and priors: the placement and, outside the
-    default pybullet world, the engine (``_mujoco``): one engine's pushes and models never stand in for
-    another's, and a run directory may hold both."""
-    engine = "" if ctx.sim.engine == "pybullet" else f"_{ctx.sim.engine}"
-    return _placement_tag(ctx.placement) + engine
+    """What names a run's cached pushes and models besides object and priors: the placement and the engine."""
+    return _placement_tag(ctx.placement) + _engine_tag(ctx)
 
 
 def _training_folder(ctx: ExperimentContext, obj_name: str, friction: str, mass: str) -> Path:
@@ -84,7 +87,7 @@ def train_model(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: s
             "seed": ctx.seed}
     if ctx.placement != Placement():  # absent at the paper's placement, so earlier caches stay valid
         meta["placement"] = asdict(ctx.placement)
-    if ctx.sim.engine != "pybullet":  # likewise absent in the default world
+    if _engine_tag(ctx):  # likewise absent in the default world
         meta["engine"] = ctx.sim.engine
     cache_key = (f"{key}|{json.dumps(asdict(ctx.settings), sort_keys=True)}|{ctx.samples_per_action}"
                  f"|{_cache_tag(ctx)}")

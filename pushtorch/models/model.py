@@ -135,8 +135,9 @@ class PushModel:
         ``n`` draws, the mean and spread of ``μ`` and of ``log m`` (:class:`PosteriorSummary`)."""
         from pushtorch.models.settings import as_generator
 
-        theta = kernel_physics(self.motion_kernels)
-        post = self.physics_posterior or new_posterior(self.motion_kernels)
+        kernels = self.motion_kernels
+        theta = kernel_physics(kernels)
+        post = self.physics_posterior or new_posterior(kernels)
         log_w, tau = post.kernel_log_weights(theta)
         return summarise(theta, log_w, n, as_generator(generator), post.observed, post.rejected, tau)
 

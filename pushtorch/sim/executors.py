@@ -133,13 +133,8 @@ def run_shard_block(spec, settings, tasks) -> list[tuple[int, int, int]]:
     """An array task: its block of shards, skipping those already finished (a requeued task resumes)."""
     from pushtorch.sim.records import complete_shards
 
-    out = []
-    for task in tasks:
-        done = complete_shards(Path(task[1]), verify=False)
-        if task[0] in done:
-            continue
-        out.append(run_shard_task(spec, settings, task))
-    return out
+    done = complete_shards(Path(tasks[0][1]), verify=False) if tasks else {}  # a block's shards share a folder
+    return [run_shard_task(spec, settings, task) for task in tasks if task[0] not in done]
 
 
 # --- the submitting side -------------------------------------------------------------------------------
@@ -160,7 +155,23 @@ def _check_address(address: str) -> None:
         ) from exc
 
 
-class RayPool:
+class _RemotePool:
+    """What the remote pools share: nothing to release (Ray and the array's jobs outlive the pool), and the
+    context-manager protocol :func:`pushtorch.sim.runner.run_plan` uses."""
+
+    def close(self) -> None:
+        """A local Ray instance ends with this process, a cluster is the user's; an array's jobs have ended."""
+
+    terminate = close
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class RayPool(_RemotePool):
     """Shards as Ray tasks (retried when a worker dies); :meth:`imap_unordered` yields as they finish."""
 
     def __init__(self, spec, settings, executor: Executor):
@@ -186,19 +197,8 @@ class RayPool:
             done, pending = self.ray.wait(pending, num_returns=1)
             yield self.ray.get(done[0])
 
-    def close(self) -> None:
-        """Leave the Ray instance running: a local one ends with this process, a cluster is the user's."""
 
-    terminate = close
-
-    def __enter__(self) -> RayPool:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-class SlurmPool:
+class SlurmPool(_RemotePool):
     """Shards as one submitit array job, a task per block of shards; yields each block's results as it ends."""
 
     def __init__(self, spec, settings, executor: Executor):
@@ -214,11 +214,11 @@ class SlurmPool:
         chunks = [tasks[k * len(tasks) // blocks:(k + 1) * len(tasks) // blocks] for k in range(blocks)]
         folder = Path(e.folder) if e.folder else Path(tasks[0][1]) / ".submitit"
         runner = self.submitit.AutoExecutor(folder=str(folder), cluster=e.cluster)
-        parameters = {"timeout_min": e.timeout_min, "slurm_array_parallelism": e.array_parallelism}
-        if e.partition:
-            parameters["slurm_partition"] = e.partition
-        if runner.cluster != "slurm":
-            parameters = {"timeout_min": e.timeout_min}
+        parameters = {"timeout_min": e.timeout_min}
+        if runner.cluster == "slurm":
+            parameters["slurm_array_parallelism"] = e.array_parallelism
+            if e.partition:
+                parameters["slurm_partition"] = e.partition
         runner.update_parameters(**parameters)
         jobs = runner.map_array(run_shard_block, [self.spec] * blocks, [self.settings] * blocks, chunks)
         pending = list(jobs)
@@ -229,17 +229,6 @@ class SlurmPool:
                 yield from job.result()
             if pending and not finished:
                 time.sleep(0.2)
-
-    def close(self) -> None:
-        pass
-
-    terminate = close
-
-    def __enter__(self) -> SlurmPool:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def executor_pool(executor: Executor, spec, settings):

@@ -60,7 +60,7 @@ def world_xml(spec: ObjectSpec, settings: SimSettings) -> str:
     Raises:
         SimulationError: an object part that MuJoCo cannot hold (fewer than 4 vertices off a plane).
     """
-    from pushtorch.robot import bumper_geometry
+    from pushtorch.robot import BASE_LINK, BUMPER_LINK, bumper_geometry, link_inertial
 
     s = settings
     geometry = bumper_geometry()
@@ -69,22 +69,22 @@ def world_xml(spec: ObjectSpec, settings: SimSettings) -> str:
     mount_q = mount.q.double().numpy()
     chassis_half = np.asarray(geometry.chassis_size, dtype=np.float64) / 2
     bumper_half = np.asarray(geometry.size, dtype=np.float64) / 2
-    robot_mass = s.drive.robot_mass if s.robot == "p3dx" else 9.0
+    robot_mass = s.drive.robot_mass if s.robot == "p3dx" else link_inertial(BASE_LINK)[0]
+    bumper_mass, bumper_com, bumper_moments = link_inertial(BUMPER_LINK)
     # the URDF's chassis inertia scaled to the robot's mass (a uniform box)
     cx, cy, cz = np.asarray(geometry.chassis_size, dtype=np.float64)
     chassis_inertia = robot_mass / 12.0 * np.array([cy**2 + cz**2, cx**2 + cz**2, cx**2 + cy**2])
     assets, geoms = [], []
     common = f'contype="{_OBJECT[0]}" conaffinity="{_OBJECT[1]}" priority="0" friction="0 0 0" condim="3"'
-    pieces = object_pieces(spec)
-    for i, piece in enumerate(pieces.parts + pieces.spheres):
-        if piece[0] == "box":
-            geoms.append(f'<geom name="part{i}" type="box" pos="{_floats(piece[1])}" size="{_floats(piece[2])}"'
+    for i, piece in enumerate(object_pieces(spec)):
+        if piece.kind == "box":
+            geoms.append(f'<geom name="part{i}" type="box" pos="{_floats(piece.centre)}" size="{_floats(piece.size)}"'
                          f' {common}/>')
-        elif piece[0] == "hull":
-            assets.append(f'<mesh name="part{i}" vertex="{_floats(piece[1])}" inertia="convex"/>')
+        elif piece.kind == "hull":
+            assets.append(f'<mesh name="part{i}" vertex="{_floats(piece.vertices)}" inertia="convex"/>')
             geoms.append(f'<geom name="part{i}" type="mesh" mesh="part{i}" {common}/>')
         else:
-            geoms.append(f'<geom name="part{i}" type="sphere" pos="{_floats(piece[1])}" size="{piece[2]!r}"'
+            geoms.append(f'<geom name="part{i}" type="sphere" pos="{_floats(piece.centre)}" size="{float(piece.size[0])!r}"'
                          f' {common}/>')
     half = s.ground_half_extent
     actuators = ""
@@ -121,7 +121,7 @@ def world_xml(spec: ObjectSpec, settings: SimSettings) -> str:
             contype="{_ROBOT[0]}" conaffinity="{_ROBOT[1]}" priority="1" friction="{s.bumper_friction!r} 0 0"
             condim="3"/>
       <body name="bumper" pos="{_floats(mount_p)}" quat="{_floats(mount_q)}">
-        <inertial pos="{_floats(geometry.box_centre)}" mass="0.5" diaginertia="0.0076 0.00095 0.00668"/>
+        <inertial pos="{_floats(bumper_com)}" mass="{bumper_mass!r}" diaginertia="{_floats(bumper_moments)}"/>
         <geom name="bumper" type="box" pos="{_floats(geometry.box_centre)}" size="{_floats(bumper_half)}"
               contype="{_ROBOT[0]}" conaffinity="{_ROBOT[1]}" priority="1" friction="{s.bumper_friction!r} 0 0"
               condim="3"/>
@@ -164,7 +164,6 @@ class MujocoWorld:
         name = mujoco.mjtObj
         self._object_body = mujoco.mj_name2id(m, name.mjOBJ_BODY, "object")
         self._ground = mujoco.mj_name2id(m, name.mjOBJ_GEOM, "ground")
-        self._object_geoms = np.flatnonzero(m.geom_bodyid == self._object_body)
         robot_bodies = {mujoco.mj_name2id(m, name.mjOBJ_BODY, n) for n in ("base", "bumper")}
         self._robot_geom = np.isin(m.geom_bodyid, sorted(robot_bodies))
         self._is_object_geom = m.geom_bodyid == self._object_body

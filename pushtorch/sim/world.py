@@ -391,22 +391,28 @@ def support_points(parts: list[np.ndarray], count: int = SUPPORT_SPHERES, radius
 
 
 @dataclass(frozen=True)
-class ObjectPieces:
-    """The collision pieces of an object, the same in every engine (:func:`object_pieces`).
+class Piece:
+    """One collision piece of an object, the same in every engine (:func:`object_pieces`).
 
     Attributes:
-        parts: one entry per part of the spec, in its order: ``("box", centre (3,), half extents (3,))`` for
-            an axis-aligned box, else ``("hull", vertices (V, 3), faces (F, 3))`` with the bottom lifted by
-            :data:`SUPPORT_LIFT` where it touches the ground.
-        spheres: ``("sphere", centre (3,), radius)`` the hulls stand on.
+        kind: ``box`` (an axis-aligned box part), ``hull`` (any other part: its convex hull) or ``sphere`` (a
+            support sphere the hulls stand on).
+        centre: ``(3,)`` the box's or sphere's centre in the object frame (a hull's vertices are in that frame).
+        size: ``(3,)`` a box's half extents; ``(1,)`` a sphere's radius; empty for a hull.
+        vertices, faces: a hull's ``(V, 3)`` vertices (its bottom lifted by :data:`SUPPORT_LIFT`) and ``(F, 3)``
+            triangles; empty for the others.
     """
 
-    parts: tuple
-    spheres: tuple
+    kind: str
+    centre: np.ndarray
+    size: np.ndarray
+    vertices: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))
 
 
-def object_pieces(spec: ObjectSpec, max_children: int | None = None) -> ObjectPieces:
-    """Exact boxes as box primitives, other pieces as convex hulls standing on a ring of small spheres.
+def object_pieces(spec: ObjectSpec, max_children: int | None = None) -> tuple[Piece, ...]:
+    """Exact boxes as box primitives, other pieces as convex hulls standing on a ring of small spheres: the
+    spec's parts in their order, then the spheres.
 
     Box primitives are exact and collide several times faster than an 8-vertex hull. A hull keeps few
     ground contact points, chosen in an order the engine's collider settles (pybullet: at most four, added one
@@ -426,13 +432,13 @@ def object_pieces(spec: ObjectSpec, max_children: int | None = None) -> ObjectPi
     for vertices, faces in zip(parts, spec.part_faces, strict=True):
         box = _as_axis_aligned_box(vertices)
         if box is not None:
-            pieces.append(("box", box[0], box[1]))
+            pieces.append(Piece("box", box[0], box[1]))
             continue
         low = vertices[:, 2] < bottom + SUPPORT_LIFT
         hull_on_ground |= bool((vertices[:, 2] <= bottom + 1e-6).any())
         lifted = vertices.copy()
         lifted[low, 2] = bottom + SUPPORT_LIFT  # exact for the vertical walls of the catalogue's pieces
-        pieces.append(("hull", lifted, np.asarray(faces, dtype=np.int64)))
+        pieces.append(Piece("hull", np.zeros(3), np.zeros(0), lifted, np.asarray(faces, dtype=np.int64)))
     room = SUPPORT_SPHERES if max_children is None else max_children - len(pieces)
     count = min(SUPPORT_SPHERES, room) if hull_on_ground else 0
     if hull_on_ground and count < 3:
@@ -440,9 +446,9 @@ def object_pieces(spec: ObjectSpec, max_children: int | None = None) -> ObjectPi
             f"{spec.name!r} has {len(pieces)} convex pieces: too many to stand on support spheres "
             f"within the engine's {max_children} collision pieces"
         )
-    spheres = tuple(("sphere", np.array([x, y, bottom + SUPPORT_RADIUS]), SUPPORT_RADIUS)
-                    for x, y in support_points(parts, count))
-    return ObjectPieces(tuple(pieces), spheres)
+    spheres = [Piece("sphere", np.array([x, y, bottom + SUPPORT_RADIUS]), np.array([SUPPORT_RADIUS]))
+               for x, y in support_points(parts, count)]
+    return tuple(pieces + spheres)
 
 
 def settings_from_config(config: Mapping, which: str = "world") -> SimSettings:
@@ -571,32 +577,20 @@ class PushWorld:
         """
         pb = self.pb
         types, half_extents, files, positions, radii = [], [], [], [], []
-        pieces = object_pieces(self.spec, MAX_COMPOUND_CHILDREN)
-        for i, piece in enumerate(pieces.parts + pieces.spheres):
-            kind = piece[0]
-            if kind == "box":
-                types.append(pb.GEOM_BOX)
-                half_extents.append([float(v) for v in piece[2]])
-                files.append("")
-                positions.append([float(v) for v in piece[1]])
-                radii.append(0.0)
-            elif kind == "hull":
+        geom = {"box": pb.GEOM_BOX, "hull": pb.GEOM_MESH, "sphere": pb.GEOM_SPHERE}
+        for i, piece in enumerate(object_pieces(self.spec, MAX_COMPOUND_CHILDREN)):
+            path = ""
+            if piece.kind == "hull":
                 path = os.path.join(folder, f"part{i}.obj")
                 # pybullet builds a dynamic mesh's convex hull from the vertices its faces reference
                 with open(path, "w") as f:
-                    f.write("".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in piece[1]))
-                    f.write("".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in piece[2]))
-                types.append(pb.GEOM_MESH)
-                half_extents.append([0.0, 0.0, 0.0])
-                files.append(path)
-                positions.append([0.0, 0.0, 0.0])
-                radii.append(0.0)
-            else:
-                types.append(pb.GEOM_SPHERE)
-                half_extents.append([0.0, 0.0, 0.0])
-                files.append("")
-                positions.append([float(v) for v in piece[1]])
-                radii.append(float(piece[2]))
+                    f.write("".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in piece.vertices))
+                    f.write("".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in piece.faces))
+            types.append(geom[piece.kind])
+            half_extents.append([float(v) for v in piece.size] if piece.kind == "box" else [0.0, 0.0, 0.0])
+            files.append(path)
+            positions.append([float(v) for v in piece.centre])
+            radii.append(float(piece.size[0]) if piece.kind == "sphere" else 0.0)
         return {"shapeTypes": types, "halfExtents": half_extents, "fileNames": files, "radii": radii,
                 "meshScales": [[1.0, 1.0, 1.0]] * len(types), "collisionFramePositions": positions,
                 "collisionFrameOrientations": [[0.0, 0.0, 0.0, 1.0]] * len(types)}
