@@ -74,10 +74,12 @@ __all__ = [
     "MotionKernels",
     "MotionModel",
     "anneal_motion_densities",
+    "contact_distances",
     "contact_log_weights",
     "expert_exponents",
     "fit_motion_model",
     "local_motions",
+    "nearest_in_contact",
     "motion_frames",
 ]
 
@@ -333,6 +335,41 @@ def contact_log_weights(frames: ContactFrames, kernels: MotionKernels, robot_sta
                         -1).unsqueeze(-2)
     _, log_w = contact_kde.fitted_log_kernels(query_u, query_r)
     return log_w.squeeze(-2)
+
+
+def contact_distances(frames: ContactFrames, kernels: MotionKernels, robot_start: se3.Pose,
+                      contact_bandwidth: KernelBandwidth, patch: Tensor) -> Tensor:
+    """``(F, N)`` squared distances, in the contact kernel's standard deviations, from each of the frames
+    ``c_e`` (world) to each training kernel ``c_j`` over ``(u, r, g, patch)``: what ``K^c`` compares, without
+    its cut-offs and trial rounds (a contact metres from every training one keeps a finite, large distance).
+    The rotation of ``u`` counts by its angle over ``rot_std``."""
+    n_frames = frames.r.reshape(-1, 2).shape[0]
+    dtype = kernels.r.dtype
+    u_p, u_q = frames.u.p.reshape(-1, 1, 3).to(dtype), frames.u.q.reshape(-1, 1, 4).to(dtype)
+    d2 = ((u_p - kernels.u.p.unsqueeze(0)) ** 2).sum(-1) / contact_bandwidth.p_std**2
+    angle = se3.angle_between(u_q.expand(n_frames, len(kernels), 4), kernels.u.q.unsqueeze(0).expand(n_frames, -1, 4))
+    d2 = d2 + (angle / contact_bandwidth.rot_std) ** 2
+    frame_g = se3.apply(se3.inverse(robot_start), frames.v.p.reshape(-1, 3)).to(dtype)
+    frame_patch = torch.as_tensor(patch, dtype=dtype, device=frame_g.device).reshape(1, 3).expand(n_frames, 3)
+    query = torch.cat([embed_descriptors(frames.r.reshape(-1, 2).to(dtype)), frame_g, frame_patch], -1)
+    known = torch.cat([embed_descriptors(kernels.r), kernels.g, kernels.patch], -1)
+    std = torch.as_tensor(contact_bandwidth.r_std, dtype=dtype, device=known.device)
+    return d2 + torch.cdist(query / std, known / std) ** 2
+
+
+def nearest_in_contact(frames: ContactFrames, kernels: MotionKernels, robot_start: se3.Pose,
+                       contact_bandwidth: KernelBandwidth, patch: Tensor, count: int) -> MotionKernels:
+    """The ``count`` kernels nearest in contact (:func:`contact_distances`) to any of ``frames``: the kernel
+    budget of a prediction (all of them when there are no more than ``count``).
+
+    Decision (docs/method.md, "Kernel budget"): a model pooled over many shapes holds far more kernels than a
+    prediction evaluates, and the ones that weigh in an expert are those whose contact resembles this push's;
+    a uniform draw would keep mostly kernels ``K^c`` then weighs near zero. Keeping the nearest is the
+    truncated kernel density (the dropped kernels are the lightest)."""
+    if len(kernels) <= count:
+        return kernels
+    d2 = contact_distances(frames, kernels, robot_start, contact_bandwidth, patch).amin(0)
+    return kernels.take(torch.topk(d2, count, largest=False).indices.sort().values)
 
 
 def _block_diagonal(blocks: list[Tensor], fill: float) -> Tensor:

@@ -77,6 +77,12 @@ class ModelSettings:
     # k of the k-fold search that chooses the motion and contact bandwidths from the training pushes
     # (pushtorch.models.bandwidth); 0 keeps the values above
     bandwidth_folds: int = 5
+    # a model pooled over many shapes scales its motion kernels, wider on a contact far from every training one:
+    # stds × sqrt(transfer_scale² + transfer_widening · d²), d the manipulator contact's distance to the
+    # nearest training contact in contact-kernel stds (chosen by held-out likelihood across training shapes,
+    # pushtorch.evaluation.transfer). 1 and 0: unchanged (every single-object model)
+    transfer_scale: float = 1.0
+    transfer_widening: float = 0.0
     cutoff_std: float = 3.0
     alpha_t: float = 2.0
 
@@ -84,7 +90,7 @@ class ModelSettings:
         for f in fields(self):
             value = getattr(self, f.name)
             numeric = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
-            zero_ok = f.name in ("polish_steps", "bandwidth_folds")
+            zero_ok = f.name in ("polish_steps", "bandwidth_folds", "transfer_widening")
             if not (numeric and (value >= 0 if zero_ok else value > 0)):
                 kind = "a number >= 0" if zero_ok else "a positive number"
                 raise InvalidParameterError(f"model setting {f.name} must be {kind}, got {value!r}")

@@ -17,8 +17,9 @@ checks that their accuracy agrees.
 from __future__ import annotations
 
 import logging
+import math
 import types
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -27,8 +28,9 @@ from pushtorch.anneal import AnnealResult
 from pushtorch.distribution import FinalPoseDistribution
 from pushtorch.errors import InvalidParameterError
 from pushtorch.features import SurfaceFeatures
+from pushtorch.kde import KernelBandwidth
 from pushtorch.models.library import ModelLibrary, PushModel, as_generator, check_action
-from pushtorch.models.motion import MotionDensity, anneal_motion_densities
+from pushtorch.models.motion import MotionDensity, anneal_motion_densities, contact_distances, nearest_in_contact
 from pushtorch.perception import PointCloud
 from pushtorch.prediction.clearance import _check_start
 from pushtorch.prediction.conditions import (
@@ -37,7 +39,6 @@ from pushtorch.prediction.conditions import (
     _check_method,
     _push_conditions_fast,
     _schedule,
-    _subsample,
     generate_push_condition,
 )
 
@@ -45,6 +46,8 @@ __all__ = [
     "Prediction",
     "predict",
     "predict_many",
+    "transfer_bandwidth",
+    "transfer_distance",
 ]
 
 log = logging.getLogger(__name__)
@@ -141,15 +144,21 @@ def predict(
 
 def _motion_density(model: PushModel, condition: PushCondition, a: int, generator: torch.Generator | None,
                     method: str) -> MotionDensity:
-    """The action's product of experts; the dense reference keeps every motion kernel (those the contact
-    weight cuts off weigh zero), the fast path drops them before anything is evaluated."""
+    """The action's product of experts; the dense reference keeps every motion kernel of the budget (those the
+    contact weight cuts off weigh zero), the fast path drops them before anything is evaluated. Over the
+    budget (``manipulator_kernels``, ``environment_kernels``) the kernels nearest in contact are kept
+    (:func:`~pushtorch.models.motion.nearest_in_contact`), and a pooled model widens its motion kernels by the
+    manipulator contact's distance to the training ones (:func:`transfer_bandwidth`)."""
     settings = model.settings
     motion = model.motions[a]
+    patch, start, bandwidth = condition.contact_patch, condition.robot_start, settings.contact_bandwidth
     return MotionDensity(
         type(motion)(
             motion.action,
-            _subsample(motion.manipulator, settings.manipulator_kernels, generator),
-            _subsample(motion.environment, settings.environment_kernels, generator),
+            nearest_in_contact(condition.manipulator_frame, motion.manipulator, start, bandwidth, patch,
+                               settings.manipulator_kernels),
+            nearest_in_contact(condition.environment_frames, motion.environment, start, bandwidth, patch,
+                               settings.environment_kernels),
             motion.mean_motion,
         ),
         condition.manipulator_frame,
@@ -158,10 +167,32 @@ def _motion_density(model: PushModel, condition: PushCondition, a: int, generato
         condition.robot_start,
         condition.contact_patch,
         settings.contact_bandwidth,
-        settings.motion_bandwidth,
+        transfer_bandwidth(model, condition, a),
         drop_cut_kernels=method == "fast",
         pool_sharpness=settings.pool_sharpness,
     )
+
+
+def transfer_distance(model: PushModel, condition: PushCondition, a: int) -> torch.Tensor:
+    """``()`` the squared distance, in contact-kernel stds, from the condition's manipulator contact to the
+    nearest training push's of action ``a`` (:func:`~pushtorch.models.motion.contact_distances`): how far the
+    new object's local contact is from everything the model was trained on."""
+    motion = model.motions[a]
+    return contact_distances(condition.manipulator_frame, motion.manipulator, condition.robot_start,
+                             model.settings.contact_bandwidth, condition.contact_patch).amin()
+
+
+def transfer_bandwidth(model: PushModel, condition: PushCondition, a: int) -> KernelBandwidth:
+    """The motion kernels' bandwidth of this prediction: the model's, times
+    ``sqrt(transfer_scale² + transfer_widening · d²)`` with ``d²`` :func:`transfer_distance` (docs/method.md,
+    "Transfer uncertainty"; 1 for a model that does not widen)."""
+    settings = model.settings
+    base = settings.motion_bandwidth
+    if settings.transfer_scale == 1.0 and settings.transfer_widening == 0.0:
+        return base
+    d2 = float(transfer_distance(model, condition, a)) if settings.transfer_widening > 0 else 0.0
+    scale = math.sqrt(settings.transfer_scale**2 + settings.transfer_widening * d2)
+    return replace(base, p_std=base.p_std * scale, rot_std=base.rot_std * scale)
 
 
 def predict_many(
