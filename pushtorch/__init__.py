@@ -37,6 +37,7 @@ _LAZY = {
     "load_records": "pushtorch.sim.records",
     # models and predictions
     "train_push_model": "pushtorch.models.library",
+    "train_pooled_model": "pushtorch.models.pooled",
     "load_model": "pushtorch.models.library",
     "ModelLibrary": "pushtorch.models.library",
     "Observation": "pushtorch.models.conditioning",
@@ -48,12 +49,13 @@ _LAZY = {
 __all__ = ["Fixed", "FinalPoseDistribution", "ModelLibrary", "Normal", "Observation", "Pose", "PushtorchError",
            "Uniform", "__version__", "capture_partial_cloud", "load_model", "load_object", "load_records",
            "make_actions", "object_spec", "plan_training_pushes", "predict", "predict_many", "run_plan",
-           "simulate_pushes", "train_push_model"]
+           "simulate_pushes", "train_pooled_model", "train_push_model"]
 
 if TYPE_CHECKING:  # what type checkers and IDEs see (py.typed ships with the package)
     from pushtorch.distribution import FinalPoseDistribution
     from pushtorch.models.conditioning import Observation
     from pushtorch.models.library import ModelLibrary, load_model, train_push_model
+    from pushtorch.models.pooled import train_pooled_model
     from pushtorch.objects import load_object
     from pushtorch.perception import capture_partial_cloud
     from pushtorch.prediction import predict, predict_many

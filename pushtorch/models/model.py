@@ -143,10 +143,14 @@ class PushModel:
 
     @property
     def configured_settings(self) -> ModelSettings:
-        """The settings this model was trained with, before the bandwidth search replaced the values it
-        chose (``meta["bandwidths"]``; :mod:`pushtorch.models.bandwidth`)."""
-        search = self.meta.get("bandwidths")
-        return replace(self.settings, **search["start"]) if search else self.settings
+        """The settings this model was trained with, before the bandwidth search and a pooled model's widening
+        search replaced the values they chose (``meta["bandwidths"]``, :mod:`pushtorch.models.bandwidth`;
+        ``meta["widening"]``, :mod:`pushtorch.evaluation.transfer`)."""
+        start = {}
+        for searched in ("bandwidths", "widening"):  # pushtorch.models.bandwidth, pushtorch.evaluation.transfer
+            if self.meta.get(searched):
+                start.update(self.meta[searched]["start"])
+        return replace(self.settings, **start) if start else self.settings
 
     @property
     def actions(self) -> torch.Tensor:

@@ -19,6 +19,7 @@ from pushtorch.objects import ObjectModel
 from pushtorch.perception import capture_full_cloud
 
 __all__ = [
+    "fit_object_parts",
     "robot_motions",
     "train_push_model",
     "training_features",
@@ -51,6 +52,48 @@ def _in_object_frame(features: SurfaceFeatures, pose: se3.Pose) -> SurfaceFeatur
     )
 
 
+def fit_object_parts(obj: ObjectModel, records, settings: ModelSettings, generator: torch.Generator):
+    """The contact model, position model and per-action motion models (kernels that know their pushes) of one
+    object's push records, before any bandwidth search: what :func:`train_push_model` and the pooled model
+    (:func:`pushtorch.models.pooled.train_pooled_model`) build on.
+
+    Raises:
+        InvalidParameterError: no valid record.
+    """
+    from pushtorch.robot import bumper_mesh
+    from pushtorch.sim.push import place_robot_against
+
+    valid = records.take(records.valid)
+    if len(valid) == 0:
+        raise InvalidParameterError(f"no valid push record of {obj.name} (every push tipped, lifted or missed "
+                                    "the object)")
+    valid = valid.to(torch.float32)
+    pose, features = training_features(obj, settings)
+    # the contact model is learnt at the nominal placement; the records' jittered placements only
+    # enter the motion model
+    robot_pose = place_robot_against(obj.mesh, pose)
+    contact = fit_manipulator_contact_model(
+        features, pose, robot_pose, bumper_mesh(robot_pose),
+        cutoff=settings.contact_cutoff, drop_off=settings.contact_drop_off,
+    )
+    keep = torch.randperm(len(features), generator=generator)[: settings.position_frames]
+    position = fit_position_model(features.select(keep.sort().values), pose)
+    features_object = _in_object_frame(features, pose)
+    motions = []
+    for a in torch.unique(valid.action_index).tolist():
+        sel = valid.take(valid.action_index == a)
+        motions.append(
+            fit_motion_model(
+                features_object, sel.object_initial, sel.object_final, sel.robot_start, bumper_mesh(se3.identity()),
+                sel.action[0], settings.environment_contacts_training, settings.manipulator_kernels_per_push,
+                settings.contact_cutoff, settings.contact_drop_off, generator,
+                physics=torch.stack([sel.ground_friction, sel.mass], -1),
+                robot_motion=robot_motions(sel),
+            )
+        )
+    return contact, position, motions
+
+
 def train_push_model(
     obj: ObjectModel,
     records,
@@ -77,38 +120,10 @@ def train_push_model(
         InvalidParameterError: no valid record.
     """
     from pushtorch.models.bandwidth import select_bandwidths
-    from pushtorch.robot import bumper_mesh
-    from pushtorch.sim.push import place_robot_against
 
     settings = settings or ModelSettings()
     generator = as_generator(generator)
-    valid = records.take(records.valid)
-    if len(valid) == 0:
-        raise InvalidParameterError("no valid push record (every push tipped, lifted or missed the object)")
-    valid = valid.to(torch.float32)
-    pose, features = training_features(obj, settings)
-    # the contact model is learnt at the nominal placement; the records' jittered placements only
-    # enter the motion model
-    robot_pose = place_robot_against(obj.mesh, pose)
-    contact = fit_manipulator_contact_model(
-        features, pose, robot_pose, bumper_mesh(robot_pose),
-        cutoff=settings.contact_cutoff, drop_off=settings.contact_drop_off,
-    )
-    keep = torch.randperm(len(features), generator=generator)[: settings.position_frames]
-    position = fit_position_model(features.select(keep.sort().values), pose)
-    features_object = _in_object_frame(features, pose)
-    motions = []
-    for a in torch.unique(valid.action_index).tolist():
-        sel = valid.take(valid.action_index == a)
-        motions.append(
-            fit_motion_model(
-                features_object, sel.object_initial, sel.object_final, sel.robot_start, bumper_mesh(se3.identity()),
-                sel.action[0], settings.environment_contacts_training, settings.manipulator_kernels_per_push,
-                settings.contact_cutoff, settings.contact_drop_off, generator,
-                physics=torch.stack([sel.ground_friction, sel.mass], -1),
-                robot_motion=robot_motions(sel),
-            )
-        )
+    contact, position, motions = fit_object_parts(obj, records, settings, generator)
     meta = dict(meta or {})
     if settings.bandwidth_folds >= 2:
         settings, search = select_bandwidths(settings, motions, settings.bandwidth_folds, generator)

@@ -1,0 +1,157 @@
+"""One model from many training shapes: every shape's kernels pooled, with the contact frames they came from
+(paper, §Conclusion and future work: transfer to novel objects by *local* contact models; beyond the paper's
+two training objects).
+
+The paper trains one model per object and picks one for a new cloud by ``H_r`` (:class:`ModelLibrary`). Its
+thesis is that contact and motion models are local: a kernel's weight in an expert is ``K^c``, how much its
+training contact resembles the new one (Eq. contact_frame_probability). A pooled model tests that thesis at
+scale: the kernels of every shape's pushes sit in one model, and the product of experts weighs them by local
+contact, so the pushes of whichever shapes touched the bumper as this object does decide the prediction.
+
+Decisions (docs/method.md, "Many shapes"):
+
+* **Motion kernels**: every shape's, concatenated per action (pushes renumbered so the bandwidth search's
+  folds hold out whole pushes). The bandwidths are then chosen on the pool, as for one object
+  (:func:`pushtorch.models.bandwidth.select_bandwidths`). A prediction evaluates at most the settings'
+  kernel budget, the kernels nearest in contact (:func:`pushtorch.models.motion.nearest_in_contact`).
+* **Manipulator contact model**: every shape's frames (where the robot stood against it), each shape's
+  weights normalised to the same total, so a shape with a large face does not outvote the rest.
+* **Position model**: an equal share of every shape's position frames, ``position_frames`` in all. The pose
+  estimate of a new object then leans on features of all shapes; it matters little for the displacement
+  score (the motion is carried in the robot's start frame), and the frame score says what it costs.
+* **Mean motion**: the mean over every pushed shape's motions (the ``mean_motion`` baseline of the pool).
+
+The widening of the density on contacts far from every training contact is chosen on the training shapes
+by held-out likelihood, one shape held out at a time (:func:`pushtorch.evaluation.transfer.choose_widening`).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from pushtorch import se3
+from pushtorch.errors import InvalidParameterError
+from pushtorch.models.contact import ManipulatorContactModel
+from pushtorch.models.frames import ContactFrames, embed_descriptors
+from pushtorch.models.model import PushModel
+from pushtorch.models.motion import MotionKernels, MotionModel
+from pushtorch.models.position import PositionModel
+from pushtorch.models.settings import ModelSettings, as_generator
+from pushtorch.models.training import fit_object_parts
+from pushtorch.objects import ObjectModel
+
+__all__ = ["ShapeParts", "fit_shape_parts", "pool_parts", "train_pooled_model"]
+
+#: One shape's fitted parts: (name, contact model, position model, motion models per action).
+ShapeParts = tuple[str, ManipulatorContactModel, PositionModel, list[MotionModel]]
+
+
+def fit_shape_parts(objects: list[ObjectModel], records: list, settings: ModelSettings,
+                    generator: torch.Generator | int | None = None) -> list[ShapeParts]:
+    """Every shape's contact, position and motion models (:func:`~pushtorch.models.training.fit_object_parts`).
+
+    Raises:
+        InvalidParameterError: no shape, a records list of another length, or repeated shape names.
+    """
+    if not objects:
+        raise InvalidParameterError("a pooled model needs at least one training shape")
+    if len(records) != len(objects):
+        raise InvalidParameterError(f"{len(objects)} training shapes but {len(records)} sets of push records")
+    names = [o.name for o in objects]
+    if len(set(names)) != len(names):
+        raise InvalidParameterError(f"training shapes must have distinct names, got {names}")
+    generator = as_generator(generator)
+    return [(o.name, *fit_object_parts(o, r, settings, generator)) for o, r in zip(objects, records, strict=True)]
+
+
+def _cat_frames(frames: list[ContactFrames]) -> ContactFrames:
+    return ContactFrames(se3.Pose.cat([f.v for f in frames]), torch.cat([f.r for f in frames]),
+                         se3.Pose.cat([f.u for f in frames]), torch.cat([f.weight for f in frames]))
+
+
+def _cat_kernels(kernels: list[MotionKernels], offsets: list[int]) -> MotionKernels:
+    def cat(name: str) -> torch.Tensor | None:
+        values = [getattr(k, name) for k in kernels]
+        return None if any(v is None for v in values) else torch.cat(values)
+
+    push = None
+    if all(k.push is not None for k in kernels):
+        push = torch.cat([k.push + o for k, o in zip(kernels, offsets, strict=True)])
+    return MotionKernels(cat("r"), se3.Pose.cat([k.u for k in kernels]), se3.Pose.cat([k.m for k in kernels]),
+                         cat("g"), cat("patch"), push, cat("physics"), cat("robot_motion"), cat("log_weight"))
+
+
+def _pushes(motion: MotionModel) -> int:
+    """How many pushes an action's kernels came from (their largest push index + 1; 0 if unknown)."""
+    known = [k.push for k in (motion.manipulator, motion.environment) if k.push is not None and len(k)]
+    return int(max(int(p.max()) for p in known)) + 1 if known else 0
+
+
+def pool_parts(parts: list[ShapeParts], settings: ModelSettings, generator: torch.Generator | int | None = None
+               ) -> tuple[ManipulatorContactModel, PositionModel, list[MotionModel]]:
+    """The pooled contact, position and motion models of several shapes (module docstring).
+
+    Raises:
+        InvalidParameterError: no parts, or shapes pushed with different actions.
+    """
+    if not parts:
+        raise InvalidParameterError("a pooled model needs at least one training shape")
+    generator = as_generator(generator)
+    actions = [torch.stack([m.action for m in p[3]]) for p in parts]
+    for (name, *_), a in zip(parts, actions, strict=True):
+        if a.shape != actions[0].shape or not torch.allclose(a.to(actions[0]), actions[0], atol=1e-6):
+            raise InvalidParameterError(f"shape {name} was pushed with actions {a.tolist()}, the first shape with "
+                                        f"{actions[0].tolist()}: a pooled model needs the same actions")
+    contacts = []
+    for _, contact, _, _ in parts:
+        frames = contact.frames
+        weight = frames.weight / frames.weight.sum().clamp_min(1e-30)
+        contacts.append(ContactFrames(frames.v, frames.r, frames.u, weight))
+    first = parts[0][1]
+    contact = ManipulatorContactModel(_cat_frames(contacts), first.cutoff, first.drop_off)
+    share = max(1, settings.position_frames // len(parts))
+    positions = []
+    for _, _, position, _ in parts:
+        keep = torch.randperm(len(position.frames), generator=generator)[:share].sort().values
+        positions.append(position.frames.select(keep))
+    pooled_frames = _cat_frames(positions)
+    std = embed_descriptors(pooled_frames.r).std(0).clamp_min(1e-6)
+    position = PositionModel(pooled_frames, std)
+    motions = []
+    for a in range(actions[0].shape[0]):
+        per_shape = [p[3][a] for p in parts]
+        counts = [_pushes(m) for m in per_shape]
+        offsets = [sum(counts[:i]) for i in range(len(counts))]
+        manipulator = _cat_kernels([m.manipulator for m in per_shape], offsets)
+        environment = _cat_kernels([m.environment for m in per_shape], offsets)
+        # one manipulator kernel per push and kernel: the pool's mean motion weighs every push alike
+        motions.append(MotionModel(per_shape[0].action, manipulator, environment, se3.mean_pose(manipulator.m, 0)))
+    return contact, position, motions
+
+
+def train_pooled_model(objects: list[ObjectModel], records: list, settings: ModelSettings | None = None,
+                       name: str = "shapes", generator: torch.Generator | int | None = None,
+                       meta: dict | None = None, parts: list[ShapeParts] | None = None) -> PushModel:
+    """One model trained on the pushes of many shapes (module docstring).
+
+    Args:
+        objects: the training shapes; records: each one's :class:`~pushtorch.sim.records.PushRecords`.
+        settings: model settings (default: the paper's); their bandwidths are searched on the pool when
+            ``bandwidth_folds >= 2``.
+        parts: the shapes' fitted parts when the caller has them (:func:`fit_shape_parts`), else fitted here.
+
+    Raises:
+        InvalidParameterError: no shape, mismatched records, a shape without a valid push, different actions.
+    """
+    from pushtorch.models.bandwidth import select_bandwidths
+
+    settings = settings or ModelSettings()
+    generator = as_generator(generator)
+    parts = parts if parts is not None else fit_shape_parts(objects, records, settings, generator)
+    contact, position, motions = pool_parts(parts, settings, generator)
+    meta = dict(meta or {})
+    meta["pooled"] = [p[0] for p in parts]
+    if settings.bandwidth_folds >= 2:
+        settings, search = select_bandwidths(settings, motions, settings.bandwidth_folds, generator)
+        meta["bandwidths"] = search.as_meta()
+    return PushModel(name, name, settings, contact, position, motions, meta)
