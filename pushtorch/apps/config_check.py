@@ -50,7 +50,8 @@ class ConfigError(InvalidParameterError):
 @dataclass(frozen=True)
 class Rule:
     """What one key accepts: ``kind`` (int, float, bool, str, name, pair, names, conditions: which test
-    conditions a recording logs) and closed bounds."""
+    conditions a recording logs; training: training objects, names or ``shapes:`` entries or mesh files) and
+    closed bounds."""
 
     kind: str
     low: float | None = None
@@ -140,7 +141,8 @@ _RULES: list[tuple[str, Rule]] = [
     ("**.runs", _int(1, 100_000)),
     ("**.yaw_range_deg", Rule("pair", -360.0, 360.0)),
     ("**.objects", Rule("names")),
-    ("**.training_objects", Rule("names")),
+    ("**.training_objects", Rule("training")),
+    ("**.training_pushes", _int(1, 10**7)),
     ("**.methods", Rule("names")),
     ("experiment.name", Rule("name")),
     ("experiment.**.name", Rule("name")),
@@ -161,6 +163,28 @@ _RULES: list[tuple[str, Rule]] = [
 _KIND_WORDS = {"int": "an integer", "float": "a number", "bool": "true or false", "str": "a string",
                "name": "a name", "pair": "a pair [low, high] of numbers", "names": "a list of names",
                "conditions": "first:k, worst:k, best:k or a list of indices"}
+
+
+def _training_problem(key: str, value: Any) -> str | None:
+    """A training list's problem: each entry a name, a mesh file (.stl, .obj, .ply) or a generated-shapes entry
+    (:func:`pushtorch.objects.shapes.training_shape_seeds`)."""
+    from pushtorch.objects.shapes import training_shape_seeds
+
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, list) or not value or not all(isinstance(v, str) for v in value):
+        return f"{key} must be a non-empty list of names, got {_shown(value)}"
+    for entry in value:
+        if entry.startswith("shapes:"):
+            try:
+                training_shape_seeds(entry)
+            except InvalidParameterError as exc:
+                return f"{key}: {exc}"
+        elif not entry.lower().endswith((".stl", ".obj", ".ply")):
+            problem = _name_problem(key, entry)
+            if problem:
+                return problem
+    return None
 
 
 def _matches(key: str, pattern: str) -> bool:
@@ -229,6 +253,8 @@ def _check_value(key: str, value: Any, rule: Rule) -> str | None:
         except InvalidParameterError as exc:
             return str(exc)
         return None
+    if rule.kind == "training":
+        return _training_problem(key, value)
     if rule.kind == "names":
         if isinstance(value, str):
             value = [value]

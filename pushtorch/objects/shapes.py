@@ -23,9 +23,12 @@ from pushtorch.errors import InvalidParameterError
 from pushtorch.objects.model import ObjectModel, centred
 from pushtorch.objects.symmetry import detect_symmetry
 
-__all__ = ["SHAPE_KINDS", "held_out_shapes", "random_shape"]
+__all__ = ["HELD_OUT_FIRST_SEED", "SHAPE_KINDS", "held_out_shapes", "random_shape", "resolve_training_objects",
+           "training_shape_seeds", "training_shapes"]
 
 SHAPE_KINDS = ("polygon", "superellipse", "box")
+#: Seeds from here on are the held-out set's (:func:`held_out_shapes`): no training shape may use one.
+HELD_OUT_FIRST_SEED = 1000
 _HEIGHT = (0.15, 0.25)
 _OUTLINE_POINTS = 48  # of a superellipse's outline
 
@@ -79,7 +82,84 @@ def random_shape(seed: int, kind: str | None = None) -> ObjectModel:
     return ObjectModel(f"{chosen}_{int(seed)}", mesh, detect_symmetry(mesh))
 
 
-def held_out_shapes(count: int = 9, first_seed: int = 1000) -> list[ObjectModel]:
+def held_out_shapes(count: int = 9, first_seed: int = HELD_OUT_FIRST_SEED) -> list[ObjectModel]:
     """``count`` shapes cycling through the kinds, seeds ``first_seed, first_seed + 1, …``: the held-out set
     of the tests and docs/experiments.md (seeds from 1000 on are reserved for it: tune on others)."""
     return [random_shape(first_seed + i, SHAPE_KINDS[i % len(SHAPE_KINDS)]) for i in range(int(count))]
+
+
+def training_shape_seeds(spec: str) -> list[tuple[int, str]]:
+    """The ``(seed, kind)`` of every shape a ``model.training_objects`` entry names, without building them:
+    ``shapes:<kind>:<count>`` or ``shapes:<kind>:<count>:<first seed>`` (default first seed 1), seeds ``first,
+    first + 1, …``; ``<kind>`` is one of :data:`SHAPE_KINDS` or ``mixed`` (the kinds in turn, as the held-out set
+    cycles them).
+
+    Raises:
+        InvalidParameterError: a malformed entry, an unknown kind, a count < 1, or a seed of the held-out set
+            (:data:`HELD_OUT_FIRST_SEED` and above): a model trained on it would be tested on its own shapes.
+    """
+    fields = str(spec).split(":")
+    if len(fields) not in (3, 4) or fields[0] != "shapes":
+        raise InvalidParameterError(f"a generated training entry is shapes:<kind>:<count>[:<first seed>], got "
+                                    f"{spec!r}")
+    kind = fields[1]
+    if kind != "mixed" and kind not in SHAPE_KINDS:
+        raise InvalidParameterError(f"unknown shape kind {kind!r} in {spec!r}; use mixed or one of "
+                                    f"{', '.join(SHAPE_KINDS)}")
+    try:
+        count = int(fields[2])
+        first = int(fields[3]) if len(fields) == 4 else 1
+    except ValueError as exc:
+        raise InvalidParameterError(f"{spec!r}: the count and first seed must be integers") from exc
+    if count < 1 or first < 0:
+        raise InvalidParameterError(f"{spec!r}: the count must be >= 1 and the first seed >= 0")
+    if first + count > HELD_OUT_FIRST_SEED:
+        raise InvalidParameterError(
+            f"{spec!r} reaches seed {first + count - 1}: seeds from {HELD_OUT_FIRST_SEED} on are the held-out "
+            "shapes', never trained on")
+    kinds = SHAPE_KINDS if kind == "mixed" else (kind,)
+    return [(first + i, kinds[i % len(kinds)]) for i in range(count)]
+
+
+def training_shapes(spec: str) -> list[ObjectModel]:
+    """The generated training shapes a ``model.training_objects`` entry names (:func:`training_shape_seeds`).
+
+    Raises:
+        InvalidParameterError: as :func:`training_shape_seeds`.
+    """
+    return [random_shape(seed, kind) for seed, kind in training_shape_seeds(spec)]
+
+
+#: File endings a ``training_objects`` entry is read as a mesh file by.
+_MESH_ENDINGS = (".stl", ".obj", ".ply")
+
+
+def resolve_training_objects(entries) -> list[ObjectModel]:
+    """The objects a ``model.training_objects`` list names, in order: catalogue names, mesh files (a path
+    ending in one of :data:`_MESH_ENDINGS`, read as ``object=mesh`` reads it) and generated shapes
+    (:func:`training_shapes`).
+
+    Raises:
+        InvalidParameterError: an empty list, an unknown entry, or two objects of one name.
+    """
+    from pushtorch.objects.catalogue import load_object
+    from pushtorch.objects.meshes import load_mesh_file
+
+    if isinstance(entries, str):
+        entries = [entries]
+    entries = [str(e) for e in (entries or [])]
+    if not entries:
+        raise InvalidParameterError("training_objects must name at least one object")
+    objects: list[ObjectModel] = []
+    for entry in entries:
+        if entry.startswith("shapes:"):
+            objects.extend(training_shapes(entry))
+        elif entry.lower().endswith(_MESH_ENDINGS):
+            objects.append(load_mesh_file(entry))
+        else:
+            objects.append(load_object(entry))
+    names = [o.name for o in objects]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise InvalidParameterError(f"training_objects names {', '.join(repeated)} more than once")
+    return objects
