@@ -13,6 +13,9 @@ chose, the training pushes — unless it is labelled an oracle:
 * physics from the cloud: pybullet pushing a body reconstructed from the observed cloud — the visible
   surface's convex hull swept down to the ground (:func:`cloud_body`) — with the training prior's mean
   mass and friction (:func:`physics_from_cloud_prediction`);
+* physics ensemble: physics from the cloud as a *density*: the push rolled out N times on the reconstructed
+  body with friction and mass drawn from the model's training prior, a kernel density of the outcomes with
+  the model's motion bandwidth (:func:`physics_ensemble_prediction`); scored on likelihood and coverage;
 * oracle physics: pybullet pushing the *true* mesh from the *true* initial pose with the prior's mean mass
   and friction (:func:`oracle_physics_prediction`). It knows what the method cannot (the hidden geometry
   and the exact pose), so reports label it an oracle and leave it out of "beats the baselines" claims;
@@ -146,6 +149,38 @@ def physics_from_cloud_prediction(points: torch.Tensor, initial_estimate: se3.Po
     """
     body, start = cloud_body(points, initial_estimate)
     return start.to(torch.float32), _simulate_once(body, robot_start, start, action, mass, ground_friction, settings)
+
+
+def physics_ensemble_prediction(points: torch.Tensor, initial_estimate: se3.Pose, robot_start: se3.Pose,
+                                action: torch.Tensor, friction_prior, mass_prior, count: int,
+                                generator: torch.Generator, settings=None) -> tuple[se3.Pose, se3.Pose]:
+    """Physics from the cloud as a density: the push rolled out ``count`` times on the body :func:`cloud_body`
+    reconstructs, ground friction and mass drawn from the priors (the model's training prior; anything with
+    ``.sample(shape, generator)``), in the engine of ``settings``.
+
+    Returns:
+        ``(start, finals)``: the reconstructed body's pose before the push ``()`` and after each rollout
+        ``(count,)``; :func:`pushtorch.evaluation.likelihood.ensemble_density` makes them a density.
+
+    Raises:
+        InvalidParameterError: ``count`` < 1. ModelError: a cloud that spans no volume.
+    """
+    from pushtorch.errors import InvalidParameterError
+    from pushtorch.sim.runner import simulate_pushes
+
+    if isinstance(count, bool) or int(count) != count or count < 1:
+        raise InvalidParameterError(f"a physics ensemble needs at least one rollout, got {count!r}")
+    n = int(count)
+    body, start = cloud_body(points, initial_estimate)
+    friction = torch.as_tensor(friction_prior.sample((n,), generator), dtype=torch.float64).reshape(n)
+    mass = torch.as_tensor(mass_prior.sample((n,), generator), dtype=torch.float64).reshape(n)
+    robot = se3.Pose.unchecked(robot_start.p.double().reshape(1, 3).expand(n, 3),
+                               robot_start.q.double().reshape(1, 4).expand(n, 4))
+    initial = se3.Pose.unchecked(start.p.reshape(1, 3).expand(n, 3), start.q.reshape(1, 4).expand(n, 4))
+    act = torch.as_tensor(action, dtype=torch.float64).reshape(1, 2).expand(n, 2)
+    records = simulate_pushes(body, robot, initial, act, mass, friction, settings=settings)
+    final = records.object_final
+    return start.to(torch.float32), se3.Pose.unchecked(final.p.float(), final.q.float())
 
 
 def oracle_physics_prediction(obj: ObjectModel, robot_start: se3.Pose, truth_initial: se3.Pose,

@@ -22,6 +22,11 @@ that is wrong but says it is unsure. Decisions (docs/method.md, "Likelihood scor
   truth enters as its displacement applied to that start, ``x* = B1 ∘ S ∘ B0⁻¹ ∘ B̂0`` for each symmetry
   ``S`` of the test object, and the nearest copy (largest density) is scored, as H_acc scores the nearest
   copy. A continuous symmetry is scanned on a 3° grid and refined to 0.25°.
+* **Calibration.** A density's ``α`` highest-density region is ``{x : log p(x) ≥ t_α}``, in the 7-D pose space,
+  with ``t_α`` the ``1 − α`` quantile of ``log p`` over :data:`COVERAGE_SAMPLES` draws from the density itself
+  (:func:`hdr_thresholds`); a truth is inside when its score (``−nll``, the nearest symmetric copy, as above)
+  reaches ``t_α``. ``coverage_50`` and ``coverage_90`` are the shares of truths inside: a calibrated density
+  has 0.5 and 0.9, an overconfident one less. Point predictions have no such region and get none.
 * **Baselines.** The mean-motion baseline's density is an isotropic Gaussian × folded vMF over the training
   motions in the robot's start frame, fitted by moments (:func:`mean_motion_density`). A point prediction
   (no motion, nearest push, physics) is scored as one kernel of the model's motion bandwidth at the
@@ -51,12 +56,17 @@ from pushtorch.objects import Symmetry
 Tensor = torch.Tensor
 
 __all__ = [
+    "COVERAGE_LEVELS",
+    "COVERAGE_SAMPLES",
     "IMPORTANCE_SAMPLES",
     "MIN_P_STD",
     "MIN_ROT_STD",
     "log_kernel_normaliser",
     "log_normaliser",
     "log_rotation_normaliser",
+    "covered",
+    "ensemble_density",
+    "hdr_thresholds",
     "mean_motion_density",
     "motion_product_density",
     "nll",
@@ -69,6 +79,10 @@ __all__ = [
 #: baseline whose training pushes all moved alike from an infinite density.
 MIN_P_STD = 1e-4
 MIN_ROT_STD = 1e-3
+#: The levels of the highest-density regions whose coverage is reported (``coverage_50``, ``coverage_90``).
+COVERAGE_LEVELS = (0.5, 0.9)
+#: Draws from a density that set its regions' thresholds: the 10 % tail's quantile from 40 draws below it.
+COVERAGE_SAMPLES = 400
 _CONTINUOUS_STEPS = 120  # a 3° grid about a continuous symmetry axis
 _REFINE = torch.linspace(-1.5, 1.5, 37, dtype=torch.float64)  # ±1.5 grid steps (±4.5°) in 0.25° steps
 
@@ -210,3 +224,43 @@ def nll(density: FinalPoseDistribution, truth_final: se3.Pose, truth_start: se3.
                                        _axis_turns(axis, fine_angles))
     refined = density.log_prob(symmetric_truths(final, truth0, est0, fine).vector())
     return -torch.maximum(coarse.amax(-1), refined.amax(-1))
+
+
+def ensemble_density(finals: se3.Pose, p_std: float, rot_std: float) -> FinalPoseDistribution:
+    """A kernel density ``()`` with one kernel of bandwidth (p_std, rot_std) at each of the poses ``(N,)``,
+    equally weighted: the density of an ensemble of rollouts (the ``physics_ensemble`` peer)."""
+    n = int(finals.p.reshape(-1, 3).shape[0])
+    if n == 0:
+        raise InvalidParameterError("an ensemble density needs at least one outcome")
+    means = se3.Pose.unchecked(finals.p.reshape(n, 3), finals.q.reshape(n, 4))
+    density = _full_density(means, torch.full((1, n), -math.log(n)), p_std, rot_std)
+    density._log_z = torch.zeros((), dtype=torch.float64)
+    return density
+
+
+def hdr_thresholds(density: FinalPoseDistribution, levels=COVERAGE_LEVELS, samples: int = COVERAGE_SAMPLES,
+                   generator: torch.Generator | None = None) -> Tensor:
+    """``(L,)`` float64 log-density thresholds of the density's highest-density regions holding ``levels`` of
+    its mass (module docstring, "Calibration"): ``t_α`` is the ``1 − α`` quantile of ``log p`` over ``samples``
+    draws from the density (batch shape ``()``).
+
+    Raises:
+        InvalidParameterError: a level outside (0, 1), or fewer than 10 samples.
+    """
+    alpha = torch.as_tensor(levels, dtype=torch.float64).reshape(-1)
+    if not ((alpha > 0) & (alpha < 1)).all():
+        raise InvalidParameterError(f"coverage levels must lie in (0, 1), got {alpha.tolist()}")
+    if samples < 10:
+        raise InvalidParameterError(f"a region's threshold needs at least 10 draws, got {samples}")
+    draws = density.sample((int(samples),), generator)
+    log_p = density.log_prob(draws).double().reshape(-1)
+    log_p = log_p[torch.isfinite(log_p)]
+    if log_p.numel() == 0:
+        raise InvalidParameterError("no draw from the density has a finite log density")
+    return torch.quantile(log_p, 1.0 - alpha)
+
+
+def covered(nll_values: Tensor, thresholds: Tensor) -> Tensor:
+    """``(..., L)`` bool: each truth scored ``nll_values (...)`` is inside each region of ``thresholds (..., L)``
+    (broadcast): ``−nll ≥ t_α``."""
+    return (-nll_values.double()).unsqueeze(-1) >= thresholds.double()

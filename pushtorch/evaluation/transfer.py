@@ -1,0 +1,122 @@
+"""How much a pooled model's density widens on a contact unlike its training ones, chosen by held-out
+likelihood across training shapes (paper, §Motion Model's kernel densities; beyond the paper: many shapes).
+
+A model pooled over many shapes (:mod:`pushtorch.models.pooled`) predicts a new object's motion from the
+training pushes whose contact resembles its own. When no training contact is close, the kernels that still
+weigh in move as *their* objects moved, and a density as narrow as the training spread is confidently wrong.
+The prediction therefore scales its motion kernels by ``sqrt(s0² + κ·d²)``, ``d`` the manipulator contact's
+distance to the nearest training contact in contact-kernel stds
+(:func:`pushtorch.prediction.predict.transfer_bandwidth`).
+
+``s0`` (which may also narrow a pool whose within-pool bandwidths are wider than transfer needs) and ``κ`` are
+chosen here, never on a test object: each training shape in turn is held out, the other
+shapes are pooled, and a sample of the held-out shape's own training pushes is predicted from its single-shot
+cloud at the push's robot start; the pair with the lowest mean negative log-likelihood of those pushes' true
+outcomes (displacement sense, :func:`pushtorch.evaluation.likelihood.nll`) is kept. The same predictions serve
+every pair: only the motion bandwidth of the scored density changes.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+from dataclasses import replace
+
+import torch
+
+from pushtorch import se3
+from pushtorch.errors import InvalidParameterError, ModelError
+from pushtorch.evaluation.likelihood import nll, product_density
+from pushtorch.models.model import PushModel
+from pushtorch.models.pooled import ShapeParts, pool_parts
+from pushtorch.objects import ObjectModel
+
+__all__ = ["SCALES", "WIDENINGS", "choose_widening"]
+
+log = logging.getLogger(__name__)
+
+#: The grids searched: the base scale ``s0`` and the widening per squared contact distance ``κ``.
+SCALES = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
+WIDENINGS = (0.0, 0.1, 0.3, 1.0, 3.0)
+#: Importance samples per expert of each scored density's normaliser in the search (the scores' default is 64): a
+#: quarter of the cost; the search compares means over many pushes, not single scores
+SEARCH_SAMPLES = 16
+
+
+def choose_widening(model: PushModel, objects: list[ObjectModel], records: list, parts: list[ShapeParts],
+                    pushes_per_shape: int = 6, generator: torch.Generator | None = None,
+                    scales=SCALES, widenings=WIDENINGS) -> PushModel:
+    """The pooled ``model`` with ``transfer_scale`` and ``transfer_widening`` chosen by leave-one-shape-out
+    likelihood (module docstring); the search is kept in ``meta["widening"]``.
+
+    Args:
+        model: the pooled model (its bandwidths already chosen); objects, records, parts: its training
+            shapes, their push records and fitted parts (:func:`pushtorch.models.pooled.fit_shape_parts`).
+        pushes_per_shape: held-out pushes predicted per shape (drawn among its valid pushes).
+
+    Raises:
+        InvalidParameterError: fewer than two shapes, or no held-out push could be predicted.
+    """
+    from pushtorch.features import compute_surface_features
+    from pushtorch.perception import capture_partial_cloud
+    from pushtorch.prediction import predict
+    from pushtorch.prediction.predict import transfer_distance
+
+    if len(parts) < 2:
+        raise InvalidParameterError("choosing the widening holds one shape out: it needs at least two shapes")
+    generator = generator or torch.Generator().manual_seed(0)
+    settings = replace(model.settings, transfer_scale=1.0, transfer_widening=0.0)
+    grid = list(itertools.product([float(s) for s in scales], [float(k) for k in widenings]))
+    unchanged = grid.index((1.0, 0.0)) if (1.0, 0.0) in grid else None
+    scores: list[torch.Tensor] = []
+    skipped = 0
+    for s, (obj, shape_records) in enumerate(zip(objects, records, strict=True)):
+        rest = parts[:s] + parts[s + 1:]
+        contact, position, motions = pool_parts(rest, settings, generator)
+        held_out = PushModel(f"without_{obj.name}", "shapes", settings, contact, position, motions)
+        valid = shape_records.take(shape_records.valid)
+        pick = torch.randperm(len(valid), generator=generator)[:pushes_per_shape]
+        for i in pick.tolist():
+            push = valid.take(torch.tensor([i]))
+            start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
+            robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
+            cloud = capture_partial_cloud(obj, start, voxel_size=settings.voxel_size)
+            features = compute_surface_features(cloud, radius=settings.feature_radius)
+            try:
+                prediction = predict(held_out, features, push.action[0].float(), generator, robot_start=robot)
+            except (ModelError, ValueError):  # the bumper meets no observed feature there
+                skipped += 1
+                continue
+            condition, density = prediction.condition, prediction.motion_density
+            a = held_out.action_index(push.action[0].float())
+            d2 = float(transfer_distance(held_out, condition, a))
+            means, log_weights = density.shared_kernels()
+            base = density.experts.bandwidth
+            rounds = density.experts.trial_rounds[0]
+            truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
+            row = []
+            for s0, kappa in grid:
+                scale = math.sqrt(s0**2 + kappa * d2)
+                scored = product_density(means, log_weights, base.p_std * scale, base.rot_std * scale, rounds,
+                                         base.alpha_t, generator, prediction.candidates, SEARCH_SAMPLES,
+                                         exponent=density.expert_exponent)
+                row.append(float(nll(scored, truth, start, condition.object_pose, obj.symmetry)[0]))
+            scores.append(torch.tensor(row, dtype=torch.float64))
+    if not scores:
+        raise InvalidParameterError("no held-out push of any training shape could be predicted to choose the "
+                                    "widening")
+    table = torch.stack(scores)  # (pushes, grid)
+    mean = table.mean(0)
+    best = int(mean.argmin())
+    s0, kappa = grid[best]
+    log.info("widening: s0=%.2f kappa=%.3f (held-out nll %.2f against %s as trained, %d pushes)", s0, kappa,
+             float(mean[best]), "—" if unchanged is None else f"{float(mean[unchanged]):.2f}", table.shape[0])
+    meta = dict(model.meta)
+    meta["widening"] = {
+        "start": {"transfer_scale": model.settings.transfer_scale,
+                  "transfer_widening": model.settings.transfer_widening},
+        "chosen": {"transfer_scale": s0, "transfer_widening": kappa},
+        "grid": [list(g) for g in grid], "nll": mean.tolist(), "pushes": int(table.shape[0]), "skipped": skipped,
+    }
+    return replace(model, settings=replace(model.settings, transfer_scale=s0, transfer_widening=kappa), meta=meta)
