@@ -158,8 +158,10 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
                 # reconstructed body (physics from the cloud) or the true pose (the oracle)
                 for method, (start, final) in predictions.methods().items():
                     acc = compare_displacement(start, final, predictions.truth_initial, truth.take(c), obj)
+                    inside = nll.get(f"coverage:{method}")
                     records.append(summarise("prediction", obj.name, method, acc, model_name, condition,
-                                             metric="displacement", nll=nll[method][c]))
+                                             metric="displacement", nll=nll[method][c],
+                                             coverage=None if inside is None else inside[c]))
                     hacc_samples.append(sample_entry(records[-1], acc.hacc.reshape(-1, samples)))
                     records.append(summarise("prediction", obj.name, method, compare(final, truth.take(c), obj),
                                              model_name, condition, metric="frame"))

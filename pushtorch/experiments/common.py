@@ -57,6 +57,7 @@ from pushtorch.experiments.recording import (  # noqa: F401
 )
 from pushtorch.experiments.training import (  # noqa: F401
     train_model,
+    train_pooled,
     training_records,
 )
 
@@ -92,6 +93,7 @@ __all__ = [
     "stable_seed",
     "summarise",
     "train_model",
+    "train_pooled",
     "training_records",
     "truth_fingerprint",
 ]

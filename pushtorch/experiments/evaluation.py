@@ -80,12 +80,12 @@ def observe(obj: ObjectModel, pose: se3.Pose, settings: ModelSettings) -> tuple[
 
 
 _POSE_FIELDS = ("truth_initial", "robot_start", "estimate", "final", "mean_motion", "nearest", "oracle",
-                "cloud_start", "cloud_final")
+                "cloud_start", "cloud_final", "ensemble_start", "ensemble_final")
 
 
 #: Bump when the predictions a cached set holds would come out differently for the same settings (collision-free
 #: starts, new baselines): cached sets of an older version are recomputed.
-PREDICTION_VERSION = 3
+PREDICTION_VERSION = 4
 
 
 @dataclass
@@ -102,14 +102,16 @@ class PredictionSet:
         oracle: the oracle-physics baseline's final poses ``(N, A)`` (from ``truth_initial``), or None.
         cloud_start, cloud_final: the physics-from-cloud baseline's reconstructed body before and after the
             push ``(N, A)``, or None.
+        ensemble_start, ensemble_final: the physics ensemble's reconstructed body before the push and its
+            most probable rollout ``(N, A)`` (the outcome of highest density under the ensemble's own), or None.
         backoff: ``(N, A)`` metres each robot start was backed off to clear the observed cloud
             (:attr:`pushtorch.prediction.PushCondition.backoff`).
         selected: ``(N, A)`` index into ``model_names`` of the model that made each prediction.
         model_names: names of the candidate models.
         fingerprint: what the set was computed from (a cached set is reused only if it matches).
         densities: per condition and action, ``{method: PoseDensity}`` of the methods that predict a
-            density (``pushtorch``, ``mean_motion``), kept in memory for :func:`likelihood_scores`; None
-            for a set read from the cache (its scores were cached with it).
+            density (``pushtorch``, ``mean_motion``, ``physics_ensemble``), kept in memory for
+            :func:`likelihood_scores`; None for a set read from the cache (its scores were cached with it).
     """
 
     truth_initial: se3.Pose
@@ -126,6 +128,8 @@ class PredictionSet:
     model_names: list[str]
     fingerprint: str
     densities: list[list[dict]] | None = field(default=None, repr=False)
+    ensemble_start: se3.Pose | None = None
+    ensemble_final: se3.Pose | None = None
 
     @property
     def invalid_starts(self) -> int:
@@ -145,6 +149,8 @@ class PredictionSet:
                "mean_motion": (self.estimate, self.mean_motion), "nearest_push": (self.estimate, self.nearest)}
         if self.cloud_final is not None:
             out["physics_from_cloud"] = (self.cloud_start, self.cloud_final)
+        if self.ensemble_final is not None:
+            out["physics_ensemble"] = (self.ensemble_start, self.ensemble_final)
         if self.oracle is not None:
             out["oracle_physics"] = (truth, self.oracle)
         return out
@@ -252,6 +258,7 @@ def predict_set(
     adaptive: bool = False,
     choose: Callable[[int], int] | None = None,
     physics: tuple[float, float] | None = None,
+    ensemble: tuple[Any, Any, int] | None = None,
     seed_key: str | None = None,
     memo: dict | None = None,
     examples: LogConditions | int | None = None,
@@ -277,6 +284,8 @@ def predict_set(
             densities they need are not cached.
         physics: (mass kg, ground friction) of the physics baselines (the training prior's means), or None
             to skip them.
+        ensemble: (friction prior, mass prior, rollouts) of the ``physics_ensemble`` peer (the model's
+            training prior; :func:`pushtorch.evaluation.baselines.physics_ensemble_prediction`), or None.
         seed_key: the name the seeds derive from (default ``key``).
         memo: a dict shared by groups with the same ``seed_key`` and object, keyed by (condition,
             model name, action); holds derived poses and densities, not predictions.
@@ -294,9 +303,10 @@ def predict_set(
         mean_motion_prediction,
         nearest_push_prediction,
         oracle_physics_prediction,
+        physics_ensemble_prediction,
         physics_from_cloud_prediction,
     )
-    from pushtorch.evaluation.likelihood import mean_motion_density, motion_product_density
+    from pushtorch.evaluation.likelihood import ensemble_density, mean_motion_density, motion_product_density
     from pushtorch.prediction import contact_bandwidth, predict
 
     n, a_count = int(poses.p.shape[0]), int(ctx.actions.shape[0])
@@ -308,6 +318,7 @@ def predict_set(
         poses=poses.p.tolist() + poses.q.tolist(), actions=ctx.actions.tolist(),
         physics=physics, samples_per_action=ctx.samples_per_action, version=PREDICTION_VERSION,
         engines=[ctx.sim.engine, ctx.physics.engine],
+        **({} if ensemble is None else {"ensemble": [repr(ensemble[0]), repr(ensemble[1]), int(ensemble[2])]}),
     )
     path = contained_path(ctx.run_dir, "predictions", f"{_cache_name(ctx, key)}.npz",
                           what="experiment, object or prior name")
@@ -390,7 +401,8 @@ def predict_set(
             predict_condition(i, features, True)
         return cached, chosen
 
-    names = ("robot_start", "estimate", "final", "mean_motion", "nearest", "oracle", "cloud_start", "cloud_final")
+    names = ("robot_start", "estimate", "final", "mean_motion", "nearest", "oracle", "cloud_start", "cloud_final",
+             "ensemble_start", "ensemble_final")
     fields: dict[str, list] = {name: [] for name in names}
     selected = torch.zeros(n, a_count, dtype=torch.int64)
     backoff = torch.zeros(n, a_count)
@@ -399,7 +411,7 @@ def predict_set(
         _, features = observe(obj, poses.take(i), ctx.settings)
         index, derived = predict_condition(i, features, i in wanted)
         selected[i] = index
-        densities.append([d["densities"] for d in derived])
+        densities.append([dict(d["densities"]) for d in derived])  # a copy: memo entries are shared
         for j, poses_ij in enumerate(derived):
             for name in ("robot_start", "estimate", "final", "mean_motion", "nearest"):
                 fields[name].append(poses_ij[name])
@@ -412,6 +424,17 @@ def predict_set(
                     settings=ctx.physics)
                 fields["cloud_start"].append(cloud_start)
                 fields["cloud_final"].append(cloud_final)
+            if ensemble is not None:
+                rollouts = torch.Generator().manual_seed(stable_seed(ctx.seed, seed_key, i, j, "ensemble"))
+                start, finals = physics_ensemble_prediction(
+                    features.p, poses_ij["estimate"], poses_ij["robot_start"], ctx.actions[j], ensemble[0],
+                    ensemble[1], int(ensemble[2]), rollouts, settings=ctx.physics)
+                density = ensemble_density(finals, candidates[index].settings.motion_p_std,
+                                           candidates[index].settings.motion_rot_std)
+                best = int(density.log_prob(finals.vector().double()).argmax())
+                fields["ensemble_start"].append(start)
+                fields["ensemble_final"].append(finals.take(best))
+                densities[-1][j]["physics_ensemble"] = density
             if bar is not None:
                 bar.update(1)
 
@@ -439,17 +462,21 @@ def predict_set(
 def likelihood_scores(ctx: ExperimentContext, key: str, obj: ObjectModel, predictions: PredictionSet,
                       truth_final: se3.Pose, truth: str) -> dict[str, torch.Tensor]:
     """Negative log-likelihoods (nats) of the ground truths ``(C, N, A, S)`` under every method's predicted
-    density, in the displacement sense (:func:`pushtorch.evaluation.likelihood.nll`): ``{method: (C, N, A, S)}``.
+    density, in the displacement sense (:func:`pushtorch.evaluation.likelihood.nll`): ``{method: (C, N, A, S)}``;
+    and for every method with a density of its own, ``{"coverage:<method>": (C, N, A, S, L)}``, 1 where the
+    truth lies inside the density's highest-density region of each level of
+    :data:`~pushtorch.evaluation.likelihood.COVERAGE_LEVELS` (:func:`~pushtorch.evaluation.likelihood.hdr_thresholds`).
 
-    ``pushtorch`` and ``mean_motion`` are scored under their own densities; the point predictions under one
-    kernel of the model's motion bandwidth (:func:`pushtorch.evaluation.likelihood.point_density`). Cached as
+    ``pushtorch``, ``mean_motion`` and ``physics_ensemble`` are scored under their own densities; the point
+    predictions under one kernel of the model's motion bandwidth
+    (:func:`pushtorch.evaluation.likelihood.point_density`), without coverage. Cached as
     ``<run_dir>/scores/<key>.npz`` with the set's and the truth's fingerprints (``truth``:
     :func:`truth_fingerprint`).
 
     Raises:
         RecordFormatError: the set came from the cache but its scores did not (they are written together).
     """
-    from pushtorch.evaluation.likelihood import nll, point_density
+    from pushtorch.evaluation.likelihood import COVERAGE_LEVELS, covered, hdr_thresholds, nll, point_density
 
     path = _scores_path(ctx, key)
     made_from = [predictions.fingerprint, truth]
@@ -463,16 +490,25 @@ def likelihood_scores(ctx: ExperimentContext, key: str, obj: ObjectModel, predic
     scores: dict[str, torch.Tensor] = {}
     for method, (start, final) in predictions.methods().items():
         out = torch.empty(c_count, n, a_count, samples)
+        inside = torch.zeros(c_count, n, a_count, samples, len(COVERAGE_LEVELS))
+        has_density = True
         for i in range(n):
             for j in range(a_count):
-                density = predictions.densities[i][j].get(method) or point_density(final.take((i, j)), p_std,
-                                                                                  rot_std)
+                own = predictions.densities[i][j].get(method)
+                has_density = has_density and own is not None
+                density = own or point_density(final.take((i, j)), p_std, rot_std)
                 truths = se3.Pose.unchecked(truth_final.p[:, i, j].reshape(-1, 3),
                                             truth_final.q[:, i, j].reshape(-1, 4))
                 values = nll(density, truths, predictions.truth_initial.take(i), start.take((i, j)),
                              obj.symmetry)
                 out[:, i, j] = values.reshape(c_count, samples).float()
+                if own is not None:
+                    draws = torch.Generator().manual_seed(stable_seed(ctx.seed, key, method, i, j, "coverage"))
+                    thresholds = hdr_thresholds(own, COVERAGE_LEVELS, generator=draws)
+                    inside[:, i, j] = covered(values, thresholds).reshape(c_count, samples, -1).float()
         scores[method] = out
+        if has_density:
+            scores[f"coverage:{method}"] = inside
     save_arrays(path, scores, {"made_from": made_from})
     return scores
 
@@ -571,6 +607,7 @@ def summarise(
     selection_rate: float | None = None,
     metric: str | None = None,
     nll: torch.Tensor | None = None,
+    coverage: torch.Tensor | None = None,
 ) -> dict[str, Any]:
     """One results.json record: a group's H_acc mean and std, and mean raw errors, over ``n`` comparisons.
 
@@ -578,7 +615,9 @@ def summarise(
     true start pose (:func:`pushtorch.evaluation.metrics.displaced`, the primary score), or ``frame``, the predicted
     final pose as it is (the estimated frame against the test object's own); pose records carry none.
     ``nll`` (displacement records): the per-comparison negative log-likelihoods of the truth under the
-    method's density (:func:`likelihood_scores`), summarised as ``nll_mean`` and ``nll_median`` (nats)."""
+    method's density (:func:`likelihood_scores`), summarised as ``nll_mean`` and ``nll_median`` (nats);
+    ``coverage`` (displacement records of a method with a density): ``(..., 2)`` inside flags of the 50 % and
+    90 % regions, summarised as ``coverage_50`` and ``coverage_90`` (None for a point prediction)."""
     h = acc.hacc.reshape(-1).double()
     record = {
         "task": task,
@@ -601,4 +640,7 @@ def summarise(
         # the likelihood is scored in the displacement sense only; frame records carry the key, empty
         record["nll_mean"] = None if nll is None else float(nll.double().mean())
         record["nll_median"] = None if nll is None else float(nll.double().median())
+        flags = None if coverage is None else coverage.double().reshape(-1, coverage.shape[-1]).mean(0)
+        record["coverage_50"] = None if flags is None else float(flags[0])
+        record["coverage_90"] = None if flags is None else float(flags[1])
     return record

@@ -38,6 +38,7 @@ from pushtorch.experiments.statistics import (
     _stat_values,
     wants_log_axis,
 )
+from pushtorch.experiments.transfer_report import coverage_figure
 from pushtorch.viz.colours import colour_of  # re-exported: the figures' colours
 
 __all__ = [
@@ -330,6 +331,9 @@ def make_figures(out_dir: Path, records: Sequence[Mapping[str, Any]],
     fig = online_figure(plt, records)
     if fig is not None:
         save(fig, "online_adaptation.png")
+    fig = coverage_figure(plt, records)
+    if fig is not None:
+        save(fig, "coverage.png")
 
     actions = extras.get("training_actions") or {}
     for part_name, by_object in (extras.get("training_scatter") or {}).items():

@@ -24,6 +24,7 @@ from pushtorch.experiments.results import (
     pool,
     primary,
 )
+from pushtorch.experiments.transfer_report import transfer_section
 
 __all__ = [
     "write_report",
@@ -192,6 +193,7 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
         figure("objects.png", "per object")
 
     lines += online_section(records, figure_names, extras.get("online_separability") or ())
+    lines += transfer_section(records, extras.get("transfer"), figure_names)
 
     counts = _thrown_counts(extras.get("thrown") or [])
     if counts:

@@ -114,12 +114,13 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             )
             truth, broken = simulate_truth(ctx, key, obj, predictions, [condition], samples,
                                            seed_key=f"{name}_{obj_name}")
-            nll = likelihood_scores(ctx, key, obj, predictions, truth, truth_key)["pushtorch"]
+            scores = likelihood_scores(ctx, key, obj, predictions, truth, truth_key)
+            nll = scores["pushtorch"]
             rate = float((predictions.selected == congruent).double().mean())
             acc = compare_displacement(predictions.estimate, predictions.final, predictions.truth_initial,
                                        truth.take(0), obj)
             records.append(summarise("selection", obj_name, method, acc, selection_rate=rate,
-                                     metric="displacement", nll=nll[0]))
+                                     metric="displacement", nll=nll[0], coverage=scores["coverage:pushtorch"][0]))
             hacc_samples.append(sample_entry(records[-1], acc.hacc.reshape(-1, samples)))
             records.append(summarise("selection", obj_name, method, compare(predictions.final, truth.take(0), obj),
                                      selection_rate=rate, metric="frame"))

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from pushtorch.experiments.online_report import online_checks
+from pushtorch.experiments.transfer_report import transfer_checks
 
 __all__ = [
     "ORACLES",
@@ -72,15 +73,21 @@ def pool(records: Iterable[Mapping[str, Any]]) -> dict[str, float]:
     """Pool groups into one: n-weighted means and the exact population std of the union of their samples.
 
     Returns:
-        ``{"n", "hacc_mean", "hacc_std", "linear_cm", "angular_deg", "nll_mean"}`` (NaN means for no records;
-        ``nll_mean`` is NaN unless every record has one).
+        ``{"n", "hacc_mean", "hacc_std", "linear_cm", "angular_deg", "nll_mean", "coverage_50", "coverage_90"}``
+        (NaN means for no records; ``nll_mean`` and the coverages are NaN unless every record has one).
     """
     records = list(records)
     n = sum(int(r["n"]) for r in records)
     if n == 0:
-        return {"n": 0, **dict.fromkeys(("hacc_mean", "hacc_std", "linear_cm", "angular_deg", "nll_mean"),
-                                        math.nan)}
+        return {"n": 0, **dict.fromkeys(("hacc_mean", "hacc_std", "linear_cm", "angular_deg", "nll_mean",
+                                         "coverage_50", "coverage_90"), math.nan)}
     scored = all(r.get("nll_mean") is not None for r in records)
+
+    def covered(key: str) -> float:
+        if not all(r.get(key) is not None for r in records):
+            return math.nan
+        return sum(r["n"] * r[key] for r in records) / n
+
     mean = sum(r["n"] * r["hacc_mean"] for r in records) / n
     second = sum(r["n"] * (r["hacc_std"] ** 2 + r["hacc_mean"] ** 2) for r in records) / n
     return {
@@ -90,6 +97,8 @@ def pool(records: Iterable[Mapping[str, Any]]) -> dict[str, float]:
         "linear_cm": sum(r["n"] * r["linear_cm"] for r in records) / n,
         "angular_deg": sum(r["n"] * r["angular_deg"] for r in records) / n,
         "nll_mean": sum(r["n"] * r["nll_mean"] for r in records) / n if scored else math.nan,
+        "coverage_50": covered("coverage_50"),
+        "coverage_90": covered("coverage_90"),
     }
 
 
@@ -116,13 +125,15 @@ def _prior_name(label: str) -> str:
 
 
 def acceptance_checks(records: Sequence[Mapping[str, Any]],
-                      thrown: Iterable[Mapping[str, Any]] = ()) -> list[dict[str, Any]]:
+                      thrown: Iterable[Mapping[str, Any]] = (),
+                      transfer: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
     """The quickstart's acceptance checks on whatever tasks the records hold.
 
     * prediction: on every object, our H_acc (pooled over models and conditions) is below no-motion's;
     * pose: on every object, the position model's mean H_acc is below the centroid's;
     * selection: on every object, adaptive and congruent differ by at most two standard errors of the
       difference (within noise);
+    * transfer (``transfer``: the shape-transfer part's extras): :func:`transfer_checks`;
     * thrown (``thrown``: the runs' thrown-push entries): no ground-truth push of a part and method other
       than the deliberately mismatched ``incongruent`` tipped or threw the object.
     """
@@ -152,6 +163,7 @@ def acceptance_checks(records: Sequence[Mapping[str, Any]],
                        "detail": f"H_acc {adaptive['hacc_mean']:.3f} vs {congruent['hacc_mean']:.3f} "
                                  f"(difference {diff:+.3f}, 2 SE {2 * se:.3f})"})
     checks += online_checks(records)
+    checks += transfer_checks(records, transfer)
     for (part, method), count in _thrown_counts(thrown).items():
         if method != "incongruent":
             checks.append({"check": "no ground-truth push thrown", "object": f"{part}: {method}",
@@ -189,10 +201,11 @@ def write_results(out_dir: Path, experiment: str, config: Mapping[str, Any], wal
 
 def _thrown_counts(thrown: Iterable[Mapping[str, Any]]) -> dict[tuple[str, str], dict[str, int]]:
     """Thrown pushes and invalid starts summed per (part, method): the model-selection entries carry the
-    selection method, the biasing entries ``pushtorch`` with the bias in the model label."""
+    selection method, the biasing entries ``pushtorch`` with the bias in the model label; an entry naming its
+    ``part`` (shape transfer) is counted under it."""
     counts: dict[tuple[str, str], dict[str, int]] = {}
     for t in thrown:
-        part = "model selection" if t.get("model") is None else f"{_bias_of(t['model'])} biasing"
+        part = t.get("part") or ("model selection" if t.get("model") is None else f"{_bias_of(t['model'])} biasing")
         entry = counts.setdefault((part, t["method"]), {"thrown": 0, "pushes": 0, "invalid_starts": 0,
                                                         "starts": 0})
         for key in entry:

@@ -31,6 +31,7 @@ KINDS = {
     "pose_estimation": "pushtorch.experiments.pose_estimation",
     "biasing": "pushtorch.experiments.biasing",
     "online_adaptation": "pushtorch.experiments.online_adaptation",
+    "shape_transfer": "pushtorch.experiments.shape_transfer",
 }
 
 

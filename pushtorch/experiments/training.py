@@ -20,6 +20,7 @@ from pushtorch.sim.plan import Placement
 
 __all__ = [
     "train_model",
+    "train_pooled",
     "training_records",
 ]
 
@@ -71,8 +72,12 @@ def training_records(ctx: ExperimentContext, obj: ObjectModel, friction: str, ma
         placement=ctx.placement,
     )
     folder = _training_folder(ctx, obj.name, friction, mass)
-    run_plan(object_spec(obj), plan, folder, ctx.sim, workers=ctx.workers, shard_size=ctx.shard_size,
-             progress=ctx.progress if progress is None else progress, executor=ctx.executor)
+    # a plan smaller than one shard (a generated shape's share of a pooled model's pushes) runs in this process:
+    # a worker pool costs more than it saves
+    small = len(plan) < ctx.shard_size
+    run_plan(object_spec(obj), plan, folder, ctx.sim, workers=1 if small else ctx.workers,
+             shard_size=ctx.shard_size, progress=ctx.progress if progress is None else progress,
+             executor=None if small else ctx.executor)
     return load_records(folder, trajectories=False)  # training uses the final poses only
 
 
@@ -124,3 +129,46 @@ def _log_training(ctx: ExperimentContext, model: PushModel, obj: ObjectModel) ->
     # one row of trained models along +x at y = -1.5 m, clear of the experiments around the origin
     index = len({m.name for m in ctx._models.values()})
     log_contact_model(ctx.recording, model, obj, object_pose=obj.resting_pose(x=1.0 * index, y=-1.5))
+
+
+def train_pooled(ctx: ExperimentContext, shapes: list[ObjectModel], friction: str, mass: str,
+                 widening_pushes: int, name: str = "shapes") -> PushModel:
+    """One model pooled over ``shapes``' training pushes (:mod:`pushtorch.models.pooled`), its bandwidths chosen
+    on the pool and its widening across shapes (:func:`pushtorch.evaluation.transfer.choose_widening`), cached as
+    ``<run_dir>/models/<name>_<friction>_<mass>.npz``. The pushes are the shapes' own cached training pushes
+    (:func:`training_records`, ``ctx.samples_per_action`` per action)."""
+    from pushtorch.evaluation.transfer import choose_widening
+    from pushtorch.models.pooled import fit_shape_parts, train_pooled_model
+
+    key = _model_key(name, friction, mass)
+    meta = {"friction": friction, "mass": mass, "samples_per_action": ctx.samples_per_action, "seed": ctx.seed,
+            "shapes": [s.name for s in shapes], "widening_pushes": int(widening_pushes)}
+    if ctx.placement != Placement():
+        meta["placement"] = asdict(ctx.placement)
+    if _engine_tag(ctx):
+        meta["engine"] = ctx.sim.engine
+    cache_key = f"{key}|{json.dumps(asdict(ctx.settings), sort_keys=True)}|{json.dumps(meta, sort_keys=True)}"
+    if cache_key in ctx._models:
+        return ctx._models[cache_key]
+    path = contained_path(ctx.run_dir, "models", f"{key}{_cache_tag(ctx)}.npz", what="object or prior name")
+    model = None
+    if path.is_file():
+        try:
+            cached = load_model(path)
+        except RecordFormatError as exc:
+            log.warning("retraining %s: %s", key, exc)
+        else:
+            trained_meta = {k: v for k, v in cached.meta.items() if k not in ("bandwidths", "widening", "pooled")}
+            if cached.configured_settings == ctx.settings and trained_meta == meta:
+                model = cached
+    if model is None:
+        records = [training_records(ctx, s, friction, mass) for s in shapes]
+        log.info("training %s on %d shapes, %d pushes", key, len(shapes), sum(len(r) for r in records))
+        generator = torch.Generator().manual_seed(stable_seed(ctx.seed, "fit", key))
+        parts = fit_shape_parts(shapes, records, ctx.settings, generator)
+        model = train_pooled_model(shapes, records, ctx.settings, name=key, generator=generator, meta=meta,
+                                   parts=parts)
+        model = choose_widening(model, shapes, records, parts, widening_pushes, generator)
+        model.save(path)
+    ctx._models[cache_key] = model
+    return model
