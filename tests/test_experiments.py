@@ -99,7 +99,8 @@ def test_training_placement_comes_from_the_protocol_and_keeps_its_own_caches(tmp
 def test_quickstart_runs_every_experiment_smaller():
     cfg = _compose(["experiment=quickstart"])
     parts = cfg.experiment.parts
-    assert {p.kind for p in parts.values()} == {"model_selection", "pose_estimation", "biasing", "online_adaptation"}
+    assert {p.kind for p in parts.values()} == {"model_selection", "pose_estimation", "biasing", "online_adaptation",
+                                                "shape_transfer"}
     assert {p.bias for p in parts.values() if p.kind == "biasing"} == {"friction", "mass"}
     assert parts.pose_estimation.runs < 100 and parts.model_selection.test_conditions < 50
     assert cfg.model.samples_per_action < 500
@@ -107,6 +108,10 @@ def test_quickstart_runs_every_experiment_smaller():
     assert online.test_conditions * cfg.experiment.actions.count >= 30  # scored pushes per object and condition
     # the extreme conditions of both parameters at least
     assert {"low", "high"} <= set(online.conditions.friction) and {"low", "high"} <= set(online.conditions.mass)
+    transfer = parts.shape_transfer
+    assert transfer.test_conditions * cfg.experiment.actions.count >= 30  # scored pushes per object
+    assert set(transfer.transfer_objects) <= set(transfer.objects)
+    assert not set(transfer.model.training_objects) & set(transfer.objects)
 
 
 def test_object_override_and_sweep_compose():
@@ -188,6 +193,15 @@ TINY = [
     "experiment.parts.online_adaptation.test_conditions=2",
     "experiment.parts.online_adaptation.observed=[0,2]",
     "experiment.parts.online_adaptation.peer_grid=3",
+    "experiment.parts.shape_transfer.objects=[prism_thin]",
+    "experiment.parts.shape_transfer.transfer_objects=[prism_thin]",
+    "experiment.parts.shape_transfer.held_out=1",
+    "experiment.parts.shape_transfer.model.training_objects=[shapes:mixed:2]",
+    "experiment.parts.shape_transfer.test_conditions=1",
+    "experiment.parts.shape_transfer.conditions.friction=[low]",
+    "experiment.parts.shape_transfer.ensemble=2",
+    "experiment.parts.shape_transfer.widening_pushes=1",
+    "experiment.parts.shape_transfer.library=true",
 ]
 
 
@@ -213,7 +227,8 @@ def test_tiny_quickstart_writes_tidy_results(tiny_run):
     every = [r for r in results["records"] if r["task"] != "online"]
     for r in every:
         expected = (RECORD_KEYS | ({"selection_rate"} if r["task"] == "selection" else set())
-                    | ({"metric", "nll_mean", "nll_median"} if r["task"] != "pose" else set()))
+                    | ({"metric", "nll_mean", "nll_median", "coverage_50", "coverage_90"} if r["task"] != "pose"
+                       else set()))
         assert set(r) == expected
         assert r["n"] >= 1 and r["hacc_mean"] >= 0 and r["hacc_std"] >= 0 and r["linear_cm"] >= 0
         # the likelihood is a displacement-sense score: a finite number there, empty on frame records
@@ -253,6 +268,27 @@ def test_tiny_quickstart_writes_tidy_results(tiny_run):
     ours = pool([r for r in friction if r["method"] == "pushtorch"])
     assert still["linear_cm"] > 20 and ours["linear_cm"] < still["linear_cm"]
     assert ours["nll_mean"] < still["nll_mean"]  # a point that stands still is far less likely than our density
+    # coverage: a share in [0, 1] for every method with a density, none for a point prediction or a frame record
+    for r in [r for r in every if r.get("metric") == "displacement"]:
+        dense = r["task"] == "selection" or r["method"] in (  # a selection method is pushtorch with some model
+            "pushtorch", "mean_motion", "pushtorch_shapes", "pushtorch_library", "physics_ensemble")
+        for key in ("coverage_50", "coverage_90"):
+            assert (0.0 <= r[key] <= 1.0) if dense else r[key] is None, (r["method"], key, r[key])
+        if dense:
+            assert r["coverage_50"] <= r["coverage_90"]
+    transfer = [r for r in records if r["task"] == "transfer"]
+    assert {(r["object"], r["method"], r["model"]) for r in transfer} == {
+        (o, m, model) for o in ("prism_thin", "polygon_1000") for m, model in (
+            ("pushtorch_shapes", "shapes"), ("pushtorch_library", "library"), ("pushtorch", "cube+cylinder"),
+            ("mean_motion", "shapes"), ("nearest_push", "shapes"), ("physics_from_cloud", "shapes"),
+            ("physics_ensemble", "shapes"), ("oracle_physics", "shapes"), ("mean_motion", "cube+cylinder"),
+            ("nearest_push", "cube+cylinder"))}
+    assert all(r["n"] == 1 * 2 * 1 for r in transfer)  # conditions x actions x samples
+    # the pooled model trained on generated shapes below the held-out seeds, never on a test object
+    trained = {p.name.split("_general")[0] for p in (out / "data").iterdir()}
+    assert {"polygon_1", "superellipse_2"} <= trained and "polygon_1000" not in trained
+    shapes_meta = results["model_bandwidths"]
+    assert any(name.startswith("shapes_") for name in shapes_meta)
     online = [r for r in results["records"] if r["task"] == "online"]
     assert summary["results"] == str(out / "results.json") and summary["records"] == len(every) + len(online)
     # online adaptation: every predictor per condition and k, the posterior beside the conditioned ones
@@ -280,12 +316,13 @@ def test_tiny_quickstart_writes_report_figures_and_recording(tiny_run):
     _, out, summary = tiny_run
     report = (out / "report.md").read_text()
     for heading in ("Contact model selection", "Pose estimation", "Friction biasing", "Mass biasing",
-                    "Acceptance checks", "model prior = test condition"):
+                    "Acceptance checks", "model prior = test condition", "Transfer from many shapes"):
         assert heading in report
     assert "1.41" in report and "7.06" in report and str(PAPER_LINEAR_CM["cube"]) in report
     figures = sorted((out / "figures").glob("*.png"))
     assert {"model_selection.png", "pose_estimation.png", "friction_biasing.png", "mass_biasing.png",
-            "objects.png", "training_friction_biasing_cube.png", "online_adaptation.png"} <= {p.name for p in figures}
+            "objects.png", "training_friction_biasing_cube.png", "online_adaptation.png", "coverage.png"} <= {
+        p.name for p in figures}
     for figure in figures:
         assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"figures/{figure.name}" in report
