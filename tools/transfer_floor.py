@@ -27,13 +27,23 @@ that target there: the test object itself moves differently (a thinner body slid
 bumper while it turns). For held-out shapes (``--held-out N``) the floor takes the better of the two
 training objects per shape, as adaptive model selection at best would.
 
+With ``--shapes N`` it also measures the **many-shape floor**: the same pushes of ``N`` generated training shapes
+(``shapes:mixed:N``, seeds below the held-out set's), and per test object the one shape whose own motion from the
+same placement lands nearest the truth on average (an oracle pick among the shapes, as the floor's pick of the
+better training object). Below the single-object floor, the pooled kernels hold motions closer to the test
+object's than the paper's training objects do; above it, no choice among those shapes can beat the floor. With
+``--shape-model POOLED.npz`` (a pooled model, e.g. ``runs/<run>/models/shapes_*.npz``) pushtorch_shapes predicts
+the same pushes.
+
 The placements are issue 17's ``placement_spread`` set by default (bumper centre line ±0.1 m, heading ±5°,
 2 mm short); ``--lateral 0.03 --yaw-deg 2`` is close to where the contact model puts the robot.
 
     .venv/bin/python tools/transfer_floor.py [--placements 16] [--lateral 0.1] [--yaw-deg 5]
-        [--friction 0.3] [--mass 0.5] [--held-out 9] [--models CUBE.npz CYLINDER.npz]
+        [--friction 0.3] [--mass 0.5] [--held-out 9] [--models CUBE.npz CYLINDER.npz] [--shapes 40]
+    [--shape-model POOLED.npz]
 
-The last line is exactly ``objects=<n> floor_over_085=<count> worst_floor_ratio=<r>``.
+The last line is exactly ``objects=<n> floor_over_085=<count> worst_floor_ratio=<r>``, followed with ``--shapes`` by
+`` shapes_floor_below_floor=<k>/<n>`` (on the catalogue objects and held-out shapes scored).
 """
 
 from __future__ import annotations
@@ -55,7 +65,7 @@ from pushtorch.experiments.report import PAPER_LINEAR_CM
 from pushtorch.models.library import ModelLibrary, PushModel, load_model
 from pushtorch.models.motion import local_motions
 from pushtorch.objects import ObjectModel, load_object
-from pushtorch.objects.shapes import held_out_shapes
+from pushtorch.objects.shapes import held_out_shapes, training_shapes
 from pushtorch.prediction import predict_many
 from pushtorch.sim import SimSettings, make_actions, place_robot_against
 from pushtorch.sim.runner import simulate_pushes
@@ -156,7 +166,11 @@ def main() -> None:
     parser.add_argument("--held-out", type=int, default=0, help="also this many held-out random shapes")
     parser.add_argument("--models", nargs=2, metavar=("CUBE", "CYLINDER"),
                         help="model files trained on the cube and the cylinder: also score pushtorch")
+    parser.add_argument("--shapes", type=int, default=0, help="also the many-shape floor over this many shapes")
+    parser.add_argument("--shape-model", help="a pooled model file: also score pushtorch_shapes")
     args = parser.parse_args()
+    shapes = training_shapes(f"shapes:mixed:{args.shapes}") if args.shapes else []
+    shape_model = load_model(args.shape_model) if args.shape_model else None
     models = {}
     if args.models:
         models = dict(zip(("cube", "cylinder"), (load_model(path) for path in args.models), strict=True))
@@ -173,23 +187,35 @@ def main() -> None:
     both = [load_object("cube"), load_object("cylinder")]
     tests += [(shape.name, both, shape, models.get("either")) for shape in held_out_shapes(args.held_out)]
     print("H_acc (and linear cm) of the displacement; ratios to the mean motion's H_acc")
-    columns = ("mean", "floor", "best", *(("pushtorch",) if models else ()))
+    columns = ("mean", "floor", "best", *(("pushtorch",) if models else ()),
+               *(("shapes_floor",) if shapes else ()), *(("pushtorch_shapes",) if shape_model else ()))
     print(f"{'object':<18} {'trained on':<9} " + " ".join(f"{c:>13}" for c in columns)
           + f" {'floor/mean':>10} {'best/mean':>9}" + (f" {'pushtorch/mean':>14}" if models else "")
-          + f" {'paper cm':>8}")
-    ratios = []
+          + f" {'paper cm':>8}" + (f" {'nearest shape':>16}" if shapes else ""))
+    ratios, below = [], []
     for name, trainers, test, model in tests:
         result = transfer_scores(test, trainers, offsets, args.friction, args.mass, settings, cache, model)
+        nearest = ""
+        if shapes:
+            many = transfer_scores(test, shapes, offsets, args.friction, args.mass, settings, cache, shape_model)
+            result["shapes_floor"] = many["floor"]
+            if shape_model is not None:
+                result["pushtorch_shapes"] = many["pushtorch"]
+            below.append(many["floor"][0] < result["floor"][0])
+            nearest = f" {many['trainer']:>16}"
         mean_h = max(result["mean"][0], 1e-12)
         ratios.append(result["floor"][0] / mean_h)
         paper = PAPER_LINEAR_CM.get(name)
         cells = " ".join(f"{h:>6.3f} ({cm:>4.1f})" for h, cm in (result[k] for k in columns))
         ours = f" {result['pushtorch'][0] / mean_h:>14.2f}" if models else ""
         print(f"{name:<18} {result['trainer']:<9} {cells} {ratios[-1]:>10.2f} "
-              f"{result['best'][0] / mean_h:>9.2f}{ours} {'' if paper is None else f'{paper:.2f}':>8}", flush=True)
+              f"{result['best'][0] / mean_h:>9.2f}{ours} {'' if paper is None else f'{paper:.2f}':>8}{nearest}",
+              flush=True)
     print(f"{time.perf_counter() - started:.0f} s")
-    print(f"objects={len(ratios)} floor_over_085={sum(r > 0.85 for r in ratios)} "
-          f"worst_floor_ratio={max(ratios):.2f}")
+    last = f"objects={len(ratios)} floor_over_085={sum(r > 0.85 for r in ratios)} worst_floor_ratio={max(ratios):.2f}"
+    if shapes:
+        last += f" shapes_floor_below_floor={sum(below)}/{len(below)}"
+    print(last)
 
 
 if __name__ == "__main__":
