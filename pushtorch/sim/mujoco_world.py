@@ -84,8 +84,8 @@ def world_xml(spec: ObjectSpec, settings: SimSettings) -> str:
             assets.append(f'<mesh name="part{i}" vertex="{_floats(piece.vertices)}" inertia="convex"/>')
             geoms.append(f'<geom name="part{i}" type="mesh" mesh="part{i}" {common}/>')
         else:
-            geoms.append(f'<geom name="part{i}" type="sphere" pos="{_floats(piece.centre)}" size="{float(piece.size[0])!r}"'
-                         f' {common}/>')
+            geoms.append(f'<geom name="part{i}" type="sphere" pos="{_floats(piece.centre)}" '
+                         f'size="{float(piece.size[0])!r}" {common}/>')
     half = s.ground_half_extent
     actuators = ""
     if s.robot == "ideal":
