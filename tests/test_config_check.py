@@ -32,6 +32,11 @@ def _compose(app: str, overrides: list[str]):
 BAD = [
     # (app, overrides, a fragment the message must hold)
     ("config", ["seed=abc"], "seed must be an integer"),
+    ("config", ["experiment=shape_transfer", "model.training_objects=[shapes:box:5:998]"], "held-out"),
+    ("config", ["experiment=shape_transfer", "model.training_objects=[shapes:torus:5]"], "torus"),
+    ("config", ["experiment=shape_transfer", "experiment.ensemble=0"], "experiment.ensemble"),
+    ("config", ["experiment=shape_transfer", "experiment.coverage_band=[0.9,0.8]"], "coverage_band"),
+    ("config", ["experiment=shape_transfer", "model.settings.transfer_scale=0"], "transfer_scale"),
     ("config", ["seed=1e20"], "seed must be an integer"),
     ("config", ["seed=-1"], "seed must be an integer"),
     ("config", ["model.settings.position_frames=2.5"], "model.settings.position_frames must be an integer"),

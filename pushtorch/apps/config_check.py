@@ -129,6 +129,8 @@ _RULES: list[tuple[str, Rule]] = [
     ("**.settings.environment_contacts_training", _int(1, 1000)),
     ("**.settings.manipulator_kernels_per_push", _int(1, 1000)),
     ("**.settings.polish_steps", _int(0, 1000)),
+    ("**.settings.transfer_scale", _float(1e-3, 1000.0)),
+    ("**.settings.transfer_widening", _float(0.0, 1e6)),
     ("**.samples_per_action", _int(1, 100_000)),
     ("**.workers", _int(0, 1024)),
     ("**.shard_size", _int(1, 100_000)),
@@ -142,7 +144,13 @@ _RULES: list[tuple[str, Rule]] = [
     ("**.yaw_range_deg", Rule("pair", -360.0, 360.0)),
     ("**.objects", Rule("names")),
     ("**.training_objects", Rule("training")),
-    ("**.training_pushes", _int(1, 10**7)),
+    ("**.training_pushes", Rule("int", 1, 10**7, nullable=True)),
+    ("experiment.**.held_out", _int(0, 1000)),      # shape_transfer: held-out shapes in the test set
+    ("experiment.**.ensemble", _int(1, 10_000)),     # physics_ensemble's rollouts
+    ("experiment.**.widening_pushes", _int(1, 1000)),
+    ("experiment.**.coverage_band", Rule("pair", 0.0, 1.0)),
+    ("experiment.**.library", _BOOL),
+    ("experiment.**.transfer_objects", Rule("names", nullable=True)),
     ("**.methods", Rule("names")),
     ("experiment.name", Rule("name")),
     ("experiment.**.name", Rule("name")),

@@ -65,6 +65,8 @@ def choose_widening(model: PushModel, objects: list[ObjectModel], records: list,
 
     if len(parts) < 2:
         raise InvalidParameterError("choosing the widening holds one shape out: it needs at least two shapes")
+    if isinstance(pushes_per_shape, bool) or int(pushes_per_shape) != pushes_per_shape or pushes_per_shape < 1:
+        raise InvalidParameterError(f"widening_pushes must be a whole number >= 1, got {pushes_per_shape!r}")
     generator = generator or torch.Generator().manual_seed(0)
     settings = replace(model.settings, transfer_scale=1.0, transfer_widening=0.0)
     grid = list(itertools.product([float(s) for s in scales], [float(k) for k in widenings]))
