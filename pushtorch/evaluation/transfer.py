@@ -26,7 +26,7 @@ from dataclasses import replace
 import torch
 
 from pushtorch import se3
-from pushtorch.errors import InvalidParameterError, ModelError
+from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.evaluation.likelihood import nll, product_density
 from pushtorch.models.model import PushModel
 from pushtorch.models.pooled import ShapeParts, pool_parts
@@ -87,7 +87,7 @@ def choose_widening(model: PushModel, objects: list[ObjectModel], records: list,
             features = compute_surface_features(cloud, radius=settings.feature_radius)
             try:
                 prediction = predict(held_out, features, push.action[0].float(), generator, robot_start=robot)
-            except (ModelError, ValueError):  # the bumper meets no observed feature there
+            except (ModelError, InvalidPoseError):  # the bumper meets no observed feature there
                 skipped += 1
                 continue
             condition, density = prediction.condition, prediction.motion_density
