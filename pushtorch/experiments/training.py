@@ -158,7 +158,8 @@ def train_pooled(ctx: ExperimentContext, shapes: list[ObjectModel], friction: st
         except RecordFormatError as exc:
             log.warning("retraining %s: %s", key, exc)
         else:
-            trained_meta = {k: v for k, v in cached.meta.items() if k not in ("bandwidths", "widening", "pooled")}
+            searched = ("bandwidths", "budget", "widening", "pooled")
+            trained_meta = {k: v for k, v in cached.meta.items() if k not in searched}
             if cached.configured_settings == ctx.settings and trained_meta == meta:
                 model = cached
     if model is None:

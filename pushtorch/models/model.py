@@ -143,11 +143,13 @@ class PushModel:
 
     @property
     def configured_settings(self) -> ModelSettings:
-        """The settings this model was trained with, before the bandwidth search and a pooled model's widening
-        search replaced the values they chose (``meta["bandwidths"]``, :mod:`pushtorch.models.bandwidth`;
-        ``meta["widening"]``, :mod:`pushtorch.evaluation.transfer`)."""
+        """The settings this model was trained with, before the bandwidth search, a pooled model's kernel budget
+        and its widening search replaced the values they chose (``meta["bandwidths"]``,
+        :mod:`pushtorch.models.bandwidth`; ``meta["budget"]``, :mod:`pushtorch.models.pooled`; ``meta["widening"]``,
+        :mod:`pushtorch.evaluation.transfer`)."""
         start = {}
-        for searched in ("bandwidths", "widening"):  # pushtorch.models.bandwidth, pushtorch.evaluation.transfer
+        # pushtorch.models.bandwidth, a pooled model's kernel budget, pushtorch.evaluation.transfer
+        for searched in ("bandwidths", "budget", "widening"):
             if self.meta.get(searched):
                 start.update(self.meta[searched]["start"])
         return replace(self.settings, **start) if start else self.settings

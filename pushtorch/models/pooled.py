@@ -12,10 +12,14 @@ Decisions (docs/method.md, "Many shapes"):
 
 * **Motion kernels**: every shape's, concatenated per action (pushes renumbered so the bandwidth search's
   folds hold out whole pushes). The bandwidths are then chosen on the pool, as for one object
-  (:func:`pushtorch.models.bandwidth.select_bandwidths`). A prediction evaluates at most the settings'
-  kernel budget, the kernels nearest in contact (:func:`pushtorch.models.motion.nearest_in_contact`).
-* **Manipulator contact model**: every shape's frames (where the robot stood against it), each shape's
-  weights normalised to the same total, so a shape with a large face does not outvote the rest.
+  (:func:`pushtorch.models.bandwidth.select_bandwidths`). A prediction evaluates at most
+  :data:`POOLED_BUDGET` kernels, the nearest in contact (:func:`pushtorch.models.motion.nearest_in_contact`):
+  every one of them is within reach of the contact, where most of a single object's 5,000 environment kernels
+  are cut off, so the same count would cost 2–3 × the time.
+* **Manipulator contact model**: every shape's frames (where the robot stood against it), at most an equal
+  share of ``position_frames`` per shape (drawn by weight), each shape's weights normalised to the same total,
+  so a shape with a large face does not outvote the rest; the robot's query density then costs what one
+  object's does (57,322 frames of 40 shapes made a prediction 3.6 × slower).
 * **Position model**: an equal share of every shape's position frames, ``position_frames`` in all. The pose
   estimate of a new object then leans on features of all shapes; it matters little for the displacement
   score (the motion is carried in the robot's start frame), and the frame score says what it costs.
@@ -26,6 +30,8 @@ by held-out likelihood, one shape held out at a time (:func:`pushtorch.evaluatio
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import torch
 
@@ -40,7 +46,12 @@ from pushtorch.models.settings import ModelSettings, as_generator
 from pushtorch.models.training import fit_object_parts
 from pushtorch.objects import ObjectModel
 
-__all__ = ["ShapeParts", "fit_shape_parts", "pool_parts", "train_pooled_model"]
+__all__ = ["POOLED_BUDGET", "ShapeParts", "fit_shape_parts", "pool_parts", "train_pooled_model"]
+
+#: The pooled model's kernel budget per prediction and action (at most the settings' own): the manipulator and
+#: environment kernels nearest in contact. Chosen with tools/bench_shapes.py so that a pool of 40 shapes and the
+#: paper's 24,000 pushes predicts within 1.25 × the one-object model's time (docs/method.md, "Many shapes").
+POOLED_BUDGET = {"manipulator_kernels": 200, "environment_kernels": 2000}
 
 #: One shape's fitted parts: (name, contact model, position model, motion models per action).
 ShapeParts = tuple[str, ManipulatorContactModel, PositionModel, list[MotionModel]]
@@ -103,13 +114,17 @@ def pool_parts(parts: list[ShapeParts], settings: ModelSettings, generator: torc
             raise InvalidParameterError(f"shape {name} was pushed with actions {a.tolist()}, the first shape with "
                                         f"{actions[0].tolist()}: a pooled model needs the same actions")
     contacts = []
+    share = max(1, settings.position_frames // len(parts))
     for _, contact, _, _ in parts:
         frames = contact.frames
+        if len(frames) > share:  # drawn by weight: the frames that would weigh most in the robot's query density
+            keep = torch.multinomial(frames.weight.double().clamp_min(0) + 1e-12, share, replacement=False,
+                                     generator=generator)
+            frames = frames.select(keep.sort().values)
         weight = frames.weight / frames.weight.sum().clamp_min(1e-30)
         contacts.append(ContactFrames(frames.v, frames.r, frames.u, weight))
     first = parts[0][1]
     contact = ManipulatorContactModel(_cat_frames(contacts), first.cutoff, first.drop_off)
-    share = max(1, settings.position_frames // len(parts))
     positions = []
     for _, _, position, _ in parts:
         keep = torch.randperm(len(position.frames), generator=generator)[:share].sort().values
@@ -151,6 +166,10 @@ def train_pooled_model(objects: list[ObjectModel], records: list, settings: Mode
     contact, position, motions = pool_parts(parts, settings, generator)
     meta = dict(meta or {})
     meta["pooled"] = [p[0] for p in parts]
+    budget = {k: min(int(getattr(settings, k)), v) for k, v in POOLED_BUDGET.items()}
+    if any(budget[k] != getattr(settings, k) for k in budget):
+        meta["budget"] = {"start": {k: getattr(settings, k) for k in budget}, "chosen": budget}
+        settings = replace(settings, **budget)
     if settings.bandwidth_folds >= 2:
         settings, search = select_bandwidths(settings, motions, settings.bandwidth_folds, generator)
         meta["bandwidths"] = search.as_meta()
