@@ -156,10 +156,15 @@ def coverage_figure(plt, records: Sequence[Mapping[str, Any]]):
     fig, ax = plt.subplots(figsize=(4.8, 4.2), layout="constrained")
     ax.plot([0, 1], [0, 1], color="0.6", linestyle="--", linewidth=1, label="calibrated")
     for m in _ordered((r["method"] for r in scored), TRANSFER_ORDER):
-        group = [r for r in scored if r["method"] == m]
-        n = sum(r["n"] for r in group)
-        observed = [sum(r["n"] * r[k] for r in group) / n for k in ("coverage_50", "coverage_90")]
-        ax.plot([0.5, 0.9], observed, marker="o", color=colour_of(m), label=f"{m} (n {n})")
+        of_method = [r for r in scored if r["method"] == m]
+        # a transfer baseline fit on each training set is drawn once per set
+        models = _ordered(r.get("model") or "" for r in of_method) if of_method[0]["task"] == "transfer" else [None]
+        for model in models:
+            group = [r for r in of_method if model is None or (r.get("model") or "") == model]
+            n = sum(r["n"] for r in group)
+            observed = [sum(r["n"] * r[k] for r in group) / n for k in ("coverage_50", "coverage_90")]
+            label = m if len(models) == 1 else f"{m}, {model}"
+            ax.plot([0.5, 0.9], observed, marker="o", color=colour_of(label), label=f"{label} (n {n})")
     ax.set_xlim(0, 1)
     ax.set_ylim(0, 1)
     ax.set_xlabel("predicted coverage (region's probability)")
