@@ -35,6 +35,10 @@ object's than the paper's training objects do; above it, no choice among those s
 ``--shape-model POOLED.npz`` (a pooled model, e.g. ``runs/<run>/models/shapes_*.npz``) pushtorch_shapes predicts
 the same pushes.
 
+``turn rad`` is how far the test object turns in the robot's start frame under the −10 °/s action (mean over
+the placements): the robot turns −0.70 rad in the 4 s, so an object sticking to the bumper turns about that much,
+and a round object, rolling along the bumper, turns the other way.
+
 The placements are issue 17's ``placement_spread`` set by default (bumper centre line ±0.1 m, heading ±5°,
 2 mm short); ``--lateral 0.03 --yaw-deg 2`` is close to where the contact model puts the robot.
 
@@ -131,7 +135,10 @@ def transfer_scores(test: ObjectModel, trainers: list[ObjectModel], offsets: tor
                     model: PushModel | ModelLibrary | None = None) -> dict:
     """Floor, mean-motion and best-push scores (H_acc, cm) of ``test`` against its better training object (by
     the floor's H_acc), and pushtorch's with ``model`` (a library chooses by H_r, whatever the floor chose)."""
-    robot, initial, truth_final, _ = robot_frame_motions(test, offsets, friction, mass, settings)
+    robot, initial, truth_final, own = robot_frame_motions(test, offsets, friction, mass, settings)
+    # how far the object turns in the robot's start frame under the first (−10 °/s) action: the robot turns
+    # −0.70 rad; an object that sticks to the bumper turns with it, a round one spins the other way
+    turn = float(se3.yaw_of(own.q[:, 0]).mean())
     chosen = None
     for trainer in trainers:
         if trainer.name not in cache:
@@ -153,6 +160,7 @@ def transfer_scores(test: ObjectModel, trainers: list[ObjectModel], offsets: tor
             chosen = result
     if model is not None:
         chosen["pushtorch"] = pushtorch_scores(test, model, robot, initial, truth_final)
+    chosen["turn"] = turn
     return chosen
 
 
@@ -191,7 +199,7 @@ def main() -> None:
                *(("shapes_floor",) if shapes else ()), *(("pushtorch_shapes",) if shape_model else ()))
     print(f"{'object':<18} {'trained on':<9} " + " ".join(f"{c:>13}" for c in columns)
           + f" {'floor/mean':>10} {'best/mean':>9}" + (f" {'pushtorch/mean':>14}" if models else "")
-          + f" {'paper cm':>8}" + (f" {'nearest shape':>16}" if shapes else ""))
+          + f" {'paper cm':>8} {'turn rad':>8}" + (f" {'nearest shape':>16}" if shapes else ""))
     ratios, below = [], []
     for name, trainers, test, model in tests:
         result = transfer_scores(test, trainers, offsets, args.friction, args.mass, settings, cache, model)
@@ -209,7 +217,8 @@ def main() -> None:
         cells = " ".join(f"{h:>6.3f} ({cm:>4.1f})" for h, cm in (result[k] for k in columns))
         ours = f" {result['pushtorch'][0] / mean_h:>14.2f}" if models else ""
         print(f"{name:<18} {result['trainer']:<9} {cells} {ratios[-1]:>10.2f} "
-              f"{result['best'][0] / mean_h:>9.2f}{ours} {'' if paper is None else f'{paper:.2f}':>8}{nearest}",
+              f"{result['best'][0] / mean_h:>9.2f}{ours} {'' if paper is None else f'{paper:.2f}':>8} "
+              f"{result['turn']:>8.2f}{nearest}",
               flush=True)
     print(f"{time.perf_counter() - started:.0f} s")
     last = f"objects={len(ratios)} floor_over_085={sum(r > 0.85 for r in ratios)} worst_floor_ratio={max(ratios):.2f}"

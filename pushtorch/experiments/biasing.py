@@ -43,6 +43,7 @@ from pushtorch.experiments.common import (
     log_examples,
     plain,
     predict_set,
+    prior_pairs,
     progress_bar,
     sample_test_poses,
     simulate_truth,
@@ -68,13 +69,6 @@ def prior_label(bias: str, friction: str, mass: str) -> str:
     return f"friction:{friction},mass:{mass}"
 
 
-def _pairs(node: Mapping[str, Any], what: str) -> list[tuple[str, str]]:
-    frictions, masses = as_names(node.get("friction")), as_names(node.get("mass"))
-    if not frictions or not masses:
-        raise InvalidParameterError(f"{what} needs at least one friction and one mass prior name")
-    return [(f, m) for f in frictions for m in masses]
-
-
 def _plan(cfg, part: Mapping[str, Any], model_cfg: Mapping[str, Any]):
     part, model_cfg = plain(part), plain(model_cfg)
     objects = load_test_objects(cfg, as_names(part["objects"]))
@@ -82,8 +76,8 @@ def _plan(cfg, part: Mapping[str, Any], model_cfg: Mapping[str, Any]):
     training = sorted(set(training_of.values())) or as_names(part.get("training_objects"))
     if not training:
         raise InvalidParameterError("the biasing experiment needs training_object_of (or training_objects)")
-    return part, objects, training_of, training, _pairs(model_cfg, "model"), _pairs(part["conditions"],
-                                                                                   "conditions")
+    return (part, objects, training_of, training, prior_pairs(model_cfg, "model"),
+            prior_pairs(part["conditions"], "conditions"))
 
 
 def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,

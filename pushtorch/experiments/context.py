@@ -38,6 +38,7 @@ __all__ = [
     "load_test_objects",
     "merged_model_config",
     "plain",
+    "prior_pairs",
     "progress_bar",
     "save_arrays",
     "stable_seed",
@@ -81,6 +82,18 @@ def as_names(value: str | Sequence[str] | None) -> list[str]:
     if isinstance(value, str):
         return [value]
     return [str(v) for v in value]
+
+
+def prior_pairs(node: Mapping[str, Any], what: str) -> list[tuple[str, str]]:
+    """Every (friction, mass) pair of prior names in ``node["friction"]`` × ``node["mass"]`` (a name or a list each).
+
+    Raises:
+        InvalidParameterError: no friction or no mass name; ``what`` names the config section.
+    """
+    frictions, masses = as_names(node.get("friction")), as_names(node.get("mass"))
+    if not frictions or not masses:
+        raise InvalidParameterError(f"{what} needs at least one friction and one mass prior name")
+    return [(f, m) for f in frictions for m in masses]
 
 
 #: The rules of ``recording.conditions`` written ``<rule>:<k>`` (a list of indices is the fourth form).

@@ -40,6 +40,7 @@ from pushtorch.experiments.common import (
     load_test_objects,
     plain,
     predict_set,
+    prior_pairs,
     progress_bar,
     sample_test_poses,
     simulate_truth,
@@ -62,13 +63,6 @@ GROUPS = {
     "library": ("pushtorch_library", ()),
     "paper": ("pushtorch", ("mean_motion", "nearest_push")),
 }
-
-
-def _conditions(node: Mapping[str, Any]) -> list[tuple[str, str]]:
-    frictions, masses = as_names(node.get("friction")), as_names(node.get("mass"))
-    if not frictions or not masses:
-        raise InvalidParameterError("shape_transfer's conditions need at least one friction and one mass prior")
-    return [(f, m) for f in frictions for m in masses]
 
 
 def _training_shapes(model_cfg: Mapping[str, Any], test_names: set[str]):
@@ -119,7 +113,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     per_action = max(1, round(int(budget) / (len(shapes) * actions)))
     shape_ctx = replace(ctx, samples_per_action=per_action)
     groups = {g: v for g, v in GROUPS.items() if g != "library" or part.get("library", True)}
-    conditions = _conditions(part["conditions"])
+    conditions = prior_pairs(part["conditions"], "shape_transfer's conditions")
     samples = int(part["truth_samples"])
 
     pooled = train_pooled(shape_ctx, shapes, friction, mass, int(part.get("widening_pushes", 6)))

@@ -81,6 +81,35 @@ def training_records(ctx: ExperimentContext, obj: ObjectModel, friction: str, ma
     return load_records(folder, trajectories=False)  # training uses the final poses only
 
 
+#: Model meta keys a training writes besides what it was asked for (searches and what was pooled): a cached
+#: model is reused when the rest matches.
+_SEARCHED = ("bandwidths", "budget", "widening", "pooled")
+
+
+def _training_meta(ctx: ExperimentContext, friction: str, mass: str, **extra) -> dict:
+    """What a model's training was asked for, as its file's meta records it."""
+    meta = {"friction": friction, "mass": mass, "samples_per_action": ctx.samples_per_action, "seed": ctx.seed,
+            **extra}
+    if ctx.placement != Placement():  # absent at the paper's placement, so earlier caches stay valid
+        meta["placement"] = asdict(ctx.placement)
+    if _engine_tag(ctx):  # likewise absent in the default world
+        meta["engine"] = ctx.sim.engine
+    return meta
+
+
+def _cached_model(ctx: ExperimentContext, path: Path, key: str, meta: dict) -> PushModel | None:
+    """The model file at ``path`` if it was trained with the context's settings and ``meta``, else None."""
+    if not path.is_file():
+        return None
+    try:
+        cached = load_model(path)
+    except RecordFormatError as exc:
+        log.warning("retraining %s: %s", key, exc)
+        return None
+    trained = {k: v for k, v in cached.meta.items() if k not in _SEARCHED}
+    return cached if cached.configured_settings == ctx.settings and trained == meta else None
+
+
 def train_model(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str) -> PushModel:
     """A model of ``obj`` trained under the named friction and mass priors (cached in the run directory).
 
@@ -88,28 +117,14 @@ def train_model(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: s
     model is retrained from the (cached) training pushes.
     """
     key = _model_key(obj.name, friction, mass)
-    meta = {"friction": friction, "mass": mass, "samples_per_action": ctx.samples_per_action,
-            "seed": ctx.seed}
-    if ctx.placement != Placement():  # absent at the paper's placement, so earlier caches stay valid
-        meta["placement"] = asdict(ctx.placement)
-    if _engine_tag(ctx):  # likewise absent in the default world
-        meta["engine"] = ctx.sim.engine
+    meta = _training_meta(ctx, friction, mass)
     cache_key = (f"{key}|{json.dumps(asdict(ctx.settings), sort_keys=True)}|{ctx.samples_per_action}"
                  f"|{_cache_tag(ctx)}")
     if cache_key in ctx._models:
         return ctx._models[cache_key]
     path = contained_path(ctx.run_dir, "models", f"{key}{_cache_tag(ctx)}.npz",
                           what="object or prior name")
-    model = None
-    if path.is_file():
-        try:
-            cached = load_model(path)
-        except RecordFormatError as exc:
-            log.warning("retraining %s: %s", key, exc)
-        else:
-            trained_meta = {k: v for k, v in cached.meta.items() if k != "bandwidths"}
-            if cached.configured_settings == ctx.settings and trained_meta == meta:
-                model = cached
+    model = _cached_model(ctx, path, key, meta)
     if model is None:
         records = training_records(ctx, obj, friction, mass)
         log.info("training %s on %d pushes (%d valid)", key, len(records), int(records.valid.sum()))
@@ -141,27 +156,12 @@ def train_pooled(ctx: ExperimentContext, shapes: list[ObjectModel], friction: st
     from pushtorch.models.pooled import fit_shape_parts, train_pooled_model
 
     key = _model_key(name, friction, mass)
-    meta = {"friction": friction, "mass": mass, "samples_per_action": ctx.samples_per_action, "seed": ctx.seed,
-            "shapes": [s.name for s in shapes], "widening_pushes": int(widening_pushes)}
-    if ctx.placement != Placement():
-        meta["placement"] = asdict(ctx.placement)
-    if _engine_tag(ctx):
-        meta["engine"] = ctx.sim.engine
+    meta = _training_meta(ctx, friction, mass, shapes=[s.name for s in shapes], widening_pushes=int(widening_pushes))
     cache_key = f"{key}|{json.dumps(asdict(ctx.settings), sort_keys=True)}|{json.dumps(meta, sort_keys=True)}"
     if cache_key in ctx._models:
         return ctx._models[cache_key]
     path = contained_path(ctx.run_dir, "models", f"{key}{_cache_tag(ctx)}.npz", what="object or prior name")
-    model = None
-    if path.is_file():
-        try:
-            cached = load_model(path)
-        except RecordFormatError as exc:
-            log.warning("retraining %s: %s", key, exc)
-        else:
-            searched = ("bandwidths", "budget", "widening", "pooled")
-            trained_meta = {k: v for k, v in cached.meta.items() if k not in searched}
-            if cached.configured_settings == ctx.settings and trained_meta == meta:
-                model = cached
+    model = _cached_model(ctx, path, key, meta)
     if model is None:
         records = [training_records(ctx, s, friction, mass) for s in shapes]
         log.info("training %s on %d shapes, %d pushes", key, len(shapes), sum(len(r) for r in records))
