@@ -189,3 +189,17 @@ def test_coverage_refuses_levels_outside_zero_one():
     density = point_density(se3.identity(), 0.01, 0.05)
     with pytest.raises(InvalidParameterError, match="levels"):
         hdr_thresholds(density, (0.5, 1.0))
+
+
+def test_a_shape_without_one_actions_pushes_pools_with_the_rest(shapes_and_records):
+    """A shape whose every push of an action was invalid adds nothing to that action, and the pool keeps it."""
+    from pushtorch.models.pooled import pool_parts
+
+    shapes, records = shapes_and_records
+    parts = fit_shape_parts(shapes, records, SMALL, 0)
+    name, contact, position, motions = parts[0]
+    short = [(name, contact, position, motions[:2])] + parts[1:]
+    _, _, pooled = pool_parts(short, SMALL, 0)
+    assert len(pooled) == 3
+    assert len(pooled[2].manipulator) == sum(len(p[3][2].manipulator) for p in parts[1:])
+    assert len(pooled[0].manipulator) == sum(len(p[3][0].manipulator) for p in parts)

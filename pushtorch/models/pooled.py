@@ -104,16 +104,20 @@ def pool_parts(parts: list[ShapeParts], settings: ModelSettings, generator: torc
     """The pooled contact, position and motion models of several shapes (module docstring).
 
     Raises:
-        InvalidParameterError: no parts, or shapes pushed with different actions.
+        InvalidParameterError: no parts, or a shape pushed with an action no other shape was.
     """
     if not parts:
         raise InvalidParameterError("a pooled model needs at least one training shape")
     generator = as_generator(generator)
-    actions = [torch.stack([m.action for m in p[3]]) for p in parts]
-    for (name, *_), a in zip(parts, actions, strict=True):
-        if a.shape != actions[0].shape or not torch.allclose(a.to(actions[0]), actions[0], atol=1e-6):
-            raise InvalidParameterError(f"shape {name} was pushed with actions {a.tolist()}, the first shape with "
-                                        f"{actions[0].tolist()}: a pooled model needs the same actions")
+    # the actions in the order of the shape that has the most; a shape whose every push of an action was invalid
+    # (tipped, missed) adds nothing to that action
+    known = max((torch.stack([m.action for m in p[3]]) for p in parts), key=len)
+    for name, *_, motions in parts:
+        for m in motions:
+            if not (known - m.action.to(known)).abs().amax(-1).le(1e-6).any():
+                raise InvalidParameterError(f"shape {name} was pushed with action {m.action.tolist()}, which the "
+                                            f"other shapes were not ({known.tolist()}): a pooled model needs one set "
+                                            "of actions")
     contacts = []
     share = max(1, settings.position_frames // len(parts))
     for _, contact, _, _ in parts:
@@ -134,8 +138,8 @@ def pool_parts(parts: list[ShapeParts], settings: ModelSettings, generator: torc
     std = embed_descriptors(pooled_frames.r).std(0).clamp_min(1e-6)
     position = PositionModel(pooled_frames, std)
     motions = []
-    for a in range(actions[0].shape[0]):
-        per_shape = [p[3][a] for p in parts]
+    for action in known:
+        per_shape = [m for p in parts for m in p[3] if (m.action.to(action) - action).abs().max() <= 1e-6]
         counts = [_pushes(m) for m in per_shape]
         offsets = [sum(counts[:i]) for i in range(len(counts))]
         manipulator = _cat_kernels([m.manipulator for m in per_shape], offsets)
