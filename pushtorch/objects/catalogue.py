@@ -17,8 +17,9 @@ import trimesh
 
 from pushtorch.errors import InvalidParameterError
 from pushtorch.objects.meshes import check_up_axis, load_mesh_file
-from pushtorch.objects.model import ObjectModel, centred
-from pushtorch.objects.symmetry import Symmetry, detect_symmetry
+from pushtorch.objects.object_model import ObjectModel, centred
+from pushtorch.objects.symmetry import Symmetry
+from pushtorch.objects.symmetry_detection import detect_symmetry
 
 __all__ = [
     "CATALOGUE",

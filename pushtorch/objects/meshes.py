@@ -1,6 +1,23 @@
 """User meshes as the physics engine pushes them: loading, units, up axis, parts that form one body, convex
 decomposition (paper, Test Set: objects beyond the catalogue).
 
+User meshes are simulated as they are (:func:`load_mesh_file`): a closed convex mesh as itself, a closed
+concave one as the union of the convex parts of a V-HACD decomposition (pybullet's ``vhacd``: offline,
+deterministic, run once per mesh and cached in memory, and on disk when a ``cache_dir`` is named; otherwise
+its files live in a temporary folder removed at once); an open mesh encloses no volume and is simulated as
+its convex hull. A mesh of several connected parts (V-HACD outputs, CAD exports, pybullet_data's own
+meshes) is one rigid body when its parts overlap, touch or lie :data:`BODY_GAP` (1 mm, after scaling) apart
+or closer, transitively (the exact smallest distance between two parts: surfaces that cross, one part
+inside the other, else vertex-to-triangle and edge-to-edge distances); parts farther apart are several
+bodies and refused, the message giving the gap (one rigid body is pushed). Such a body is simulated as
+each part's convex hull when the part is convex or open and its V-HACD parts when it is closed and concave,
+and its mesh (clouds, features, symmetries, mass) is the watertight union of its closed parts and its open
+parts' hulls (manifold3d). The parts are the file's own when each closes on its own, else those of the
+mesh with coincident vertices merged. A mesh whose largest extent after scaling is outside
+:data:`SIZE_RANGE` (0.01–2 m) is refused with the ``object.scale`` that would make it 0.2 m, so a file in
+millimetres is never pushed as a 200 m object; ``up="y"`` turns a y-up file (+90° about x) before
+anything else. The mass distribution is always the mesh's own (uniform density).
+
 Frames: every mesh is in metres with its origin at its centre of mass; for the prisms the first
 dimension lies along the object's x axis (the push direction when the object sits at yaw 0), and the
 cylinders' and the hybrid's axes are the object's z axis (upright on the ground).
@@ -15,8 +32,8 @@ import numpy as np
 import trimesh
 
 from pushtorch.errors import InvalidMeshError, InvalidParameterError
-from pushtorch.objects.model import ObjectModel, centred
-from pushtorch.objects.symmetry import detect_symmetry
+from pushtorch.objects.object_model import ObjectModel, centred
+from pushtorch.objects.symmetry_detection import detect_symmetry
 
 __all__ = [
     "BODY_GAP",

@@ -20,8 +20,8 @@ import numpy as np
 import trimesh
 
 from pushtorch.errors import InvalidParameterError
-from pushtorch.objects.model import ObjectModel, centred
-from pushtorch.objects.symmetry import detect_symmetry
+from pushtorch.objects.object_model import ObjectModel, centred
+from pushtorch.objects.symmetry_detection import detect_symmetry
 
 __all__ = ["HELD_OUT_FIRST_SEED", "SHAPE_KINDS", "held_out_shapes", "random_shape", "resolve_training_objects",
            "training_shape_seeds", "training_shapes"]
