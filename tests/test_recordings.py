@@ -32,9 +32,10 @@ from pushtorch.experiments.common import (
 from pushtorch.experiments.suite import run_suite
 from pushtorch.sim.records import load_records
 from pushtorch.viz import entity_name, open_recording
+from pushtorch.viz.annealing import ANNEAL_SERIES, ANNEAL_TIMELINE
 from pushtorch.viz.blueprint import pushes_blueprint, read_blueprint
-from pushtorch.viz.metrics import GROUP_TIMELINE, hacc_root, part_summary_path
-from pushtorch.viz.model import ANNEAL_SERIES, ANNEAL_TIMELINE, PREDICTION
+from pushtorch.viz.predictions import PREDICTION
+from pushtorch.viz.scores import GROUP_TIMELINE, hacc_root, part_summary_path
 from pushtorch.viz.sim import SIM_TIMELINE
 
 CONF = Path(__file__).resolve().parents[1] / "conf"

@@ -1,4 +1,5 @@
-"""Rerun logging of a trained model and a prediction (pushtorch.viz.model), on a tiny real cube model.
+"""Rerun logging of a trained model and a prediction (pushtorch.viz.contacts, .predictions, .densities,
+.annealing), on a tiny real cube model.
 
 The model is trained on real pybullet pushes and the prediction is made from a real single-shot
 cloud; what is logged is read back from the saved ``.rrd`` with Rerun's own reader. The predicted
@@ -29,23 +30,11 @@ from pushtorch.robot import bumper_mesh
 from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_training_pushes, run_plan
 from pushtorch.sim.runner import simulate_pushes
 from pushtorch.viz import open_recording, read_entity_paths
-from pushtorch.viz.model import (
-    ANNEAL_SERIES,
-    ANNEAL_TIMELINE,
-    DENSITY_GHOSTS,
-    DENSITY_REGION,
-    DENSITY_SAMPLES,
-    DENSITY_SEED,
-    PREDICTION,
-    TRAINING,
-    _range_colors,
-    _subsample,
-    density_truth,
-    log_anneal_history,
-    log_anneal_series,
-    log_contact_model,
-    log_prediction,
-)
+from pushtorch.viz.annealing import ANNEAL_SERIES, ANNEAL_TIMELINE, log_anneal_history, log_anneal_series
+from pushtorch.viz.contacts import TRAINING, log_contact_model
+from pushtorch.viz.densities import DENSITY_GHOSTS, DENSITY_REGION, DENSITY_SAMPLES, DENSITY_SEED, density_truth
+from pushtorch.viz.helpers import range_colors, subsample
+from pushtorch.viz.predictions import PREDICTION, log_prediction
 
 SETTINGS = ModelSettings(
     query_kernels=300, anneal_candidates=50, anneal_steps=10, environment_kernels=500, manipulator_kernels=100
@@ -254,18 +243,18 @@ def test_bad_arguments_raise(tmp_path, case):
 
 @given(st.integers(0, 500), st.integers(1, 100))
 def test_subsample_is_a_fixed_subset(n, limit):
-    index = _subsample(n, limit)
+    index = subsample(n, limit)
     assert len(index) == min(n, limit)
     assert torch.equal(index, torch.unique(index))  # sorted, no repeats
     assert len(index) == 0 or (0 <= int(index.min()) and int(index.max()) < n)
-    assert torch.equal(index, _subsample(n, limit))
+    assert torch.equal(index, subsample(n, limit))
 
 
 @given(st.lists(st.one_of(st.floats(-1e6, 1e6), st.just(float("-inf"))), min_size=1, max_size=50))
 def test_range_colors_span_viridis_and_mark_no_support_dark(values):
-    colors = _range_colors(torch.tensor(values, dtype=torch.float64))
+    colors = range_colors(torch.tensor(values, dtype=torch.float64))
     assert colors.shape == (len(values), 3) and colors.dtype == np.uint8
-    darkest, brightest = _range_colors(torch.tensor([0.0, 1.0]))
+    darkest, brightest = range_colors(torch.tensor([0.0, 1.0]))
     finite = [v for v in values if np.isfinite(v)]
     for value, color in zip(values, colors, strict=True):
         if not np.isfinite(value) or (finite and value == min(finite)):

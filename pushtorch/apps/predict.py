@@ -12,7 +12,7 @@ friction drawn from the chosen priors, and measure H_acc. Usage::
 (``python -m pushtorch.predict_cli`` is the same app.) Output in the run directory: ``predictions.json``
 (each action's H_acc and ``nll``, the negative log-likelihood of each ground truth under the predicted
 density, as results.json's), ``resolved_config.yaml`` and ``recording.rrd``: every prediction
-(:func:`pushtorch.viz.model.log_prediction`, at ``world/model/prediction/action_<j>``, its density's draws
+(:func:`pushtorch.viz.predictions.log_prediction`, at ``world/model/prediction/action_<j>``, its density's draws
 at ``.../density``) with its first ground-truth push playing on ``sim_time``, a markdown summary with each
 action's H_acc and nll at ``metrics/summary``, and a blueprint with a tab per action
 (:func:`pushtorch.viz.blueprint.predict_blueprint`).
@@ -146,14 +146,14 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
                 truth_final = finals.take(0)
             results.append(entry)
             if rec is not None:
-                from pushtorch.viz.model import log_prediction
+                from pushtorch.viz.predictions import log_prediction
 
                 logged.append(log_prediction(rec, prediction, truth_initial, truth_final, obj,
                                              label=f"action_{i}", cloud=features, truth_push=records))
     finally:
         if rec is not None:
             from pushtorch.viz.blueprint import predict_blueprint
-            from pushtorch.viz.metrics import SUMMARY, log_markdown
+            from pushtorch.viz.scores import SUMMARY, log_markdown
 
             log_markdown(rec, SUMMARY, _summary_markdown(obj.name, chosen.name, paths, distances, results))
             rec.send_blueprint(predict_blueprint(logged, summary=SUMMARY))

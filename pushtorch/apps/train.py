@@ -10,7 +10,7 @@ Hydra app. Usage::
 
 Output in the run directory: ``model.npz`` (load with :func:`pushtorch.models.library.load_model`),
 ``summary.json``, ``resolved_config.yaml`` and ``recording.rrd`` (the contact and position frames, see
-:func:`pushtorch.viz.model.log_contact_model`). Configuration reaches the library as plain arguments
+:func:`pushtorch.viz.contacts.log_contact_model`). Configuration reaches the library as plain arguments
 through :func:`train_from_config`.
 """
 
@@ -124,8 +124,8 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
         "seconds": round(seconds, 2),
     }
     if c.get("recording", True):
+        from pushtorch.viz.contacts import log_contact_model
         from pushtorch.viz.core import open_recording
-        from pushtorch.viz.model import log_contact_model
 
         rec = open_recording(out_dir / "recording.rrd", "pushtorch_train")
         log_contact_model(rec, model, obj)

@@ -108,7 +108,7 @@ def log_examples(
 
     The conditions logged are ``examples.choice`` (``recording.conditions``, :class:`LogConditions`), each
     with every action. Every example goes under ``world/model/prediction/<label>/c<i>a<j>`` (``label`` from
-    :func:`entity_label`: ``<part>/<object>/<model or method>``; entities as in :mod:`pushtorch.viz.model`,
+    :func:`entity_label`: ``<part>/<object>/<model or method>``; entities as in :mod:`pushtorch.viz.predictions`,
     the predicted density included), whose transform shifts it to a free cell of the recording's grid. Its
     ground-truth push (test condition 0, sample 0: the pose ``truth_final`` holds) is re-simulated in this
     process with its trajectory and played on ``sim_time`` at ``<root>/truth_push``; a re-simulated final
@@ -124,7 +124,7 @@ def log_examples(
     """
     import rerun as rr
 
-    from pushtorch.viz.model import PREDICTION, log_prediction
+    from pushtorch.viz.predictions import PREDICTION, log_prediction
 
     if ctx.recording is None or not examples:
         return

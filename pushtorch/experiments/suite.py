@@ -5,7 +5,7 @@ one *part*; ``quickstart`` runs all four at small sizes. A part is ``(kind, its 
 model config)``: ``kind`` picks the module (``model_selection``, ``pose_estimation`` or ``biasing``).
 
 The recording (``recording.rrd``) gets, per part, each group's H_acc as a series and a markdown summary
-(:mod:`pushtorch.viz.metrics`), and at the end the blueprint that lays it out for review
+(:mod:`pushtorch.viz.scores`), and at the end the blueprint that lays it out for review
 (:func:`pushtorch.viz.blueprint.experiment_blueprint`): a tab per part.
 """
 
@@ -49,7 +49,7 @@ def _merge_extras(into: dict[str, Any], extras: Mapping[str, Any]) -> None:
 def _part_origin(kind: str, name: str) -> str:
     """Root entity of what a part logs: its predictions, or pose estimation's own subtree."""
     from pushtorch.viz.core import WORLD
-    from pushtorch.viz.model import PREDICTION
+    from pushtorch.viz.predictions import PREDICTION
 
     if kind == "pose_estimation":
         return f"{WORLD}/experiments/pose_estimation"  # where pose_estimation._log_pose_example logs
@@ -59,7 +59,7 @@ def _part_origin(kind: str, name: str) -> str:
 def _log_part(ctx: ExperimentContext, kind: str, name: str, records: list[dict], first_group: int):
     """A finished part's H_acc series and summary in the recording; returns the part's blueprint tab."""
     from pushtorch.viz.blueprint import ReviewTab
-    from pushtorch.viz.metrics import hacc_root, log_group_hacc, log_markdown, part_summary, part_summary_path
+    from pushtorch.viz.scores import hacc_root, log_group_hacc, log_markdown, part_summary, part_summary_path
 
     origin = _part_origin(kind, name)
     logged = [(root, text) for root, text in ctx.logged_predictions if root.startswith(f"{origin}/")]

@@ -139,7 +139,7 @@ def train_model(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: s
 
 
 def _log_training(ctx: ExperimentContext, model: PushModel, obj: ObjectModel) -> None:
-    from pushtorch.viz.model import log_contact_model
+    from pushtorch.viz.contacts import log_contact_model
 
     # one row of trained models along +x at y = -1.5 m, clear of the experiments around the origin
     index = len({m.name for m in ctx._models.values()})

@@ -6,10 +6,10 @@ Entity paths (world frame, z up, metres):
     world/clouds/<name>/partial_cloud  single-shot cloud (world frame), coloured by curvature r1
     world/clouds/<name>/features       surface-feature frames (k1 red, k2 green, normal blue)
     world/sim/<label>/...              a simulated push on the ``sim_time`` timeline (see viz.sim)
-    world/model/training/<model>/...   a trained model's contact and position frames (see viz.model)
+    world/model/training/<model>/...   a trained model's contact and position frames (see viz.contacts)
     world/model/prediction/<part>/<object>/<model>/c<i>a<j>/...
                                        an experiment's logged prediction of test condition i, action j
-                                       (<model> is the method in model selection; see viz.model): its
+                                       (<model> is the method in model selection; see viz.predictions): its
                                        ground-truth push plays on ``sim_time`` at .../truth_push, its
                                        annealing series are .../robot_query/best_log_prob,
                                        .../pose_query/best_log_prob and .../motion/best_log_prob on
@@ -22,7 +22,7 @@ Entity paths (world frame, z up, metres):
                                        a pose-estimation example (true pose, cloud, estimates)
     metrics/<part>/hacc/<object>[/<model>][/<condition>]/<method>
                                        a group's mean H_acc: a scalar on the ``group`` timeline at the
-                                       group's index in results.json (see viz.metrics)
+                                       group's index in results.json (see viz.scores)
     metrics/<part>/summary             a part's markdown summary (its groups' table, its logged predictions)
     metrics/summary                    the predict app's markdown summary
 

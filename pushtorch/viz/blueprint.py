@@ -27,9 +27,10 @@ from pathlib import Path
 
 import rerun.blueprint as rrb
 
+from pushtorch.viz.annealing import ANNEAL_SERIES, ANNEAL_TIMELINE
+from pushtorch.viz.contacts import TRAINING
 from pushtorch.viz.core import WORLD
-from pushtorch.viz.metrics import GROUP_TIMELINE
-from pushtorch.viz.model import ANNEAL_SERIES, ANNEAL_TIMELINE, TRAINING
+from pushtorch.viz.scores import GROUP_TIMELINE
 from pushtorch.viz.sim import SIM, SIM_TIMELINE
 
 __all__ = [

@@ -1,7 +1,7 @@
 """One colour per method and per training prior, the same in every figure and in every recording.
 
 The report's figures (:mod:`pushtorch.experiments.report`) and the Rerun recordings
-(:mod:`pushtorch.viz.metrics`) draw a method or a prior in the same colour, so a reader who learns it in one
+(:mod:`pushtorch.viz.scores`) draw a method or a prior in the same colour, so a reader who learns it in one
 place recognises it in the other. No paper section.
 """
 
