@@ -31,7 +31,7 @@ _LAZY = {
     "Normal": "pushtorch.sim.priors",
     "Uniform": "pushtorch.sim.priors",
     "plan_training_pushes": "pushtorch.sim.plan",
-    "object_spec": "pushtorch.sim.world",
+    "object_spec": "pushtorch.sim.settings",
     "run_plan": "pushtorch.sim.runner",
     "simulate_pushes": "pushtorch.sim.runner",
     "load_records": "pushtorch.sim.records",
@@ -64,7 +64,7 @@ if TYPE_CHECKING:  # what type checkers and IDEs see (py.typed ships with the pa
     from pushtorch.sim.push import make_actions
     from pushtorch.sim.records import load_records
     from pushtorch.sim.runner import run_plan, simulate_pushes
-    from pushtorch.sim.world import object_spec
+    from pushtorch.sim.settings import object_spec
 
 
 def __getattr__(name: str) -> Any:

@@ -42,7 +42,7 @@ from pushtorch.errors import (
     RecordFormatError,
     UnsafeNameError,
 )
-from pushtorch.io import sealed_archive
+from pushtorch.io import folder_lock, sealed_archive
 from pushtorch.kde import KernelBandwidth, PoseKDE, ProductOfExperts, SharedKernelProduct
 from pushtorch.models.library import FORMAT, ModelSettings, load_model, train_push_model
 from pushtorch.objects import load_mesh_file, load_object
@@ -52,16 +52,11 @@ from pushtorch.prediction import predict, predict_many
 from pushtorch.sim.plan import PushPlan, plan_training_pushes
 from pushtorch.sim.priors import Normal
 from pushtorch.sim.push import make_actions, place_robot_against
-from pushtorch.sim.records import (
-    ARRAYS,
-    folder_lock,
-    load_records,
-    read_shard,
-    run_status,
-    write_shard,
-)
+from pushtorch.sim.records import load_records
+from pushtorch.sim.run_manifest import run_status
 from pushtorch.sim.runner import run_plan, simulate_pushes
-from pushtorch.sim.world import object_spec
+from pushtorch.sim.settings import object_spec
+from pushtorch.sim.shards import ARRAYS, read_shard, write_shard
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ModelSettings(query_kernels=400, anneal_candidates=60, anneal_steps=15, position_frames=800,
@@ -599,7 +594,7 @@ from pushtorch.sim.plan import plan_training_pushes
 from pushtorch.sim.priors import Normal
 from pushtorch.sim.push import make_actions
 from pushtorch.sim.runner import run_plan
-from pushtorch.sim.world import object_spec
+from pushtorch.sim.settings import object_spec
 
 seed, folder, go = int(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])
 cube = load_object("cube")
@@ -648,7 +643,7 @@ from pushtorch.sim.plan import plan_training_pushes
 from pushtorch.sim.priors import Normal
 from pushtorch.sim.push import make_actions
 from pushtorch.sim.runner import run_plan
-from pushtorch.sim.world import object_spec
+from pushtorch.sim.settings import object_spec
 
 folder, shard_size, workers = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 cube = load_object("cube")

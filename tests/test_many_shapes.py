@@ -74,7 +74,7 @@ def shapes_and_records(tmp_path_factory):
     from pushtorch.sim import object_spec
     from pushtorch.sim.records import load_records
     from pushtorch.sim.runner import run_plan
-    from pushtorch.sim.world import SimSettings
+    from pushtorch.sim.settings import SimSettings
 
     shapes = [random_shape(1, "polygon"), random_shape(2, "superellipse"), random_shape(3, "box")]
     records = []

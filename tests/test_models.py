@@ -41,7 +41,7 @@ from pushtorch.sim.priors import Normal
 from pushtorch.sim.push import make_actions, place_robot_against
 from pushtorch.sim.records import load_records
 from pushtorch.sim.runner import run_plan, simulate_pushes
-from pushtorch.sim.world import object_spec
+from pushtorch.sim.settings import object_spec
 
 FAST = ModelSettings(query_kernels=1000, anneal_candidates=150, anneal_steps=40, position_frames=2000)
 MASS, FRICTION = Normal(0.5, 0.025), Normal(0.3, 0.05)  # the paper's experiment defaults

@@ -26,8 +26,8 @@ from pushtorch.sim import (
     plan_training_pushes,
     run_plan,
 )
+from pushtorch.sim.engines import make_world
 from pushtorch.sim.runner import simulate_pushes
-from pushtorch.sim.world import make_world
 
 MUJOCO = SimSettings(engine="mujoco")
 

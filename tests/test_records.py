@@ -31,8 +31,8 @@ from pushtorch.sim import (
     run_plan,
     write_shard,
 )
-from pushtorch.sim.records import ARRAYS, complete_shards
-from pushtorch.sim.runner import simulate_arrays
+from pushtorch.sim.shards import ARRAYS, complete_shards
+from pushtorch.sim.worker import simulate_arrays
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -247,7 +247,7 @@ def test_a_resumed_run_does_not_hash_its_verified_shards_again(tmp_path, monkeyp
     import hashlib
 
     from pushtorch.sim import Normal, make_actions, object_spec, plan_training_pushes, run_plan
-    from pushtorch.sim import records as records_module
+    from pushtorch.sim import shards as records_module
 
     cube = load_object("cube")
     plan = plan_training_pushes(cube, make_actions(3), 2, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=2)

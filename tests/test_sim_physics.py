@@ -23,7 +23,7 @@ from pushtorch.sim import (
     plan_training_pushes,
     simulate_plan,
 )
-from pushtorch.sim.runner import simulate_arrays
+from pushtorch.sim.worker import simulate_arrays
 
 GAP = 0.002
 TRAVEL = 0.4  # 0.1 m/s for 4 s

@@ -78,7 +78,7 @@ from pushtorch.sim.priors import Normal
 from pushtorch.sim.push import make_actions
 from pushtorch.sim.records import load_records
 from pushtorch.sim.runner import run_plan, simulate_pushes
-from pushtorch.sim.world import object_spec
+from pushtorch.sim.settings import object_spec
 
 MASS, FRICTION = 0.5, 0.3  # the training priors' means: the test pushes' physics
 

@@ -45,7 +45,7 @@ def _simulate_and_train(folder: Path, workers: int, per_action: int) -> tuple[Pa
     from pushtorch.sim.push import make_actions
     from pushtorch.sim.records import load_records
     from pushtorch.sim.runner import run_plan
-    from pushtorch.sim.world import object_spec
+    from pushtorch.sim.settings import object_spec
 
     obj = load_object("cube")
     plan = plan_training_pushes(obj, make_actions(3, (-10.0, 10.0), 0.1), per_action, Uniform(0.1, 1.0),

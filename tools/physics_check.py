@@ -40,7 +40,7 @@ from pushtorch.objects import load_object
 from pushtorch.sim import SimSettings, default_workers, place_robot_against
 from pushtorch.sim.drive import DriveSettings
 from pushtorch.sim.runner import simulate_pushes
-from pushtorch.sim.world import ENGINES
+from pushtorch.sim.settings import ENGINES
 
 MIRROR_OBJECTS = ("cube", "cylinder", "prism_thin", "hybrid")
 

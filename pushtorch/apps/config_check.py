@@ -342,7 +342,7 @@ def _prior_problems(key: str, node: Any) -> list[str]:
 def _structured_problems(app: str, c: Mapping[str, Any]) -> list[str]:
     """Checks of whole sections by the library's constructors, and of names against what exists."""
     from pushtorch.models.library import ModelSettings
-    from pushtorch.sim.world import SimSettings
+    from pushtorch.sim.settings import SimSettings
 
     problems: list[str] = []
     if isinstance(c.get("sim"), Mapping):
@@ -489,7 +489,7 @@ def _memory_problems(what: str, pushes: int, duration: float, rate: float) -> li
 
 
 def _predict_problems(c: Mapping[str, Any]) -> list[str]:
-    from pushtorch.sim.world import ROBOT_REACH
+    from pushtorch.sim.geometry import ROBOT_REACH
 
     problems = []
     models = c.get("models")

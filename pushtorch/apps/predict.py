@@ -70,7 +70,7 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
     from pushtorch.prediction import predict
     from pushtorch.sim.priors import prior_from_config
     from pushtorch.sim.runner import simulate_pushes
-    from pushtorch.sim.world import settings_from_config
+    from pushtorch.sim.settings import settings_from_config
 
     check_config(cfg, "predict")  # types and bounds first, as the command line does
     c = plain(cfg)

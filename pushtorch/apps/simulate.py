@@ -8,7 +8,7 @@ robot against the object, draw the physical parameters from the prior, push, rec
     python -m pushtorch.simulate -m hydra/launcher=slurm hydra.launcher.partition=<p> \
         mass=general,low,medium,high
 
-Output in the run directory: ``pushes/`` (shards + ``manifest.json``, see :mod:`pushtorch.sim.records`),
+Output in the run directory: ``pushes/`` (shards + ``manifest.json``, see :mod:`pushtorch.sim.shards`),
 ``summary.json``, ``resolved_config.yaml`` and ``pushes.rrd`` (a few pushes for Rerun, with a blueprint that
 plays them on ``sim_time``). A killed run resumes
 when the same command is repeated with ``hydra.run.dir=<its directory>``. Configuration reaches the library
@@ -63,7 +63,7 @@ def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Pat
     from pushtorch.sim.push import make_actions
     from pushtorch.sim.records import load_records
     from pushtorch.sim.runner import run_plan
-    from pushtorch.sim.world import object_spec, settings_from_config
+    from pushtorch.sim.settings import object_spec, settings_from_config
 
     check_config(cfg, "simulate")  # types and bounds first, as the command line does
     c = _plain(cfg)

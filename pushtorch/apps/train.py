@@ -59,7 +59,8 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
     from pushtorch.experiments.common import as_names, plain
     from pushtorch.models.library import ModelSettings, train_push_model
     from pushtorch.objects import load_object
-    from pushtorch.sim.records import PushRecords, load_records, run_status
+    from pushtorch.sim.records import PushRecords, load_records
+    from pushtorch.sim.run_manifest import run_status
 
     check_config(cfg, "train")  # types and bounds first, as the command line does
     c = plain(cfg)

@@ -141,7 +141,7 @@ def physics_from_cloud_prediction(points: torch.Tensor, initial_estimate: se3.Po
                                   action: torch.Tensor, mass: float,
                                   ground_friction: float, settings=None) -> tuple[se3.Pose, se3.Pose]:
     """Simulate the push once on the body :func:`cloud_body` reconstructs from the observed ``points``, in the
-    engine of ``settings`` (a :class:`~pushtorch.sim.world.SimSettings`; the experiments' ``physics.engine``).
+    engine of ``settings`` (a :class:`~pushtorch.sim.settings.SimSettings`; the experiments' ``physics.engine``).
 
     Returns:
         ``(start, final)``: the reconstructed body's pose before and after the push (score the displacement

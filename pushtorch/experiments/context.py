@@ -24,7 +24,7 @@ from pushtorch.objects import ObjectModel, load_object
 from pushtorch.sim.executors import Executor, executor_from_config
 from pushtorch.sim.plan import Placement
 from pushtorch.sim.priors import Prior, prior_from_config
-from pushtorch.sim.world import SimSettings, settings_from_config
+from pushtorch.sim.settings import SimSettings, settings_from_config
 
 __all__ = [
     "ExperimentContext",

@@ -536,7 +536,7 @@ def simulate_truth(
     from pushtorch.sim.plan import PushPlan
     from pushtorch.sim.records import load_records
     from pushtorch.sim.runner import run_plan
-    from pushtorch.sim.world import object_spec
+    from pushtorch.sim.settings import object_spec
 
     if samples < 1:
         raise InvalidParameterError(f"truth_samples must be >= 1, got {samples}")

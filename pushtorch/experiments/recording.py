@@ -53,7 +53,7 @@ def _truth_push(ctx: ExperimentContext, obj: ObjectModel, predictions: Predictio
     every push rebuilds the object's shape they agree bit for bit; the check guards that); None if
     :func:`simulate_truth` did not run for these predictions while recording."""
     from pushtorch.sim.runner import simulate_plan
-    from pushtorch.sim.world import object_spec
+    from pushtorch.sim.settings import object_spec
 
     if ctx._truth_plan is None or ctx._truth_plan[0] != predictions.fingerprint:
         log.warning("no ground-truth plan for %s: its pushes are not animated", predictions.fingerprint[:8])

@@ -64,7 +64,7 @@ def training_records(ctx: ExperimentContext, obj: ObjectModel, friction: str, ma
     from pushtorch.sim.plan import plan_training_pushes
     from pushtorch.sim.records import load_records
     from pushtorch.sim.runner import run_plan
-    from pushtorch.sim.world import object_spec
+    from pushtorch.sim.settings import object_spec
 
     plan = plan_training_pushes(
         obj, ctx.actions, ctx.samples_per_action, ctx.prior("mass", mass), ctx.prior("friction", friction),

@@ -1,14 +1,23 @@
-"""Push simulation in pybullet: world, actions, priors, plans, records and the parallel runner.
+"""Push simulation in pybullet or MuJoCo: worlds, actions, priors, plans, records and the parallel runner.
 
 Paper, Experimental Setup and Biasing Transferable Push Manipulation Models: pybullet replaces the paper's
 Gazebo/ODE as the ground truth. The pieces, in the order data flows through them:
 
-    priors   mass and friction distributions (generalising U, biasing N, fixed)   pushtorch.sim.priors
-    plan     every push's inputs, drawn up front from one seeded generator       pushtorch.sim.plan
-    world    one pybullet client: ground, robot, object; reset per push          pushtorch.sim.world
-    push     actions a = (ẋ, θ̇), placement, one push and its validity flags    pushtorch.sim.push
-    records  PushRecords and the no-pickle shard format                         pushtorch.sim.records
-    runner   worker processes, progress bar, resumable shards                    pushtorch.sim.runner
+    priors          mass and friction distributions (generalising U, biasing N, fixed)  pushtorch.sim.priors
+    plan            every push's inputs, drawn up front from one seeded generator       pushtorch.sim.plan
+    settings        simulator settings, the object spec, the world's version            pushtorch.sim.settings
+    geometry        the world's edge, quaternions, collision pieces of both engines     pushtorch.sim.geometry
+    drive           the Pioneer 3-DX's wheels, traction and motors                      pushtorch.sim.drive
+    pybullet_world  one pybullet client: ground, robot, object; reset per push          pushtorch.sim.pybullet_world
+    mujoco_world    the same world in MuJoCo                                            pushtorch.sim.mujoco_world
+    engines         make_world: the world of the configured engine                      pushtorch.sim.engines
+    push            actions a = (ẋ, θ̇), placement, one push and its validity flags      pushtorch.sim.push
+    worker          a shard's pushes simulated in one world and written                 pushtorch.sim.worker
+    shards          the no-pickle shard format                                          pushtorch.sim.shards
+    run_manifest    what a run's folder promises, and how much of it is there           pushtorch.sim.run_manifest
+    records         PushRecords, loading a run, its per-push table                      pushtorch.sim.records
+    runner          worker processes, progress bar, resumable shards                    pushtorch.sim.runner
+    executors       where the shards run: this machine, Ray or Slurm                    pushtorch.sim.executors
 
 Quick use::
 
@@ -31,7 +40,8 @@ from pushtorch.sim.push import (
     make_actions,
     place_robot_against,
 )
-from pushtorch.sim.records import PushRecords, load_records, read_shard, write_shard
+from pushtorch.sim.pybullet_world import PushWorld
+from pushtorch.sim.records import PushRecords, load_records
 from pushtorch.sim.runner import (
     PushPool,
     RunSummary,
@@ -40,7 +50,8 @@ from pushtorch.sim.runner import (
     simulate_plan,
     simulate_pushes,
 )
-from pushtorch.sim.world import ObjectSpec, PushWorld, SimSettings, object_spec
+from pushtorch.sim.settings import ObjectSpec, SimSettings, object_spec
+from pushtorch.sim.shards import read_shard, write_shard
 
 __all__ = [
     "ACTION_DURATION",

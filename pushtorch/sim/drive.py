@@ -6,7 +6,7 @@ with its wheels, and a load it cannot carry slows it down. The paper finds mass 
 ("a high mass object … moves little"), which a stiff pusher cannot reproduce: quasi-static pushing does not
 depend on mass.
 
-``sim.robot`` chooses the drive (:class:`pushtorch.sim.world.PushWorld` applies it every physics step):
+``sim.robot`` chooses the drive (:class:`pushtorch.sim.pybullet_world.PushWorld` applies it every physics step):
 
 * ``p3dx``: the planar base of :mod:`pushtorch.robot` driven by the forces of two wheels. Each wheel's motor
   runs a PI loop on the wheel's ground speed (the robot's firmware servoes wheel speed), bounded by the motor
@@ -17,7 +17,7 @@ depend on mass.
   yaw (``s`` the wheel separation), and the sideways force at the axle. Wheel speeds are bounded by
   ``max_wheel_speed``.
 * ``ideal``: the planar joints' velocity motors, bounded per axis (``max_force``, ``max_torque`` of
-  :class:`~pushtorch.sim.world.SimSettings`): a stiff pusher, kept for comparison with earlier runs.
+  :class:`~pushtorch.sim.settings.SimSettings`): a stiff pusher, kept for comparison with earlier runs.
 
 Parameters and their sources are in docs/method.md ("The robot's drive"); :func:`wheel_forces` is the
 whole controller (pure numpy, unit-tested on its own).

@@ -117,8 +117,8 @@ def _spec_key(spec, settings) -> str:
 
 def run_shard_task(spec, settings, task) -> tuple[int, int, int]:
     """Simulate and write one shard (a runner task) in this process, building its world on first use."""
-    from pushtorch.sim import runner
-    from pushtorch.sim.world import make_world
+    from pushtorch.sim.engines import make_world
+    from pushtorch.sim.worker import run_shard_in
 
     key = _spec_key(spec, settings)
     if key not in _WORLDS:
@@ -126,12 +126,12 @@ def run_shard_task(spec, settings, task) -> tuple[int, int, int]:
             old.close()
         _WORLDS.clear()
         _WORLDS[key] = make_world(spec, settings)
-    return runner.run_shard_in(_WORLDS[key], task)
+    return run_shard_in(_WORLDS[key], task)
 
 
 def run_shard_block(spec, settings, tasks) -> list[tuple[int, int, int]]:
     """An array task: its block of shards, skipping those already finished (a requeued task resumes)."""
-    from pushtorch.sim.records import complete_shards
+    from pushtorch.sim.shards import complete_shards
 
     done = complete_shards(Path(tasks[0][1]), verify=False) if tasks else {}  # a block's shards share a folder
     return [run_shard_task(spec, settings, task) for task in tasks if task[0] not in done]

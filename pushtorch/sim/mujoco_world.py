@@ -5,7 +5,7 @@ pybullet. A second engine lets the *world* (training pushes, ground truth) diffe
 physics peers roll out in, as a lab's simulator differs from its floor (``world.engine`` and
 ``physics.engine``, docs/method.md "Two engines").
 
-:class:`MujocoWorld` has :class:`pushtorch.sim.world.PushWorld`'s interface (``spawn_object``,
+:class:`MujocoWorld` has :class:`pushtorch.sim.pybullet_world.PushWorld`'s interface (``spawn_object``,
 ``object_pose``, ``place_robot``, ``drive``, ``robot_joints``, ``touching``, ``step``, ``close``), so
 :func:`pushtorch.sim.push.execute_push` runs a push in either engine unchanged.
 
@@ -15,7 +15,7 @@ Design (decisions, see docs/method.md "Two engines"):
       start frame and the same drive (:func:`pushtorch.sim.drive.wheel_forces`, applied as generalised
       forces on the planar joints every physics step, as in pybullet). ``ideal`` uses velocity actuators
       bounded by ``max_force`` / ``max_torque``.
-    * Objects are bodies of the same collision pieces as in pybullet (:func:`pushtorch.sim.world.object_pieces`):
+    * Objects are bodies of the same collision pieces as in pybullet (:func:`pushtorch.sim.geometry.object_pieces`):
       axis-aligned boxes as box geoms, the other parts as mesh geoms (MuJoCo collides a mesh as its convex
       hull) standing on the same support spheres. Without them MuJoCo's plane collider picks a few of a flat
       bottom's equally deep vertices in their stored order, and mirrored pushes of the hybrid ended 8 mm apart.
@@ -40,7 +40,8 @@ import numpy as np
 
 from pushtorch.errors import InvalidParameterError, SimulationError
 from pushtorch.sim.drive import DriveState, wheel_forces
-from pushtorch.sim.world import ObjectSpec, SimSettings, object_pieces
+from pushtorch.sim.geometry import object_pieces
+from pushtorch.sim.settings import ObjectSpec, SimSettings
 
 __all__ = ["MujocoWorld", "world_xml"]
 
@@ -143,7 +144,7 @@ class MujocoWorld:
     """One MuJoCo model and data holding the ground, the robot and one object (see the module notes).
 
     Built once per object; every push resets the data and sets the object's mass, inertia and the ground's
-    friction on the model. Same interface as :class:`pushtorch.sim.world.PushWorld`.
+    friction on the model. Same interface as :class:`pushtorch.sim.pybullet_world.PushWorld`.
 
     Raises:
         SimulationError: MuJoCo cannot compile the world (e.g. a degenerate object part).

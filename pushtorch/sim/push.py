@@ -17,20 +17,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError
-from pushtorch.sim.world import (
-    PushWorld,
-    check_inside_world,
-    quat_conjugate,
-    quat_multiply,
-    quat_rotate,
-    yaw_quat,
-)
+from pushtorch.sim.geometry import check_inside_world, quat_conjugate, quat_multiply, quat_rotate, yaw_quat
+
+if TYPE_CHECKING:  # either engine's world runs a push (pushtorch.sim.engines.make_world)
+    from pushtorch.sim.pybullet_world import PushWorld
 
 __all__ = [
     "ACTION_DURATION",
@@ -247,7 +244,7 @@ def execute_push(
 
     Raises:
         InvalidParameterError: non-finite action or duration, bad mass/friction, or a start outside the
-            simulated world (:func:`pushtorch.sim.world.check_inside_world`).
+            simulated world (:func:`pushtorch.sim.geometry.check_inside_world`).
         SimulationError: pybullet failed, or the object's pose became non-finite.
     """
     from pushtorch.errors import SimulationError

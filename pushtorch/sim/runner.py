@@ -3,7 +3,7 @@
 Paper, Experimental Setup and the parameter tables (500 samples per action for training, 3 per push
 condition for ground truth: tens of thousands of pushes). Each worker holds one pybullet DIRECT client
 and one :class:`PushWorld`, built once; a task is one shard of consecutive pushes of the plan, simulated
-and written by the worker itself (atomically, see :mod:`pushtorch.sim.records`). Because every push's
+and written by the worker itself (atomically, :mod:`pushtorch.sim.worker`). Because every push's
 inputs are fixed by the plan and a world keeps no state from one push to the next, the shards do not
 depend on the number of workers or on their order, and a run that was killed resumes by simulating only
 the shards that have no finished manifest.
@@ -30,33 +30,22 @@ import torch
 
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, RecordFormatError
+from pushtorch.io import atomic_write_bytes, folder_lock
 from pushtorch.parallel import core_share
+from pushtorch.sim.engines import make_world
+from pushtorch.sim.geometry import check_inside_world
 from pushtorch.sim.plan import PushPlan
-from pushtorch.sim.push import execute_push
-from pushtorch.sim.records import (
-    FORMAT,
-    RUN_MANIFEST,
-    TABLE,
-    VERSION,
-    PushRecords,
-    _read_run_manifest,
-    atomic_write_bytes,
-    complete_shards,
-    folder_lock,
-    plan_digests,
-    records_from_arrays,
-    write_shard,
-    write_table,
-)
-from pushtorch.sim.world import WORLD_VERSION, ObjectSpec, SimSettings, check_inside_world, make_world, object_spec
+from pushtorch.sim.records import TABLE, PushRecords, records_from_arrays, write_table
+from pushtorch.sim.run_manifest import RUN_MANIFEST, plan_digests, read_run_manifest
+from pushtorch.sim.settings import WORLD_VERSION, ObjectSpec, SimSettings, object_spec
+from pushtorch.sim.shards import FORMAT, VERSION, complete_shards
+from pushtorch.sim.worker import run_shard_in, simulate_arrays
 
 __all__ = [
     "PushPool",
     "RunSummary",
     "default_workers",
     "run_plan",
-    "run_shard_in",
-    "simulate_arrays",
     "simulate_plan",
     "simulate_pushes",
 ]
@@ -71,61 +60,6 @@ def default_workers() -> int:
     """Simulation workers when none are asked for: this job's share of the cores
     (:func:`pushtorch.parallel.core_share`)."""
     return core_share()
-
-
-def simulate_arrays(world, plan_arrays: dict[str, np.ndarray], object_name: str, seed: int,
-                    duration: float) -> dict[str, np.ndarray]:
-    """Simulate the pushes of one plan slice in ``world``; return the shard arrays (numpy, no torch)."""
-    n = len(plan_arrays["index"])
-    outcomes = []
-    for i in range(n):
-        outcomes.append(
-            execute_push(
-                world,
-                plan_arrays["robot_start_p"][i],
-                plan_arrays["robot_start_q"][i],
-                plan_arrays["object_initial_p"][i],
-                plan_arrays["object_initial_q"][i],
-                float(plan_arrays["action"][i, 0]),
-                float(plan_arrays["action"][i, 1]),
-                float(duration),
-                float(plan_arrays["mass"][i]),
-                float(plan_arrays["ground_friction"][i]),
-            )
-        )
-    times = outcomes[0].time if outcomes else np.zeros(1)
-    t = len(times)
-
-    def stack(name: str, trailing: tuple[int, ...]) -> np.ndarray:
-        if not outcomes:
-            return np.zeros((0, *trailing))
-        return np.stack([getattr(o, name) for o in outcomes]).astype(np.float64)
-
-    return {
-        "index": np.asarray(plan_arrays["index"], dtype=np.int64),
-        "seed": np.full(n, int(seed), dtype=np.int64),
-        "object_name": np.array([object_name] * n, dtype=str).reshape(n),
-        "action_index": np.asarray(plan_arrays["action_index"], dtype=np.int64),
-        "action": np.asarray(plan_arrays["action"], dtype=np.float64),
-        "object_initial_p": stack("object_initial_p", (3,)),
-        "object_initial_q": stack("object_initial_q", (4,)),
-        "object_final_p": stack("object_final_p", (3,)),
-        "object_final_q": stack("object_final_q", (4,)),
-        "robot_start_p": np.asarray(plan_arrays["robot_start_p"], dtype=np.float64),
-        "robot_start_q": np.asarray(plan_arrays["robot_start_q"], dtype=np.float64),
-        "object_trajectory_p": stack("object_trajectory_p", (t, 3)),
-        "object_trajectory_q": stack("object_trajectory_q", (t, 4)),
-        "robot_trajectory_p": stack("robot_trajectory_p", (t, 3)),
-        "robot_trajectory_q": stack("robot_trajectory_q", (t, 4)),
-        "time": np.asarray(times, dtype=np.float64),
-        "mass": np.asarray(plan_arrays["mass"], dtype=np.float64),
-        "ground_friction": np.asarray(plan_arrays["ground_friction"], dtype=np.float64),
-        "object_friction": np.full(n, world.settings.object_friction, dtype=np.float64),
-        "touched": np.array([o.touched for o in outcomes], dtype=bool).reshape(n),
-        "tipped": np.array([o.tipped for o in outcomes], dtype=bool).reshape(n),
-        "left_ground": np.array([o.left_ground for o in outcomes], dtype=bool).reshape(n),
-        "first_contact_time": np.array([o.first_contact_time for o in outcomes], dtype=np.float64).reshape(n),
-    }
 
 
 def _check_plan_inside_world(spec: ObjectSpec, settings: SimSettings, plan: PushPlan) -> None:
@@ -214,16 +148,6 @@ def _init_worker(spec: ObjectSpec, settings: SimSettings) -> None:
 def _run_shard(task: tuple[int, str, dict[str, np.ndarray], str, int, float]) -> tuple[int, int, int]:
     assert _WORKER_WORLD is not None, "worker used before its initializer ran"
     return run_shard_in(_WORKER_WORLD, task)
-
-
-def run_shard_in(world, task: tuple[int, str, dict[str, np.ndarray], str, int, float]) -> tuple[int, int, int]:
-    """Simulate one task's shard in ``world`` and write it (atomically) into the task's folder; returns
-    ``(shard id, pushes, valid pushes)``. Every executor's workers run this."""
-    shard_id, folder, arrays, object_name, seed, duration = task
-    result = simulate_arrays(world, arrays, object_name, seed, duration)
-    write_shard(folder, shard_id, result)
-    valid = int((result["touched"] & ~result["tipped"] & ~result["left_ground"]).sum())
-    return shard_id, len(result["index"]), valid
 
 
 @dataclass
@@ -348,7 +272,7 @@ def _prepare_folder(folder: Path, manifest: dict) -> None:
     for stale in folder.glob(f".{MANIFEST}.tmp-*"):
         stale.unlink(missing_ok=True)
     path = folder / MANIFEST
-    existing = _read_run_manifest(folder)  # refuses an unreadable manifest and pushes of another world
+    existing = read_run_manifest(folder)  # refuses an unreadable manifest and pushes of another world
     if existing is not None:
         changed = [k for k in manifest if k != "resume" and (k not in _DERIVED_KEYS or k in existing)
                    and existing.get(k) != manifest.get(k)]
@@ -417,7 +341,7 @@ def _run_claimed(plan: PushPlan, folder: Path, spec: ObjectSpec, settings: SimSe
                 simulated, valid = simulated + count, valid + ok
                 bar.update(count)
     seconds = time.perf_counter() - start
-    if not (folder / TABLE).is_file() or todo:  # the per-push table of the finished run (records.TABLE)
+    if not (folder / TABLE).is_file() or todo:  # the per-push table of the finished run (pushtorch.sim.records.TABLE)
         write_table(folder)
     return RunSummary(folder, n, n_shards, len(done), simulated, valid, seconds)
 
