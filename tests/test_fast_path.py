@@ -659,7 +659,7 @@ def test_a_warm_fused_function_does_not_recompile_for_other_sizes_strides_or_gra
 
     from torch._dynamo.utils import counters
 
-    from pushtorch.kde.fused import _dense_sums
+    from pushtorch.kde.kernel_sums import dense_sums
 
     if not any(shutil.which(cc) for cc in ("g++", "c++", "clang++")):
         pytest.skip("no C++ compiler for torch.compile")
@@ -671,12 +671,12 @@ def test_a_warm_fused_function_does_not_recompile_for_other_sizes_strides_or_gra
         table = torch.randn(problems, 8, 2 * kernels if strided else kernels, generator=g)
         return x, table[:, :, ::2] if strided else table, torch.rand(problems, 2, generator=g) + 1, 3.0, 2.0
 
-    evaluate = fused_function("test_recompiles_dense_sums", _dense_sums, "cpu")  # its own compiled function
+    evaluate = fused_function("test_recompiles_dense_sums", dense_sums, "cpu")  # its own compiled function
     evaluate(*arguments(7, 40, 300))  # the warm-up: 7 problems, as many as a pose's rows
     graphs = counters["stats"]["unique_graphs"]
     for problems, queries, kernels, strided in [(3, 61, 317, False), (5, 33, 200, True), (2, 500, 900, False)]:
         args = arguments(problems, queries, kernels, strided)
         with torch.enable_grad():
             value = evaluate(*args)
-        torch.testing.assert_close(value, _dense_sums(*args), rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(value, dense_sums(*args), rtol=1e-5, atol=1e-6)
     assert counters["stats"]["unique_graphs"] == graphs

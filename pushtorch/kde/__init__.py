@@ -1,14 +1,18 @@
 """Kernel density estimation over SE(3), optionally × R^k descriptors, batched in torch.
 
 One module per concern: :mod:`~pushtorch.kde.bandwidth` (bandwidths, trial rounds, the distances),
-:mod:`~pushtorch.kde.density` (:class:`PoseKDE`: the dense reference, the textbook evaluation, mean shift,
-sampling), :mod:`~pushtorch.kde.sampling` (one kernel factor's exact draws), :mod:`~pushtorch.kde.fused`
-(the fast path's fused functions and when they compile), :mod:`~pushtorch.kde.fast_index` (kernels laid out
-for the fast path), :mod:`~pushtorch.kde.products` (products of experts), :mod:`~pushtorch.kde.annealing`
-(densities that anneal themselves: the fast annealing steps fused with a density's evaluation, for
-:func:`pushtorch.anneal.anneal`) and :mod:`~pushtorch.kde.normaliser` (the normalising constants of kernels
-and of products of experts); :mod:`~pushtorch.kde.evaluation` names the two evaluations. This package
-re-exports the public names.
+:mod:`~pushtorch.kde.density` (:class:`PoseKDE`: the density, its dispatch, mean shift, sampling),
+:mod:`~pushtorch.kde.queries` (a density's queries: checks, broadcasting, chunks), :mod:`~pushtorch.kde.dense`
+(the dense reference), :mod:`~pushtorch.kde.straightforward` (the textbook evaluation),
+:mod:`~pushtorch.kde.rounds` (the trial-round search), :mod:`~pushtorch.kde.reductions` (the dense reference's
+distances and reductions), :mod:`~pushtorch.kde.sampling` (one kernel factor's exact draws),
+:mod:`~pushtorch.kde.fused` (how the fast path's fused functions run: compiled or eager, in chunks),
+:mod:`~pushtorch.kde.kernel_sums` (the fused functions themselves), :mod:`~pushtorch.kde.fast_index` (kernels
+laid out for the fast path), :mod:`~pushtorch.kde.products` (products of experts),
+:mod:`~pushtorch.kde.annealing` (densities that anneal themselves: the fast annealing steps fused with a
+density's evaluation, for :func:`pushtorch.anneal.anneal`) and :mod:`~pushtorch.kde.normaliser` (the
+normalising constants of kernels and of products of experts); :mod:`~pushtorch.kde.method` names the two
+evaluation methods (:class:`Evaluation`). This package re-exports the public names.
 
 Paper, Background → Kernel Density Estimation: the surface-feature kernel (Eq. surface_feature_kernel)
 approximated by the cut-off Gaussians N3 / N2 and the antipodal von Mises–Fisher pair Θ, the distances
@@ -40,7 +44,7 @@ descriptors, up to that same constant — the paper's "descriptor distance is om
 Two evaluation paths give the same values (:class:`Evaluation`, or its string, wherever ``method=`` is
 taken): ``method="dense"`` (the reference, every query against every kernel with matmuls) and
 ``method="fast"`` (exact distances in fused, optionally compiled passes, pruned by the hard cut-offs to the
-leaf blocks of kernels that can reach a query; :mod:`pushtorch.kde.fused`).
+leaf blocks of kernels that can reach a query; :mod:`pushtorch.kde.fast_index`).
 Inside :func:`straightforward_evaluation` the dense reference is evaluated the textbook way instead
 (``cdist`` and the quaternion dot for all queries at once, cut-offs, ``logsumexp``): the baseline the
 prediction benchmark times for scale, and an oracle for both paths.
@@ -57,14 +61,9 @@ from pushtorch.kde.bandwidth import (
     translation_distance,
 )
 from pushtorch.kde.density import PoseKDE
-from pushtorch.kde.evaluation import Evaluation
-from pushtorch.kde.fused import (
-    FAST_DENSE_KERNELS,
-    FAST_LEAF_SIZE,
-    declare_long_run,
-    fast_path_compiled,
-    fused_function,
-)
+from pushtorch.kde.fast_index import FAST_DENSE_KERNELS, FAST_LEAF_SIZE
+from pushtorch.kde.fused import declare_long_run, fast_path_compiled, fused_function
+from pushtorch.kde.method import Evaluation
 from pushtorch.kde.products import ProductOfExperts, SharedKernelProduct, product_log_prob
 from pushtorch.kde.straightforward import straightforward_evaluation
 

@@ -1,5 +1,6 @@
 """Kernel bandwidths, trial rounds and the paper's distances d_p, d_q, d_r, d'_r (Background → Kernel Density
-Estimation; units and cut-offs as :mod:`pushtorch.kde` says)."""
+Estimation; units and cut-offs as :mod:`pushtorch.kde` says): :class:`KernelBandwidth`, :class:`TrialRounds`
+and :func:`trial_rounds_tensor` (a density's rounds per batch element), the distance functions."""
 
 from __future__ import annotations
 
@@ -130,6 +131,35 @@ class TrialRounds:
         if rounds.shape != (3,):
             raise InvalidParameterError(f"trial rounds must have shape (3,), got {tuple(rounds.shape)}")
         return TrialRounds(*(int(v) for v in rounds.tolist()))
+
+
+def trial_rounds_tensor(rounds: TrialRounds | Tensor | None, batch: torch.Size, device) -> Tensor:
+    """Trial rounds as the ``(*batch, 3)`` int64 tensor a density keeps: a :class:`TrialRounds` for every batch
+    element, an integer tensor ``(*batch, 3)`` or ``(3,)``, or None for (0, 0, 0).
+
+    Raises:
+        InvalidParameterError: a tensor that is not integer, negative rounds, or a shape that does not
+            broadcast to ``(*batch, 3)``.
+    """
+    if rounds is None:
+        rounds = TrialRounds()
+    if isinstance(rounds, TrialRounds):
+        t = rounds.as_tensor(device)
+    else:
+        t = torch.as_tensor(rounds, device=device)
+        if t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
+            raise InvalidParameterError(f"trial rounds must be an integer tensor, got {t.dtype}")
+        if (t < 0).any():
+            raise InvalidParameterError("trial rounds must be >= 0")
+        t = t.to(torch.int64)
+    if t.shape[-1:] != (3,):
+        raise InvalidParameterError(f"trial rounds must have shape (*B, 3) or (3,), got {tuple(t.shape)}")
+    try:
+        return t.expand(*batch, 3).contiguous()
+    except RuntimeError as exc:
+        raise InvalidParameterError(
+            f"trial rounds of shape {tuple(t.shape)} do not match the batch shape {tuple(batch)}"
+        ) from exc
 
 
 # --------------------------------------------------------------------------------------------------

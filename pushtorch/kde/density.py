@@ -1,8 +1,15 @@
-"""The weighted kernel density over SE(3) (× descriptors), :class:`PoseKDE` (Eqs. surface_feature_kernel,
-surface_feature_probability): its dense reference evaluation, the textbook one (:func:`straightforward_evaluation`),
-mean shift, trial rounds, sampling, and its own annealing on the fast path (:meth:`PoseKDE.fused_anneal`, the
-Query Density's simulated annealing); the fast path lives in :mod:`pushtorch.kde.fused`,
-:mod:`pushtorch.kde.fast_index` and :mod:`pushtorch.kde.annealing`."""
+"""The weighted kernel density over SE(3) (× descriptors), :class:`PoseKDE`: its construction and stacking, its
+evaluation by either path (:class:`~pushtorch.kde.Evaluation`), mean shift, trial rounds, sampling, and its own
+annealing on the fast path (:meth:`PoseKDE.fused_anneal`).
+
+Paper, Background → Kernel Density Estimation: the kernel of Eq. surface_feature_kernel with its cut-offs and
+trial rounds, and the weighted kernel sum of Eq. surface_feature_probability; Query Density: its simulated
+annealing. The class holds the kernels and dispatches; the parts live beside it: the dense reference in
+:mod:`pushtorch.kde.dense`, query checks and chunks in :mod:`pushtorch.kde.queries`, the fast path in
+:mod:`pushtorch.kde.fast_index`, :mod:`pushtorch.kde.kernel_sums` and :mod:`pushtorch.kde.fused`, the textbook
+evaluation in :mod:`pushtorch.kde.straightforward`, the trial-round search in :mod:`pushtorch.kde.rounds`, the
+draws in :mod:`pushtorch.kde.sampling` and the annealing steps in :mod:`pushtorch.kde.annealing`.
+"""
 
 from __future__ import annotations
 
@@ -15,25 +22,21 @@ from pytorch_kinematics import transforms as pkt
 
 from pushtorch.errors import InvalidParameterError, InvalidPoseError
 from pushtorch.kde.annealing import AnnealInputs, AnnealOutcome, anneal_chains
-from pushtorch.kde.bandwidth import KernelBandwidth, TrialRounds
-from pushtorch.kde.evaluation import Evaluation
-from pushtorch.kde.fast_index import FastIndex
-from pushtorch.kde.fused import (
-    _DEFAULT_BLOCK_ELEMENTS,
-    _descriptor_sums,
-    _linear_sums_exact,
-    fast_path_compiled,
-    fused_function,
-)
-from pushtorch.kde.reductions import logsumexp_last, needs_grad, neg_scaled_squared_distances
+from pushtorch.kde.bandwidth import KernelBandwidth, TrialRounds, trial_rounds_tensor
+from pushtorch.kde.dense import DenseKernels
+from pushtorch.kde.fast_index import DescriptorTable, FastIndex
+from pushtorch.kde.fused import fast_path_compiled
+from pushtorch.kde.method import Evaluation
+from pushtorch.kde.queries import prepare_queries, query_chunks
+from pushtorch.kde.reductions import logsumexp_last, needs_grad
 from pushtorch.kde.rounds import fit_trial_rounds
-from pushtorch.kde.sampling import _sample_rotation_offsets, _sample_translation_offsets
+from pushtorch.kde.sampling import sample_rotation_offsets, sample_translation_offsets
 from pushtorch.kde.straightforward import straightforward_active, straightforward_log_prob
 from pushtorch.se3 import Pose, check_unit_quaternion, multinomial
 
 Tensor = torch.Tensor
 
-
+__all__ = ["PoseKDE"]
 
 # --------------------------------------------------------------------------------------------------
 # The density
@@ -142,56 +145,19 @@ class PoseKDE:
         self._log_w = (log_weights - total).contiguous()
         self.bandwidth = bandwidth
         self.validate_args = validate_args
-        self._trial_rounds = self._rounds_tensor(trial_rounds, batch, device)
+        self._trial_rounds = trial_rounds_tensor(trial_rounds, batch, device)
         self._precompute()
 
     # -- construction helpers ------------------------------------------------------------------
 
-    @staticmethod
-    def _rounds_tensor(rounds: TrialRounds | Tensor | None, batch: torch.Size, device) -> Tensor:
-        if rounds is None:
-            rounds = TrialRounds()
-        if isinstance(rounds, TrialRounds):
-            t = rounds.as_tensor(device)
-        else:
-            t = torch.as_tensor(rounds, device=device)
-            if t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
-                raise InvalidParameterError(f"trial rounds must be an integer tensor, got {t.dtype}")
-            if (t < 0).any():
-                raise InvalidParameterError("trial rounds must be >= 0")
-            t = t.to(torch.int64)
-        if t.shape[-1:] != (3,):
-            raise InvalidParameterError(f"trial rounds must have shape (*B, 3) or (3,), got {tuple(t.shape)}")
-        try:
-            return t.expand(*batch, 3).contiguous()
-        except RuntimeError as exc:
-            raise InvalidParameterError(
-                f"trial rounds of shape {tuple(t.shape)} do not match the batch shape {tuple(batch)}"
-            ) from exc
-
     def _precompute(self) -> None:
-        """Scaled kernel matrices so that every chunk needs one matmul per factor."""
+        """The bandwidth multipliers β = α_T^(−T) and the kernels scaled for the dense reference."""
         bw = self.bandwidth
         dtype = self._p.dtype
         self._beta = torch.pow(
             torch.tensor(bw.alpha_t, dtype=torch.float64, device=self._p.device), -self._trial_rounds.double()
         ).to(dtype)  # (*B, 3)
-        weights = self._log_w.exp().unsqueeze(-1)  # padding kernels get 0 weight in the centre
-        # Centred on the weighted kernel mean: the differences are then taken between small numbers, exact
-        # for kernels and queries far from the origin (float32 resolves 8 µm at 100 m, not below).
-        self._p_centre = (weights * self._p).sum(-2, keepdim=True)
-        # Kernel positions carry √(β/σ), so the distance of scaled positions is β d directly.
-        self._p_root_scale = (self._beta[..., 0] / bw.sigma_p).sqrt()[..., None, None]  # (*B, 1, 1)
-        self._p_scaled = ((self._p - self._p_centre) * self._p_root_scale).contiguous()
-        self._kappa = (self._beta[..., 1] / bw.sigma_q)[..., None, None]  # κ = β_q / σ_q, (*B, 1, 1)
-        self._q_kappa_t = (self._q * self._kappa).transpose(-1, -2).contiguous()
-        if self._r is not None:
-            sigma_r = torch.tensor(bw.sigma_r, dtype=torch.float64)
-            inv_sqrt_sigma = sigma_r.rsqrt().to(dtype=dtype, device=self._r.device)
-            self._r_inv_sqrt_sigma = inv_sqrt_sigma
-            self._r_centre = (weights * self._r).sum(-2, keepdim=True)
-            self._r_root_scale = self._beta[..., 2].sqrt()[..., None, None]
-            self._r_scaled = ((self._r - self._r_centre) * inv_sqrt_sigma * self._r_root_scale).contiguous()
+        self._dense = DenseKernels.build(self._p, self._q, self._r, self._log_w, self._beta, bw)
 
     def _replace(self, **changes) -> PoseKDE:
         new = object.__new__(PoseKDE)
@@ -228,6 +194,12 @@ class PoseKDE:
     def beta(self) -> Tensor:
         """``(*B, 3)`` bandwidth multipliers (β_p, β_q, β_r) = α_T^(−T)."""
         return self._beta
+
+    @property
+    def dense_kernels(self) -> DenseKernels:
+        """The kernels scaled for the dense reference (:class:`~pushtorch.kde.dense.DenseKernels`, read-only):
+        what :meth:`log_prob` evaluates ``method="dense"`` and the trial-round search its chunks with."""
+        return self._dense
 
     @property
     def batch_shape(self) -> torch.Size:
@@ -269,7 +241,7 @@ class PoseKDE:
 
     def with_trial_rounds(self, rounds: TrialRounds | Tensor) -> PoseKDE:
         """The same kernels with other trial rounds (a TrialRounds for all, or ``(*B, 3)``/``(3,)``)."""
-        return self._replace(_trial_rounds=self._rounds_tensor(rounds, self.batch_shape, self.device))
+        return self._replace(_trial_rounds=trial_rounds_tensor(rounds, self.batch_shape, self.device))
 
     @staticmethod
     def stack(kdes: Sequence[PoseKDE]) -> PoseKDE:
@@ -308,135 +280,24 @@ class PoseKDE:
             filler = torch.full((*t.shape[:-2], extra, t.shape[-1]), value, dtype=t.dtype, device=t.device)
             return torch.cat([t, filler], -2)
 
-        p = torch.stack([pad(k._p, k.num_kernels, 0.0) for k in kdes])
+        p = torch.stack([pad(k.means.p, k.num_kernels, 0.0) for k in kdes])
         q_parts = []
         for k in kdes:
-            qk = pad(k._q, k.num_kernels, 0.0)
+            qk = pad(k.means.q, k.num_kernels, 0.0)
             qk[..., k.num_kernels :, 0] = 1.0
             q_parts.append(qk)
-        log_w = torch.stack([pad(k._log_w.unsqueeze(-1), k.num_kernels, -math.inf).squeeze(-1) for k in kdes])
-        r = None if first._r is None else torch.stack([pad(k._r, k.num_kernels, 0.0) for k in kdes])
+        log_w = torch.stack([pad(k.log_weights.unsqueeze(-1), k.num_kernels, -math.inf).squeeze(-1) for k in kdes])
+        r = None if first.descriptors is None else torch.stack([pad(k.descriptors, k.num_kernels, 0.0) for k in kdes])
         return PoseKDE(
             Pose.unchecked(p, torch.stack(q_parts)),
             first.bandwidth,
             log_w,
             r,
-            torch.stack([k._trial_rounds for k in kdes]),
+            torch.stack([k.trial_rounds for k in kdes]),
             validate_args=first.validate_args,
         )
 
-    # -- queries -------------------------------------------------------------------------------
-
-    def _prepare_queries(
-        self, pose: Pose, descriptors: Tensor | None
-    ) -> tuple[Tensor, Tensor, Tensor | None]:
-        p, q = pose
-        if p.dim() < 2 or p.shape[-1] != 3 or q.dim() < 2 or q.shape[-1] != 4:
-            raise InvalidPoseError(
-                f"query poses need p (..., M, 3) and q (..., M, 4); got {tuple(p.shape)} and {tuple(q.shape)}"
-            )
-        p = p.to(self.dtype)
-        q = q.to(self.dtype)
-        try:
-            shape = torch.broadcast_shapes(p.shape[:-1], q.shape[:-1])
-        except RuntimeError as exc:
-            raise InvalidPoseError(
-                f"query p {tuple(p.shape)} and q {tuple(q.shape)} do not broadcast"
-            ) from exc
-        if descriptors is not None:
-            if self._r is None:
-                raise InvalidParameterError("query descriptors given to a PoseKDE built without descriptors")
-            descriptors = descriptors.to(self.dtype)
-            if descriptors.shape[-1:] != (self.descriptor_dim,):
-                raise InvalidParameterError(
-                    f"query descriptors must have shape (..., M, {self.descriptor_dim}),"
-                    f" got {tuple(descriptors.shape)}"
-                )
-            try:
-                shape = torch.broadcast_shapes(shape, descriptors.shape[:-1])
-            except RuntimeError as exc:
-                raise InvalidParameterError(
-                    f"query descriptors {tuple(descriptors.shape)} do not broadcast with the poses"
-                    f" {tuple(shape)}"
-                ) from exc
-            descriptors = descriptors.expand(*shape, self.descriptor_dim)
-        try:
-            torch.broadcast_shapes(shape[:-1], self.batch_shape)
-        except RuntimeError as exc:
-            raise InvalidPoseError(
-                f"query batch dims {tuple(shape[:-1])} do not broadcast with the density's batch shape"
-                f" {tuple(self.batch_shape)} (queries are (..., M))"
-            ) from exc
-        p = p.expand(*shape, 3)
-        q = q.expand(*shape, 4)
-        if self.validate_args:
-            if not torch.isfinite(p).all():
-                raise InvalidPoseError("query positions hold NaN or infinite values")
-            check_unit_quaternion(q, name="query q")
-            if descriptors is not None and not torch.isfinite(descriptors).all():
-                raise InvalidParameterError("query descriptors hold NaN or infinite values")
-        return p, q, descriptors
-
-    def _chunk_size(self, query_batch: torch.Size, chunk_size: int | None) -> int:
-        if chunk_size is not None:
-            if isinstance(chunk_size, bool) or int(chunk_size) != chunk_size or chunk_size < 1:
-                raise InvalidParameterError(f"chunk_size must be a positive integer, got {chunk_size!r}")
-            return int(chunk_size)
-        batch = torch.broadcast_shapes(query_batch, self.batch_shape).numel()
-        return max(1, _DEFAULT_BLOCK_ELEMENTS // max(1, batch * self.num_kernels))
-
-    def _neg_terms(self, p: Tensor, q: Tensor, r: Tensor | None, inplace: bool = True
-                   ) -> tuple[Tensor, Tensor, Tensor | None]:
-        """−β·d of each factor for a chunk of queries: ``(*BB, m, N)`` tensors (r: None if unused).
-
-        One pass per factor (exact differences for positions and descriptors, one matmul for the quaternion
-        dot) plus in-place element-wise passes: this is the hot path of every density evaluation, so it
-        avoids boolean masks and ``where`` (several times slower on CPU). ``inplace=False``
-        does the same out of place, for queries autograd follows (in place, it would overwrite what the
-        backward pass needs).
-        """
-        clamp = torch.Tensor.clamp_max_ if inplace else torch.Tensor.clamp_max
-        dot = torch.matmul(q, self._q_kappa_t)
-        neg_p = neg_scaled_squared_distances(p - self._p_centre, self._p_scaled, self._p_root_scale)
-        neg_q = clamp(dot.abs_().sub_(self._kappa) if inplace else dot.abs() - self._kappa, 0.0)
-        neg_r = None
-        if r is not None:
-            x = (r - self._r_centre) * self._r_inv_sqrt_sigma
-            neg_r = neg_scaled_squared_distances(x, self._r_scaled, self._r_root_scale)
-        return neg_p, neg_q, neg_r
-
-    def _scaled_terms(self, p: Tensor, q: Tensor, r: Tensor | None) -> tuple[Tensor, Tensor, Tensor | None]:
-        """β·d of each factor, computed exactly as in :meth:`log_prob` (negation is exact)."""
-        neg_p, neg_q, neg_r = self._neg_terms(p, q, r)
-        return neg_p.neg_(), neg_q.neg_(), (None if neg_r is None else neg_r.neg_())
-
-    def _chunk_log_kernels(self, p: Tensor, q: Tensor, r: Tensor | None, with_weights: bool,
-                           inplace: bool = True) -> Tensor:
-        """log(w_i K(x|μ_i)) (or log K) for a chunk: ``(*BB, m, N)``, -inf where a factor is cut off
-        (``inplace`` as :meth:`_neg_terms`)."""
-        terms = self._neg_terms(p, q, r, inplace)
-        total = None
-        for neg, delta in zip(terms, self.bandwidth.delta, strict=True):
-            if neg is None:
-                continue
-            # keeps x where x > −δ (β d < δ) and writes −inf elsewhere: the paper's cut-off
-            if inplace:
-                torch.nn.functional.threshold_(neg, -delta, -math.inf)
-            else:
-                neg = torch.where(neg > -delta, neg, torch.full_like(neg, -math.inf))
-            total = neg if total is None else (total.add_(neg) if inplace else total + neg)
-        assert total is not None
-        if with_weights:
-            total = total.add_(self._log_w.unsqueeze(-2)) if inplace else total + self._log_w.unsqueeze(-2)
-        return total
-
-    def _iter_chunks(self, pose: Pose, descriptors: Tensor | None, chunk_size: int | None):
-        p, q, r = self._prepare_queries(pose, descriptors)
-        m = p.shape[-2]
-        step = self._chunk_size(p.shape[:-2], chunk_size)
-        for start in range(0, m, step):
-            sl = slice(start, start + step)
-            yield p[..., sl, :], q[..., sl, :], (None if r is None else r[..., sl, :])
+    # -- evaluation ----------------------------------------------------------------------------
 
     def log_prob(
         self,
@@ -479,51 +340,25 @@ class PoseKDE:
             index = self.fast_index()
             # uncompiled, the dense reference is as fast as an eager fused pass for small densities
             if index.linear and (index.blocks or fast_path_compiled(self.device)):
-                p, q, _ = self._prepare_queries(pose, None)
+                p, q, _ = prepare_queries(self, pose, None)
                 return index.log_prob(p, q)
         if method == Evaluation.FAST and descriptors is not None and len(self.batch_shape) == 0:
             table = self._descriptor_table()
             if table is not None:
-                p, q, r = self._prepare_queries(pose, descriptors)
-                return self._fast_log_prob_descriptors(table, p, q, r)
+                p, q, r = prepare_queries(self, pose, descriptors)
+                return table.log_prob(p, q, r)
         if straightforward_active():
-            return straightforward_log_prob(self, *self._prepare_queries(pose, descriptors))
+            return straightforward_log_prob(self, *prepare_queries(self, pose, descriptors))
         inplace = not needs_grad(pose, descriptors)
         out = [
-            logsumexp_last(self._chunk_log_kernels(p, q, r, with_weights=True, inplace=inplace), inplace)
-            for p, q, r in self._iter_chunks(pose, descriptors, chunk_size)
+            logsumexp_last(self._dense.log_kernels(p, q, r, with_weights=True, inplace=inplace), inplace)
+            for p, q, r in query_chunks(self, pose, descriptors, chunk_size)
         ]
         if not out:  # M = 0
-            p, _, _ = self._prepare_queries(pose, descriptors)
+            p, _, _ = prepare_queries(self, pose, descriptors)
             shape = torch.broadcast_shapes(p.shape[:-2], self.batch_shape) + (0,)
             return torch.empty(shape, dtype=self.dtype, device=self.device)
         return torch.cat(out, -1)
-
-    def _descriptor_table(self) -> tuple[Tensor, Tensor] | None:
-        """Kernels as rows ``(8 + k, N)`` (p, q, log w relative to the largest, r) and that largest log w,
-        for the fused pass with descriptors; None when the weights cannot be summed in the linear domain.
-        Built on first use and cached."""
-        if "_fast_descriptor_table" not in self.__dict__:
-            top = self._log_w.amax()
-            relative = self._log_w - top
-            rows = torch.cat([self._p, self._q, relative.unsqueeze(-1), self._r], -1).T.contiguous()
-            self._fast_descriptor_table = (rows, top) if _linear_sums_exact(relative) else None
-        return self._fast_descriptor_table
-
-    def _fast_log_prob_descriptors(self, table: tuple[Tensor, Tensor], p: Tensor, q: Tensor, r: Tensor) -> Tensor:
-        """log_prob of one density (batch shape ()) with descriptors in one fused pass per chunk."""
-        rows, top = table
-        shape = p.shape[:-1]
-        x = torch.cat([p, q, r], -1).reshape(-1, p.shape[-1] + q.shape[-1] + r.shape[-1]).T.contiguous()
-        bw = self.bandwidth
-        beta = self._beta.double()
-        scale = torch.stack([beta[0] / bw.sigma_p, beta[1] / bw.sigma_q, beta[2]]).to(self.dtype)
-        r_scale = (1.0 / torch.tensor(bw.sigma_r, dtype=torch.float64)).to(device=x.device, dtype=self.dtype)
-        evaluate = fused_function("descriptor_sums", _descriptor_sums, x.device)
-        step = max(1, _DEFAULT_BLOCK_ELEMENTS // rows.shape[1])
-        total = torch.cat([evaluate(x[:, s : s + step], rows, scale, r_scale, *bw.delta)
-                           for s in range(0, x.shape[1], step)])
-        return (torch.log(total) + top).reshape(shape)
 
     def mean_shift(self, pose: Pose, chunk_size: int | None = None, method: Evaluation | str = Evaluation.DENSE
                    ) -> Pose:
@@ -540,11 +375,11 @@ class PoseKDE:
         if method == Evaluation.FAST and self._r is None:
             index = self.fast_index()
             if index.linear and index.blocks:
-                p, q, _ = self._prepare_queries(pose, None)
+                p, q, _ = prepare_queries(self, pose, None)
                 return index.mean_shift(p, q)
         new_p, new_q = [], []
-        for p, q, _ in self._iter_chunks(pose, None, chunk_size):
-            logits = self._chunk_log_kernels(p, q, None, with_weights=True)  # (*BB, m, N)
+        for p, q, _ in query_chunks(self, pose, None, chunk_size):
+            logits = self._dense.log_kernels(p, q, None, with_weights=True)  # (*BB, m, N)
             alive = torch.isfinite(logits).any(-1, keepdim=True)
             a = torch.softmax(torch.where(alive, logits, torch.zeros_like(logits)), -1) * alive
             sign = torch.where(q @ self._q.transpose(-1, -2) < 0, -1.0, 1.0).to(a.dtype)
@@ -554,6 +389,13 @@ class PoseKDE:
             new_p.append(torch.where(alive, moved_p, p.expand_as(moved_p)))
             new_q.append(torch.where(alive, moved_q, q.expand_as(moved_q)))
         return Pose.unchecked(torch.cat(new_p, -2), torch.cat(new_q, -2))
+
+    def _descriptor_table(self) -> DescriptorTable | None:
+        """The fast path's kernel rows with descriptors (:class:`DescriptorTable`; None when the weights cannot
+        be summed in the linear domain). Built on first use and cached."""
+        if "_fast_descriptor_table" not in self.__dict__:
+            self._fast_descriptor_table = DescriptorTable.of(self)
+        return self._fast_descriptor_table
 
     def fast_index(self) -> FastIndex:
         """The fast path's leaf blocks of this density (built on first use, then cached)."""
@@ -588,8 +430,8 @@ class PoseKDE:
 
         Use it for the contact-frame terms of Eq. pdf_motion; memory is ``M × N`` per batch element.
         """
-        p, q, r = self._prepare_queries(pose, descriptors)
-        return self._chunk_log_kernels(p, q, r, with_weights=False)
+        p, q, r = prepare_queries(self, pose, descriptors)
+        return self._dense.log_kernels(p, q, r, with_weights=False)
 
     def fitted_log_kernels(self, pose: Pose, descriptors: Tensor | None = None) -> tuple[PoseKDE, Tensor]:
         """:meth:`fit_trial_rounds` then :meth:`log_kernels`: ``(fitted density, (*BB, M, N))``.
@@ -613,8 +455,8 @@ class PoseKDE:
         The r column is 0 when no descriptors take part. A factor is cut off where its value is ≥ the
         matching ``bandwidth.delta``; the trial-round search counts exactly these.
         """
-        p, q, r = self._prepare_queries(pose, descriptors)
-        bd_p, bd_q, bd_r = self._scaled_terms(p, q, r)
+        p, q, r = prepare_queries(self, pose, descriptors)
+        bd_p, bd_q, bd_r = self._dense.scaled_terms(p, q, r)
         if bd_r is None:
             bd_r = torch.zeros_like(bd_p)
         return torch.stack(torch.broadcast_tensors(bd_p, bd_q, bd_r), -1)
@@ -669,9 +511,9 @@ class PoseKDE:
         delta_p, delta_q, _ = self.bandwidth.delta
         beta = self._beta.double().unsqueeze(-2).expand(*index.shape, 3)
         std = self.bandwidth.p_std / torch.sqrt(beta[..., 0])
-        offset = _sample_translation_offsets(std, delta_p, generator)
+        offset = sample_translation_offsets(std, delta_p, generator)
         kappa = beta[..., 1] / self.bandwidth.sigma_q
-        around_identity = _sample_rotation_offsets(kappa, delta_q, generator)
+        around_identity = sample_rotation_offsets(kappa, delta_q, generator)
         p = mean.p + offset.to(self.dtype)
         q = pkt.quaternion_raw_multiply(mean.q.double(), around_identity)
         q = q / q.norm(dim=-1, keepdim=True)

@@ -1,7 +1,19 @@
-"""A density's kernels laid out for the fast path (:class:`FastIndex`): one dense table, or k-d leaf blocks
-pruned by the hard cut-offs (paper, Background → Kernel Density Estimation: the cut-offs make each kernel
-exactly zero beyond its reach), and the annealing steps of a query density fused with its evaluation on
-those blocks (:meth:`FastIndex.anneal_blocks`; Query Density's simulated annealing)."""
+"""A density's kernels laid out for the fast path: :class:`FastIndex` (one dense table, or k-d leaf blocks pruned
+by the hard cut-offs) and :class:`DescriptorTable` (one density's kernels with their descriptors, one fused pass),
+and the annealing steps of a query density fused with its evaluation on those blocks
+(:meth:`FastIndex.anneal_blocks`).
+
+Paper, Background → Kernel Density Estimation: the cut-offs make every kernel of Eq. surface_feature_kernel
+exactly zero beyond a translation radius and a rotation angle. For a density with many kernels (a query
+density: 3,000), kernels are put once into leaf blocks of a k-d tree over (position, rotation); a query visits
+only the blocks whose bounding box and rotation cap come within the cut-offs (a bound: nothing that could
+survive is skipped) and each visited block is evaluated with the exact distances in one fused pass
+(:mod:`pushtorch.kde.kernel_sums`). A density with few kernels (an expert of the product: ~500, most of them
+near every candidate) is evaluated in one fused dense pass instead. Sums run in the linear domain relative to
+each density's largest weight: a surviving kernel factor is at least e^(−δ_p−δ_q), so nothing underflows
+unless weights span ~e^60 (then the dense reference path is used). Query Density: the simulated annealing of
+a query density runs its steps on the same blocks.
+"""
 
 from __future__ import annotations
 
@@ -12,22 +24,14 @@ from typing import TYPE_CHECKING
 import torch
 
 from pushtorch.kde.annealing import AnnealInputs, AnnealOutcome, chain_state, metropolis_update, propose_from_offsets
-from pushtorch.kde.fused import (
-    _BOUND_SLACK,
-    _DEFAULT_BLOCK_ELEMENTS,
-    _DENSE_ROW_GROUPS,
-    FAST_DENSE_KERNELS,
-    FAST_LEAF_SIZE,
-    _block_moments,
-    _block_sums,
-    _compile_failed,
-    _dense_sums,
-    _kd_leaf_order,
-    _linear_sums_exact,
-    _reachable_blocks,
-    _row_groups,
-    fast_path_compiled,
-    fused_function,
+from pushtorch.kde.fused import DEFAULT_BLOCK_ELEMENTS, compile_failed, fast_path_compiled, fused_function
+from pushtorch.kde.kernel_sums import (
+    block_moments,
+    block_sums,
+    dense_sums,
+    descriptor_sums,
+    linear_sums_exact,
+    reachable_blocks,
 )
 from pushtorch.se3 import Pose
 
@@ -35,6 +39,68 @@ if TYPE_CHECKING:
     from pushtorch.kde.density import PoseKDE
 
 Tensor = torch.Tensor
+
+__all__ = ["FAST_DENSE_KERNELS", "FAST_LEAF_SIZE", "DescriptorTable", "FastIndex"]
+
+FAST_LEAF_SIZE = 16  # kernels per leaf block: prunes best on the paper-scale query densities (measured)
+# Densities with at most this many kernels skip the blocks: pruning cannot pay for its bookkeeping.
+FAST_DENSE_KERNELS = 1024
+# Relative slack on the pruning bounds: float rounding of a bound must never skip a live kernel.
+_BOUND_SLACK = 1e-3
+_DENSE_ROW_GROUPS = 4  # at most this many kernel-count groups per dense evaluation (one call each)
+# Cost of one more fused call, in kernel evaluations (~100 µs of dispatch against ~0.5 ns per kernel
+# and query, measured on CPU): grouping rows only pays when it skips more padding than this.
+_CALL_COST_KERNELS = 200_000
+
+
+def _row_groups(counts: Tensor, queries: int, max_groups: int) -> list[tuple[Tensor | None, int]]:
+    """Rows split into groups of similar kernel counts, ``[(rows, width)]``, minimising padded work.
+
+    Candidates are 1 … ``max_groups`` quantile splits of the rows sorted by count; each group is
+    evaluated up to its largest count (≥ 1). A single group of every row is ``[(None, width)]``.
+    """
+    order = torch.argsort(counts, stable=True)
+    ordered = [max(1, int(c)) for c in counts[order].tolist()]
+    d = len(ordered)
+    best, best_cost = [(None, ordered[-1])], _CALL_COST_KERNELS + queries * d * ordered[-1]
+    for k in range(2, min(max_groups, d) + 1):
+        bounds = sorted({round(d * j / k) for j in range(1, k + 1)})
+        groups, start, cost = [], 0, 0
+        for end in bounds:
+            if end > start:
+                groups.append((order[start:end], ordered[end - 1]))
+                cost += _CALL_COST_KERNELS + queries * (end - start) * ordered[end - 1]
+                start = end
+        if cost < best_cost:
+            best, best_cost = groups, cost
+    return best
+
+
+def _kd_leaf_order(features: Tensor, valid: Tensor, leaf: int) -> Tensor:
+    """Kernel order ``(D, S)`` grouping kernels into leaf blocks of a k-d tree (median splits).
+
+    features: ``(D, N, F)`` split coordinates; valid: ``(D, N)``. ``S = leaf · 2^levels ≥ N``; index
+    ``N`` marks padding. Invalid kernels sort last and end up in padding-only blocks where possible.
+    """
+    d, n, f = features.shape
+    levels = max(0, math.ceil(math.log2(max(1.0, n / leaf))))
+    size = leaf * 2**levels
+    feats = torch.where(valid.unsqueeze(-1), features, torch.full_like(features, math.inf))
+    filler = torch.full((d, size - n, f), math.inf, dtype=feats.dtype, device=feats.device)
+    feats = torch.cat([feats, filler], 1)
+    order = torch.arange(size, device=features.device).expand(d, size).contiguous()
+    for level in range(levels):
+        nodes = 2**level
+        node = torch.gather(feats, 1, order.unsqueeze(-1).expand(-1, -1, f)).reshape(d, nodes, -1, f)
+        finite = torch.isfinite(node)
+        low = torch.where(finite, node, torch.full_like(node, math.inf)).amin(2)
+        high = torch.where(finite, node, torch.full_like(node, -math.inf)).amax(2)
+        axis = torch.nan_to_num(high - low, nan=0.0, posinf=0.0, neginf=0.0).argmax(-1)  # (D, nodes)
+        values = torch.gather(node, 3, axis[:, :, None, None].expand(-1, -1, node.shape[2], 1)).squeeze(-1)
+        split = values.argsort(dim=-1, stable=True)
+        order = torch.gather(order.reshape(d, nodes, -1), 2, split).reshape(d, size)
+    return torch.where(order < n, order, torch.full_like(order, n))
+
 
 class FastIndex:
     """A PoseKDE's kernels laid out for the fast path: a dense table or pruned leaf blocks."""
@@ -47,18 +113,18 @@ class FastIndex:
         n = kde.num_kernels
         self.batch_shape = kde.batch_shape
         d = max(1, self.batch_shape.numel())
-        p = kde._p.reshape(d, n, 3)
-        q = kde._q.reshape(d, n, 4)
-        log_w = kde._log_w.reshape(d, n)
+        p = kde.means.p.reshape(d, n, 3)
+        q = kde.means.q.reshape(d, n, 4)
+        log_w = kde.log_weights.reshape(d, n)
         valid = log_w > -math.inf
-        beta = kde._beta.reshape(d, 3).double()
+        beta = kde.beta.reshape(d, 3).double()
         self.delta_p, self.delta_q, _ = bw.delta
         sp = beta[:, 0] / bw.sigma_p
         kappa = beta[:, 1] / bw.sigma_q
         self.scale = torch.stack([sp, kappa], -1).to(dtype)  # (D, 2)
         self.log_w_max = log_w.amax(-1)  # (D,): every element has a finite weight
         relative = log_w - self.log_w_max.unsqueeze(-1)
-        self.linear = _linear_sums_exact(relative)
+        self.linear = linear_sums_exact(relative)
         rows = torch.cat([p, q, relative.unsqueeze(-1)], -1)  # (D, N, 8)
         self.blocks = n > FAST_DENSE_KERNELS if blocks is None else bool(blocks)
         if not self.blocks:
@@ -121,7 +187,7 @@ class FastIndex:
         compiled = fast_path_compiled(x.device)  # compiled code streams; eager code is chunked below
         x_t = x.transpose(1, 2)  # (Q, 7, M)
         if not self.blocks:
-            evaluate = fused_function("dense_sums", _dense_sums, x.device)
+            evaluate = fused_function("dense_sums", dense_sums, x.device)
             if own and m not in self.groups:
                 self.groups[m] = _row_groups(self.counts, m, _DENSE_ROW_GROUPS)
             groups = self.groups[m] if own else [(None, self.table.shape[-1])]
@@ -131,8 +197,8 @@ class FastIndex:
                     table, scale, xg = per_query(self.table)[..., :width], per_query(self.scale), x_t
                 else:
                     table, scale, xg = self.table[members, :, :width], self.scale[members], x_t[members]
-                streamed = compiled and "dense_sums" not in _compile_failed
-                step = m if streamed else max(1, _DEFAULT_BLOCK_ELEMENTS // max(1, table.shape[0] * width))
+                streamed = compiled and not compile_failed("dense_sums")
+                step = m if streamed else max(1, DEFAULT_BLOCK_ELEMENTS // max(1, table.shape[0] * width))
                 part = torch.cat([evaluate(xg[..., s : s + step], table, scale, self.delta_p, self.delta_q)
                                   for s in range(0, m, step)], -1)
                 if members is None:
@@ -140,7 +206,7 @@ class FastIndex:
                 else:
                     total[members] = part
         else:
-            total = self._pair_sums("block_sums", _block_sums, x, density, own, ())
+            total = self._pair_sums("block_sums", block_sums, x, density, own, ())
         offset = self.log_w_max[density].unsqueeze(-1)
         return (torch.log(total.reshape(rows, m)) + offset).reshape(*batch, m)
 
@@ -160,19 +226,19 @@ class FastIndex:
 
     def _pair_sums(self, name: str, fn: Callable, x: Tensor, density: Tensor, own: bool,
                    columns: tuple[int, ...]) -> Tensor:
-        """``fn`` (:func:`_block_sums` or :func:`_block_moments`) summed over the (query, block) pairs
+        """``fn`` (:func:`block_sums` or :func:`block_moments`) summed over the (query, block) pairs
         in reach: ``(rows · M, *columns)``."""
         rows, m = x.shape[:2]
         bounds = [t if own else t[density] for t in (self.lo, self.hi, self.centre, self.cos_reach, self.r2)]
         # compiled reach is ~10x faster with a float result; nonzero is faster on bool
-        reach = fused_function("reach", _reachable_blocks, x.device)(x.transpose(1, 2), *bounds) > 0
+        reach = fused_function("reach", reachable_blocks, x.device)(x.transpose(1, 2), *bounds) > 0
         pair_query, pair_block = reach.reshape(rows * m, self.num_blocks).nonzero(as_tuple=True)
         query_density = density.repeat_interleave(m)
         flat_x = x.reshape(rows * m, 7)
         evaluate = fused_function(name, fn, x.device)
         # eager evaluation materialises (pairs, 8, L): chunk it; compiled code streams it
-        streamed = fast_path_compiled(x.device) and name not in _compile_failed
-        step = pair_query.numel() if streamed else _DEFAULT_BLOCK_ELEMENTS // (8 * self.table.shape[-1])
+        streamed = fast_path_compiled(x.device) and not compile_failed(name)
+        step = pair_query.numel() if streamed else DEFAULT_BLOCK_ELEMENTS // (8 * self.table.shape[-1])
         total = torch.zeros(rows * m, *columns, dtype=x.dtype, device=x.device)
         for s in range(0, pair_query.numel(), max(1, step)):
             pairs = (pair_query[s : s + step], pair_block[s : s + step])
@@ -186,7 +252,7 @@ class FastIndex:
         m = x.shape[1]
         if m == 0 or x.shape[0] == 0:
             return Pose.unchecked(p.expand(*batch, m, 3), q.expand(*batch, m, 4))
-        moments = self._pair_sums("block_moments", _block_moments, x, density, own, (8,)).reshape(*batch, m, 8)
+        moments = self._pair_sums("block_moments", block_moments, x, density, own, (8,)).reshape(*batch, m, 8)
         p, q = p.expand(*batch, m, 3), q.expand(*batch, m, 4)
         alive = moments[..., :1] > 0
         moved_q = moments[..., 4:]
@@ -224,15 +290,48 @@ class FastIndex:
         return AnnealOutcome(start_log_prob, best, state[5].reshape(shape), state[6])
 
 
+class DescriptorTable:
+    """One density's kernels (batch shape ``()``) with their descriptors, as rows ``(8 + k, N)`` (p, q, log w
+    relative to the largest, r) for the fused pass with descriptors (:func:`~pushtorch.kde.kernel_sums.
+    descriptor_sums`): every kernel, no pruning, in chunks bounded in memory."""
+
+    def __init__(self, rows: Tensor, top: Tensor, kde: PoseKDE) -> None:
+        self.rows, self.top = rows, top
+        self.bandwidth, self.beta, self.dtype = kde.bandwidth, kde.beta, kde.dtype
+
+    @staticmethod
+    def of(kde: PoseKDE) -> DescriptorTable | None:
+        """``kde``'s table; None when its weights cannot be summed in the linear domain."""
+        top = kde.log_weights.amax()
+        relative = kde.log_weights - top
+        rows = torch.cat([kde.means.p, kde.means.q, relative.unsqueeze(-1), kde.descriptors], -1).T.contiguous()
+        return DescriptorTable(rows, top, kde) if linear_sums_exact(relative) else None
+
+    def log_prob(self, p: Tensor, q: Tensor, r: Tensor) -> Tensor:
+        """Log densities of prepared queries ``p (*B', M, 3)``, ``q (*B', M, 4)``, ``r (*B', M, k)`` →
+        ``(*B', M)``, one fused pass per chunk."""
+        shape = p.shape[:-1]
+        x = torch.cat([p, q, r], -1).reshape(-1, p.shape[-1] + q.shape[-1] + r.shape[-1]).T.contiguous()
+        bw = self.bandwidth
+        beta = self.beta.double()
+        scale = torch.stack([beta[0] / bw.sigma_p, beta[1] / bw.sigma_q, beta[2]]).to(self.dtype)
+        r_scale = (1.0 / torch.tensor(bw.sigma_r, dtype=torch.float64)).to(device=x.device, dtype=self.dtype)
+        evaluate = fused_function("descriptor_sums", descriptor_sums, x.device)
+        step = max(1, DEFAULT_BLOCK_ELEMENTS // self.rows.shape[1])
+        total = torch.cat([evaluate(x[:, s : s + step], self.rows, scale, r_scale, *bw.delta)
+                           for s in range(0, x.shape[1], step)])
+        return (torch.log(total) + self.top).reshape(shape)
+
+
 def _propose_and_reach(
     p: Tensor, q: Tensor, step_p: Tensor, left: Tensor, right: Tensor,
     lo: Tensor, hi: Tensor, centre: Tensor, cos_reach: Tensor, r2: Tensor,
 ) -> tuple[Tensor, Tensor]:
     """A step's proposals against a block-pruned density (fused): the proposals as query rows
-    ``(D, C, 7)`` and which leaf blocks each may touch ``(D, C, nb)`` (see :func:`_reachable_blocks`)."""
+    ``(D, C, 7)`` and which leaf blocks each may touch ``(D, C, nb)`` (see :func:`reachable_blocks`)."""
     prop_p, prop_q = propose_from_offsets(p, q, step_p, left, right)
     x = torch.cat([prop_p, prop_q], -1)
-    return x, _reachable_blocks(x.transpose(1, 2), lo, hi, centre, cos_reach, r2)
+    return x, reachable_blocks(x.transpose(1, 2), lo, hi, centre, cos_reach, r2)
 
 
 def _block_step_acceptance(
@@ -242,7 +341,7 @@ def _block_step_acceptance(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """The rest of that step (fused): the proposals' log densities over their (query, block) pairs and the
     Metropolis test. ``log_w_max (D, 1)`` is each density's largest log weight (the table's are relative)."""
-    total = _block_sums(x.reshape(-1, 7), table, scale, query_density, pair_query, pair_block, num_blocks,
+    total = block_sums(x.reshape(-1, 7), table, scale, query_density, pair_query, pair_block, num_blocks,
                         delta_p, delta_q)
     prop_lp = torch.log(total.reshape(lp.shape)) + log_w_max
     return metropolis_update(p, q, lp, best_p, best_q, best_lp, x[..., :3], x[..., 3:], prop_lp, u,

@@ -1,7 +1,10 @@
-"""The product of experts (Eq. poe) in log space: :func:`product_log_prob` / :class:`ProductOfExperts` over
-stacked densities, and :class:`SharedKernelProduct` for experts that weigh one shared set of kernels (the
-motion model's fast path), which anneals itself in steps fused with its evaluation
-(:meth:`SharedKernelProduct.fused_anneal`; the Motion Model's simulated annealing)."""
+"""The product of experts in log space: :func:`product_log_prob` / :class:`ProductOfExperts` over stacked
+densities, and :class:`SharedKernelProduct` for experts that weigh one shared set of kernels (the motion model's
+fast path), which anneals itself in steps fused with its evaluation (:meth:`SharedKernelProduct.fused_anneal`).
+
+Paper, Background → Kernel Density Estimation: the product of experts (Eq. poe) over kernel densities of Eq.
+surface_feature_probability; Motion Model: its simulated annealing.
+"""
 
 from __future__ import annotations
 
@@ -12,10 +15,11 @@ import torch
 
 from pushtorch.errors import InvalidParameterError, InvalidPoseError
 from pushtorch.kde.annealing import AnnealInputs, AnnealOutcome, chain_state, metropolis_update, propose_from_offsets
-from pushtorch.kde.bandwidth import KernelBandwidth, TrialRounds
+from pushtorch.kde.bandwidth import KernelBandwidth, TrialRounds, trial_rounds_tensor
 from pushtorch.kde.density import PoseKDE
-from pushtorch.kde.evaluation import Evaluation
-from pushtorch.kde.fused import _DEFAULT_BLOCK_ELEMENTS, _pose_distances, chunk_bounds, fused_function
+from pushtorch.kde.fused import DEFAULT_BLOCK_ELEMENTS, chunk_bounds, fused_function
+from pushtorch.kde.kernel_sums import pose_distances
+from pushtorch.kde.method import Evaluation
 from pushtorch.se3 import Pose, check_unit_quaternion
 
 Tensor = torch.Tensor
@@ -159,7 +163,7 @@ def _shared_kernels(x: Tensor, table: Tensor, scale: Tensor, delta_p: float, del
     xs = x.unsqueeze(1)  # (B, 1, 7, M)
     t = table.unsqueeze(-1)  # (B, K, 7, 1)
     sc = scale[:, None, :, None]  # (B, 1, 2, 1)
-    d_p, dot, d_q = _pose_distances(xs.unbind(2), t.unbind(2), sc[:, :, 0], sc[:, :, 1])
+    d_p, dot, d_q = pose_distances(xs.unbind(2), t.unbind(2), sc[:, :, 0], sc[:, :, 1])
     keep = (d_p < delta_p) & (d_q < delta_q)
     return torch.where(keep, torch.exp(-d_p - d_q), torch.zeros_like(d_p)), dot
 
@@ -271,7 +275,7 @@ class SharedKernelProduct:
         self.batch_shape = batch
         self.num_experts = n_experts
         self.bandwidth = bandwidth
-        self.rounds = PoseKDE._rounds_tensor(trial_rounds, batch, device)
+        self.rounds = trial_rounds_tensor(trial_rounds, batch, device)
         beta = torch.pow(torch.tensor(bandwidth.alpha_t, dtype=torch.float64), -self.rounds.double()).reshape(d, 3)
         self.scale = torch.stack([beta[:, 0] / bandwidth.sigma_p, beta[:, 1] / bandwidth.sigma_q], -1).to(dtype)
         self.table = torch.cat([means.p, means.q], -1).reshape(d, k, 7).contiguous()  # (D, K, 7)
@@ -356,7 +360,7 @@ class SharedKernelProduct:
     def problem_chunks(self, queries: int) -> list[tuple[int, int]]:
         """``[start, end)`` chunks of the flattened problems whose ``(problems × K × queries)`` kernel values
         stay cache-sized (~8 MB) when each problem has ``queries`` queries."""
-        step = max(1, _DEFAULT_BLOCK_ELEMENTS // max(1, queries * self.table.shape[1]))
+        step = max(1, DEFAULT_BLOCK_ELEMENTS // max(1, queries * self.table.shape[1]))
         return chunk_bounds(self.table.shape[0], step)
 
     def fused_anneal(self, inputs: AnnealInputs) -> AnnealOutcome | None:

@@ -1,5 +1,10 @@
-"""Trial rounds (paper, Kernel Density Estimation): a density's kernels widened, one factor at a time, until
-some query survives the cut-offs."""
+"""The trial-round search: a density's kernels widened, one factor at a time, until some query survives the
+cut-offs (:func:`fit_trial_rounds`, counting with :func:`coverage`).
+
+Paper, Background → Kernel Density Estimation: a trial round fails when every (query, kernel) pair is cut off;
+then one of the trial rounds T = (T_p, T_q, T_r) is incremented and the bandwidth multipliers β = α_T^(−T)
+recomputed. The scaled distances are the dense reference's (:mod:`pushtorch.kde.dense`).
+"""
 
 from __future__ import annotations
 
@@ -9,6 +14,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from pushtorch.errors import ModelError
+from pushtorch.kde.queries import prepare_queries, query_chunks
 from pushtorch.kde.reductions import amin_to_size
 from pushtorch.se3 import Pose
 
@@ -26,13 +32,14 @@ def coverage(
     """Per batch element: surviving (query, kernel) pairs ``(*B,)``, cut-offs per factor ``(*B, 3)``
     and the smallest β·d per factor ``(*B, 3)``, over valid (non-padding) kernels."""
     delta = kde.bandwidth.delta
-    valid = kde._log_w > -math.inf  # (*B, N)
+    valid = kde.log_weights > -math.inf  # (*B, N)
     batch = kde.batch_shape
     survivors = torch.zeros(batch, dtype=torch.int64, device=kde.device)
     cuts = torch.zeros(*batch, 3, dtype=torch.int64, device=kde.device)
     nearest = torch.full((*batch, 3), math.inf, dtype=kde.dtype, device=kde.device)
-    for p, q, r in kde._iter_chunks(pose, descriptors, chunk_size):
-        terms = kde._scaled_terms(p, q, r)
+    dense = kde.dense_kernels
+    for p, q, r in query_chunks(kde, pose, descriptors, chunk_size):
+        terms = dense.scaled_terms(p, q, r)
         valid_b = valid.unsqueeze(-2).expand_as(terms[0])
         alive = valid_b.clone()
         for k, bd in enumerate(terms):
@@ -47,6 +54,7 @@ def coverage(
             nearest[..., k] = torch.minimum(nearest[..., k], amin_to_size(masked, batch))
         survivors += alive.sum((-1, -2)).sum_to_size(batch)
     return survivors, cuts, nearest
+
 
 def fit_trial_rounds(
     kde: PoseKDE, pose: Pose, descriptors: Tensor | None = None, chunk_size: int | None = None
@@ -70,7 +78,7 @@ def fit_trial_rounds(
         ModelError: some element still fails when T_p + T_q + T_r reaches
             ``bandwidth.max_trial_rounds``.
     """
-    p, _, _ = kde._prepare_queries(pose, descriptors)
+    p, _, _ = prepare_queries(kde, pose, descriptors)
     if p.shape[-2] == 0:
         return kde
     current = kde
@@ -80,7 +88,7 @@ def fit_trial_rounds(
         failed = survivors == 0
         if not failed.any():
             return current
-        rounds = current._trial_rounds
+        rounds = current.trial_rounds
         exhausted = failed & (rounds.sum(-1) >= max_rounds)
         if exhausted.any():
             where = exhausted.nonzero().tolist()
@@ -100,4 +108,4 @@ def fit_trial_rounds(
         candidates = eligible & (rounds == smallest)
         choice = torch.where(candidates, cuts, torch.full_like(cuts, -1)).argmax(-1)
         step = torch.nn.functional.one_hot(choice, 3) * failed.unsqueeze(-1)
-        current = current._replace(_trial_rounds=rounds + step)
+        current = current.with_trial_rounds(rounds + step)

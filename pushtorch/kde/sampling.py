@@ -1,5 +1,11 @@
 """Exact draws of one kernel factor, truncated at its cut-off (the translation's Gaussian, the rotation's vMF
-pair): what :meth:`pushtorch.kde.PoseKDE.sample` is made of."""
+pair): what :meth:`pushtorch.kde.PoseKDE.sample` is made of (:func:`sample_translation_offsets`,
+:func:`sample_rotation_offsets`).
+
+Paper, Background → Kernel Density Estimation: the cut-off Gaussian N3 of the translation and the antipodal
+von Mises–Fisher pair Θ of the rotation (Eq. surface_feature_kernel), each sampled exactly where ``β d < δ``,
+so every draw has the finite density :meth:`pushtorch.kde.PoseKDE.log_prob` gives it.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +14,8 @@ import torch
 from pushtorch.se3 import draw_device, truncated_gamma_1p5, vmf_offsets
 
 Tensor = torch.Tensor
+
+__all__ = ["sample_rotation_offsets", "sample_translation_offsets"]
 
 # --------------------------------------------------------------------------------------------------
 # Samplers for one kernel factor (exact, truncated at the cut-off)
@@ -20,7 +28,7 @@ def _unit_vectors(shape: tuple[int, ...], generator, device) -> Tensor:
     return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-300)
 
 
-def _sample_translation_offsets(
+def sample_translation_offsets(
     std: Tensor, delta_p: float, generator: torch.Generator | None
 ) -> Tensor:
     """Offsets ``(..., 3)`` (float64): isotropic Gaussian of per-axis ``std (...)``, cut at β d_p < δ_p."""
@@ -29,7 +37,7 @@ def _sample_translation_offsets(
     return radius.unsqueeze(-1) * _unit_vectors(tuple(std.shape), generator, std.device)
 
 
-def _sample_rotation_offsets(kappa: Tensor, delta_q: float, generator: torch.Generator | None) -> Tensor:
+def sample_rotation_offsets(kappa: Tensor, delta_q: float, generator: torch.Generator | None) -> Tensor:
     """Unit quaternions ``(..., 4)`` (float64) around identity, density ∝ exp(κ|w|), cut at κ(1−|w|) < δ_q
     (:func:`pushtorch.se3.vmf_offsets`, the library's one vMF sampler)."""
     return vmf_offsets(kappa, kappa.shape, generator, torch.float64, kappa.device, delta_q)

@@ -1,6 +1,10 @@
-"""The textbook evaluation of a kernel density (paper, Kernel Density Estimation, Eq.
-surface_feature_probability): every query against every kernel, the cut-offs as masks, logsumexp; the
-benchmark's baseline and an independent check of the dense and fast paths."""
+"""The textbook evaluation of a kernel density: every query against every kernel, the cut-offs as masks,
+logsumexp (:func:`straightforward_evaluation`, :func:`straightforward_log_prob`); the benchmark's baseline and
+an independent check of the dense and fast paths.
+
+Paper, Background → Kernel Density Estimation: the kernel of Eq. surface_feature_kernel and the weighted sum of
+Eq. surface_feature_probability, written as plainly as they read.
+"""
 
 from __future__ import annotations
 
@@ -59,17 +63,17 @@ def straightforward_log_prob(kde: PoseKDE, p: Tensor, q: Tensor, r: Tensor | Non
     flat = batch.numel()
     p = p.expand(*batch, m, 3).reshape(flat, m, 3)
     q = q.expand(*batch, m, 4).reshape(flat, m, 4)
-    kernel_p = kde._p.expand(*batch, n, 3).reshape(flat, n, 3)
-    kernel_q = kde._q.expand(*batch, n, 4).reshape(flat, n, 4)
-    log_w = kde._log_w.expand(*batch, n).reshape(flat, n)
-    beta = kde._beta.expand(*batch, 3).reshape(flat, 3)
+    kernel_p = kde.means.p.expand(*batch, n, 3).reshape(flat, n, 3)
+    kernel_q = kde.means.q.expand(*batch, n, 4).reshape(flat, n, 4)
+    log_w = kde.log_weights.expand(*batch, n).reshape(flat, n)
+    beta = kde.beta.expand(*batch, 3).reshape(flat, 3)
     bw = kde.bandwidth
     delta_p, delta_q, delta_r = bw.delta
     if r is not None:
         inv_sqrt_sigma = torch.tensor(bw.sigma_r, dtype=torch.float64).rsqrt().to(kde.device, kde.dtype)
         k = r.shape[-1]
         r = (r * inv_sqrt_sigma).expand(*batch, m, k).reshape(flat, m, k)
-        kernel_r = (kde._r * inv_sqrt_sigma).expand(*batch, n, k).reshape(flat, n, k)
+        kernel_r = (kde.descriptors * inv_sqrt_sigma).expand(*batch, n, k).reshape(flat, n, k)
     out = []
     for b in range(flat):
         keep = log_w[b] > -math.inf  # padding kernels of a stacked density are not kernels
