@@ -19,7 +19,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pushtorch import se3
-from pushtorch.experiments import report
+from pushtorch.experiments import report, statistics, tables
 from pushtorch.experiments.common import compare, summarise
 from pushtorch.objects import load_object
 from pushtorch.viz import colours
@@ -167,13 +167,13 @@ def test_figures_from_real_records_with_per_sample_values(tmp_path):
     back = report.read_figure_data(outputs["figure_data"])
     assert len(back["hacc_samples"]) == len(extras["hacc_samples"])
     for saved, kept in zip(back["hacc_samples"], extras["hacc_samples"], strict=True):
-        assert {k: saved[k] for k in report._SAMPLE_KEYS} == {k: kept[k] for k in report._SAMPLE_KEYS}
+        assert {k: saved[k] for k in statistics.SAMPLE_KEYS} == {k: kept[k] for k in statistics.SAMPLE_KEYS}
         np.testing.assert_allclose(saved["hacc"], kept["hacc"], rtol=1e-6)
     assert back["training_actions"] == extras["training_actions"]
-    samples = report._samples_by_record(records, back)
-    assert all(report._record_key(r) in samples for r in records)
-    stat = report._group_stat(records, samples, method="pushtorch")
-    pooled = report.pool(report._select(records, method="pushtorch"))
+    samples = statistics.samples_by_record(records, back)
+    assert all(statistics.record_key(r) in samples for r in records)
+    stat = statistics.group_stat(records, samples, method="pushtorch")
+    pooled = report.pool(tables.select(records, method="pushtorch"))
     assert stat["interval"] == "bootstrap" and stat["n"] == pooled["n"]
     assert 0.0 <= stat["low"] <= stat["mean"] <= stat["high"]
     assert stat["mean"] == pytest.approx(pooled["hacc_mean"], rel=1e-5)
@@ -192,7 +192,7 @@ def test_figures_from_committed_paper_records_alone(tmp_path):
     assert all(p.read_bytes()[:8] == PNG for p in paths)
     assert report.write_figure_data(tmp_path, {}) is None
     selection = [r for r in records if r["task"] == "selection"]
-    stats = [report._group_stat(selection, {}, object=o, method=m)
+    stats = [statistics.group_stat(selection, {}, object=o, method=m)
              for o in ("cube", "cylinder") for m in ("congruent", "incongruent")]
-    assert report.wants_log_axis(report._stat_values(stats, lows=False))
-    assert min(report._stat_values(stats)) > 0  # summary intervals stay above zero
+    assert report.wants_log_axis(statistics.stat_values(stats, lows=False))
+    assert min(statistics.stat_values(stats)) > 0  # summary intervals stay above zero

@@ -26,7 +26,7 @@ from pushtorch.experiments.context import (
     save_arrays,
     stable_seed,
 )
-from pushtorch.experiments.training import _engine_tag, _placement_tag
+from pushtorch.experiments.training import engine_tag, placement_tag
 from pushtorch.features import SurfaceFeatures, compute_surface_features
 from pushtorch.models.library import ModelLibrary, ModelSettings, PushModel
 from pushtorch.objects import ObjectModel
@@ -215,10 +215,10 @@ def _cache_name(ctx: ExperimentContext, key: str) -> str:
     """A group's cache name: its key, tagged when the test pushes start off-centre (``test_placement``) and
     outside the default pybullet world (``_mujoco``), so both test sets' and both engines' predictions, scores
     and ground truth keep apart in one run folder."""
-    key += _engine_tag(ctx)
+    key += engine_tag(ctx)
     if ctx.test_placement is None:
         return key
-    return f"{key}_test_spread{_placement_tag(ctx.test_placement)}"
+    return f"{key}_test_spread{placement_tag(ctx.test_placement)}"
 
 
 def _scores_path(ctx: ExperimentContext, key: str) -> Path:

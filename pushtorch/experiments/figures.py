@@ -21,23 +21,16 @@ from typing import Any
 import numpy as np
 
 from pushtorch.experiments.online_report import online_figure
-from pushtorch.experiments.results import (
-    _METHOD_ORDER,
-    _POSE_ORDER,
-    _SELECTION_ORDER,
-    _bias_of,
-    _method_label,
-    _ordered,
-    _select,
-)
+from pushtorch.experiments.results import METHOD_ORDER, POSE_ORDER, SELECTION_ORDER, bias_of
 from pushtorch.experiments.statistics import (
-    _SAMPLE_KEYS,
     BOOTSTRAP_RESAMPLES,
-    _group_stat,
-    _samples_by_record,
-    _stat_values,
+    SAMPLE_KEYS,
+    group_stat,
+    samples_by_record,
+    stat_values,
     wants_log_axis,
 )
+from pushtorch.experiments.tables import method_label, ordered, select
 from pushtorch.experiments.transfer_report import coverage_figure
 from pushtorch.viz.colours import colour_of  # re-exported: the figures' colours
 
@@ -74,7 +67,7 @@ def _draw_marks(ax, groups: Sequence[str], series: Sequence[str], stats: Mapping
         whiskers = np.array([[st["mean"] - st["low"] for _, st in marks],
                              [st["high"] - st["mean"] for _, st in marks]])
         colour = colour_of(name, kind)
-        label = _method_label(name) if kind == "method" else name
+        label = method_label(name) if kind == "method" else name
         if log:
             ax.errorbar(xs, means, yerr=whiskers, fmt="o", ms=6, color=colour, ecolor=colour, elinewidth=1.5,
                         capsize=3, label=label)
@@ -247,7 +240,7 @@ def make_figures(out_dir: Path, records: Sequence[Mapping[str, Any]],
     folder = Path(out_dir) / "figures"
     folder.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
-    samples = _samples_by_record(records, extras)
+    samples = samples_by_record(records, extras)
 
     def save(fig, name: str) -> None:
         path = folder / name
@@ -258,11 +251,11 @@ def make_figures(out_dir: Path, records: Sequence[Mapping[str, Any]],
     def chart(groups, series, stats, kind: str, title: str, unit: str, cluster: str, name: str,
               legend_title: str) -> None:
         """One axes of grouped marks with its legend and caption."""
-        log = wants_log_axis(_stat_values(stats.values(), lows=False))
+        log = wants_log_axis(stat_values(stats.values(), lows=False))
         width = max(4.5, 1.3 * len(groups)) + (1.6 if len(series) > 1 else 0.0)  # + the legend's column
         fig, ax = plt.subplots(figsize=(width, 3.6), layout="constrained")
         _draw_marks(ax, groups, series, stats, kind, log)
-        _set_y_scale(ax, log, _stat_values(stats.values()))
+        _set_y_scale(ax, log, stat_values(stats.values()))
         ax.set_ylabel("H_acc, mean (95 % CI)" + (", log scale" if log else ""))
         axes_width = width - (1.6 if len(series) > 1 else 0.0) - 0.8
         ax.set_title("\n".join(textwrap.wrap(title, max(30, int(axes_width * 11)))), fontsize=10)
@@ -272,28 +265,28 @@ def make_figures(out_dir: Path, records: Sequence[Mapping[str, Any]],
         save(fig, name)
 
     for task, order, title, filename, unit, cluster in (
-        ("selection", _SELECTION_ORDER, "Contact model selection", "model_selection.png", "comparisons",
+        ("selection", SELECTION_ORDER, "Contact model selection", "model_selection.png", "comparisons",
          "predictions"),
-        ("pose", _POSE_ORDER, "Pose estimation", "pose_estimation.png", "estimates", "estimates"),
+        ("pose", POSE_ORDER, "Pose estimation", "pose_estimation.png", "estimates", "estimates"),
     ):
-        part = _select(records, task=task)
+        part = select(records, task=task)
         if not part:
             continue
-        objects = _ordered(r["object"] for r in part)
-        methods = _ordered((r["method"] for r in part), order)
-        stats = {(o, m): _group_stat(part, samples, object=o, method=m) for o in objects for m in methods}
+        objects = ordered(r["object"] for r in part)
+        methods = ordered((r["method"] for r in part), order)
+        stats = {(o, m): group_stat(part, samples, object=o, method=m) for o in objects for m in methods}
         chart(objects, methods, stats, "method", title, unit, cluster, filename, "method")
 
-    prediction = _select(records, task="prediction")
-    for bias in _ordered(_bias_of(r["model"]) for r in prediction):
-        part = [r for r in prediction if _bias_of(r["model"]) == bias]
-        objects = _ordered(r["object"] for r in part)
-        models = _ordered(r["model"] for r in part)
-        conditions = _ordered(r["condition"] for r in part)
-        panels = {obj: {(c, m): _group_stat(part, samples, object=obj, method="pushtorch", model=m, condition=c)
+    prediction = select(records, task="prediction")
+    for bias in ordered(bias_of(r["model"]) for r in prediction):
+        part = [r for r in prediction if bias_of(r["model"]) == bias]
+        objects = ordered(r["object"] for r in part)
+        models = ordered(r["model"] for r in part)
+        conditions = ordered(r["condition"] for r in part)
+        panels = {obj: {(c, m): group_stat(part, samples, object=obj, method="pushtorch", model=m, condition=c)
                         for c in conditions for m in models} for obj in objects}
         every = [st for stats in panels.values() for st in stats.values()]
-        log = wants_log_axis(_stat_values(every, lows=False))  # one rule for the whole figure: panels read alike
+        log = wants_log_axis(stat_values(every, lows=False))  # one rule for the whole figure: panels read alike
         cols = min(3, len(objects))
         rows = math.ceil(len(objects) / cols)
         width = 4.0 * cols + 1.6
@@ -301,7 +294,7 @@ def make_figures(out_dir: Path, records: Sequence[Mapping[str, Any]],
                                  layout="constrained")
         for k, (ax, obj) in enumerate(zip(axes.flat, objects, strict=False)):
             _draw_marks(ax, conditions, models, panels[obj], "prior", log)
-            _set_y_scale(ax, log, _stat_values(panels[obj].values()))
+            _set_y_scale(ax, log, stat_values(panels[obj].values()))
             ax.set_title(obj, fontsize=9)
             if k % cols == 0:
                 ax.set_ylabel("H_acc, mean (95 % CI)" + (", log" if log else ""), fontsize=8)
@@ -315,16 +308,16 @@ def make_figures(out_dir: Path, records: Sequence[Mapping[str, Any]],
         _put_caption(fig, _caption(every, "comparisons", "predictions", log), width)
         save(fig, f"{bias or 'prediction'}_biasing.png")
 
-        methods = _ordered((r["method"] for r in part), _METHOD_ORDER)
-        stats = {(o, m): _group_stat(part, samples, object=o, method=m) for o in objects for m in methods}
+        methods = ordered((r["method"] for r in part), METHOD_ORDER)
+        stats = {(o, m): group_stat(part, samples, object=o, method=m) for o in objects for m in methods}
         chart(objects, methods, stats, "method",
               f"{bias} biasing: pushtorch and baselines (pooled over models and conditions)", "comparisons",
               "predictions", f"{bias or 'prediction'}_baselines.png", "method")
 
     matched = [r for r in prediction if r["method"] == "pushtorch" and r["model"] == r["condition"]]
     if matched:
-        objects = _ordered(r["object"] for r in matched)
-        stats = {(o, "pushtorch"): _group_stat(matched, samples, object=o) for o in objects}
+        objects = ordered(r["object"] for r in matched)
+        stats = {(o, "pushtorch"): group_stat(matched, samples, object=o) for o in objects}
         chart(objects, ["pushtorch"], stats, "method", "pushtorch per object: model prior = test condition",
               "comparisons", "predictions", "objects.png", "method")
 
@@ -366,7 +359,7 @@ def write_figure_data(out_dir: Path, extras: Mapping[str, Any]) -> Path | None:
             key = put(entry["hacc"], np.float32)
         except ValueError:  # ragged rows: not kept; the figure falls back to the summary interval
             continue
-        index["hacc_samples"].append({**{k: entry.get(k) for k in _SAMPLE_KEYS}, "hacc": key})
+        index["hacc_samples"].append({**{k: entry.get(k) for k in SAMPLE_KEYS}, "hacc": key})
     for obj, values in (extras.get("pose_hacc") or {}).items():
         index["pose_hacc"][obj] = put(values, np.float32)
     for name, dtype in (("training_scatter", np.float32), ("training_actions", np.int32)):
@@ -390,7 +383,7 @@ def read_figure_data(path: Path) -> dict[str, Any]:
             return data[key].tolist()
 
         return {
-            "hacc_samples": [{**{k: e[k] for k in _SAMPLE_KEYS}, "hacc": get(e["hacc"])}
+            "hacc_samples": [{**{k: e[k] for k in SAMPLE_KEYS}, "hacc": get(e["hacc"])}
                              for e in index.get("hacc_samples", [])],
             "pose_hacc": {obj: get(key) for obj, key in index.get("pose_hacc", {}).items()},
             **{name: {part: {obj: {label: get(key) for label, key in by_prior.items()}

@@ -5,25 +5,21 @@ baselines, the thrown pushes and the acceptance checks (paper, Experimental Resu
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from pushtorch.experiments.online_report import online_section
 from pushtorch.experiments.results import (
-    _METHOD_ORDER,
-    _SELECTION_ORDER,
+    METHOD_ORDER,
     PAPER_LINEAR_CM,
     PAPER_POSE_LINEAR_CM,
-    _bias_of,
-    _method_label,
-    _ordered,
-    _select,
-    _thrown_counts,
-    frame_scores,
-    pool,
-    primary,
+    SELECTION_ORDER,
+    bias_of,
+    thrown_counts,
 )
+from pushtorch.experiments.statistics import pool
+from pushtorch.experiments.tables import frame_scores, method_label, ordered, primary, select, table
 from pushtorch.experiments.transfer_report import transfer_section
 
 __all__ = [
@@ -39,12 +35,6 @@ def _cell(stats: Mapping[str, Any] | None) -> str:
     if not stats or stats["n"] == 0:
         return "—"
     return f"{stats['hacc_mean']:.3f} ± {stats['hacc_std']:.3f}"
-
-
-def _table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
-    return lines + [""]
 
 
 def _score_text(score: float | None) -> str:
@@ -100,88 +90,88 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
 
     if checks:
         lines += ["## Acceptance checks", ""]
-        lines += _table(["check", "object", "result", "numbers"],
+        lines += table(["check", "object", "result", "numbers"],
                         [(c["check"], c["object"], "✓" if c["passed"] else "✗", c["detail"]) for c in checks])
 
-    selection = _select(records, task="selection")
+    selection = select(records, task="selection")
     if selection:
-        objects = _ordered(r["object"] for r in selection)
-        methods = _ordered((r["method"] for r in selection), _SELECTION_ORDER)
+        objects = ordered(r["object"] for r in selection)
+        methods = ordered((r["method"] for r in selection), SELECTION_ORDER)
         lines += ["## Contact model selection (paper: Fig. adaptive_results)", "",
                   "Mean H_acc ± std. The paper's figure gives no values; its finding is congruent ≈ adaptive "
                   "< incongruent. *Selected* is the share of predictions made with the congruent model.", ""]
         rows = []
         for obj in objects:
-            row = [obj] + [_cell(pool(_select(selection, object=obj, method=m))) for m in methods]
-            adaptive = _select(selection, object=obj, method="adaptive")
+            row = [obj] + [_cell(pool(select(selection, object=obj, method=m))) for m in methods]
+            adaptive = select(selection, object=obj, method="adaptive")
             rate = adaptive[0].get("selection_rate") if adaptive else None
-            n = pool(_select(selection, object=obj, method=methods[0]))["n"]
+            n = pool(select(selection, object=obj, method=methods[0]))["n"]
             rows.append(row + [f"{rate:.0%}" if rate is not None else "—", n])
-        lines += _table(["object"] + methods + ["adaptive: selected congruent", "n per method"], rows)
+        lines += table(["object"] + methods + ["adaptive: selected congruent", "n per method"], rows)
         figure("model_selection.png", "model selection")
 
-    pose = _select(records, task="pose")
+    pose = select(records, task="pose")
     if pose:
-        objects = _ordered(r["object"] for r in pose)
+        objects = ordered(r["object"] for r in pose)
         lines += ["## Pose estimation (paper: Fig. position_accuracy_results)", ""]
         rows = []
         for obj in objects:
-            ours = pool(_select(pose, object=obj, method="position_model"))
-            centroid = pool(_select(pose, object=obj, method="centroid"))
+            ours = pool(select(pose, object=obj, method="position_model"))
+            centroid = pool(select(pose, object=obj, method="centroid"))
             rows.append([obj, _cell(ours), _cell(centroid), f"{ours['linear_cm']:.2f}",
                          f"{centroid['linear_cm']:.2f}", f"{ours['angular_deg']:.1f}",
                          f"{centroid['angular_deg']:.1f}", ours["n"]])
-        lines += _table(["object", "position model H_acc", "centroid H_acc", "position model cm",
+        lines += table(["object", "position model H_acc", "centroid H_acc", "position model cm",
                          "centroid cm", "position model deg", "centroid deg", "runs"], rows)
-        ours = pool(_select(pose, method="position_model"))
-        centroid = pool(_select(pose, method="centroid"))
-        lines += _table(["mean linear error (cm)", "ours", "paper"], [
+        ours = pool(select(pose, method="position_model"))
+        centroid = pool(select(pose, method="centroid"))
+        lines += table(["mean linear error (cm)", "ours", "paper"], [
             ["position model", f"{ours['linear_cm']:.2f}", PAPER_POSE_LINEAR_CM["position_model"]],
             ["centroid", f"{centroid['linear_cm']:.2f}", PAPER_POSE_LINEAR_CM["centroid"]],
         ])
         worst = max((h for hs in (extras.get("pose_hacc") or {}).values() for h in hs), default=math.nan)
-        best_centroid = min((r["hacc_mean"] for r in _select(pose, method="centroid")), default=math.nan)
+        best_centroid = min((r["hacc_mean"] for r in select(pose, method="centroid")), default=math.nan)
         lines += [f"Worst position-model H_acc over all runs: {worst:.3f}; best centroid H_acc: "
                   f"{best_centroid:.3f} (the paper: the worst position-model run was under half the best "
                   "centroid).", ""]
         figure("pose_estimation.png", "pose estimation")
 
-    prediction = _select(records, task="prediction")
-    for bias in _ordered(_bias_of(r["model"]) for r in prediction):
-        part = [r for r in prediction if _bias_of(r["model"]) == bias]
-        objects = _ordered(r["object"] for r in part)
-        models = _ordered(r["model"] for r in part)
-        conditions = _ordered(r["condition"] for r in part)
+    prediction = select(records, task="prediction")
+    for bias in ordered(bias_of(r["model"]) for r in prediction):
+        part = [r for r in prediction if bias_of(r["model"]) == bias]
+        objects = ordered(r["object"] for r in part)
+        models = ordered(r["model"] for r in part)
+        conditions = ordered(r["condition"] for r in part)
         title = f"{bias.capitalize()} biasing" if bias else "Prediction accuracy"
         lines += [f"## {title} (paper: the {bias} results figure)", "",
                   "Mean H_acc ± std of our predictor per trained model (rows) and test condition (columns). "
                   "The paper's figure gives no values.", ""]
         for obj in objects:
             lines += [f"**{obj}**", ""]
-            rows = [[m] + [_cell(pool(_select(part, object=obj, method="pushtorch", model=m, condition=c)))
+            rows = [[m] + [_cell(pool(select(part, object=obj, method="pushtorch", model=m, condition=c)))
                            for c in conditions] for m in models]
-            lines += _table(["model \\ condition"] + conditions, rows)
+            lines += table(["model \\ condition"] + conditions, rows)
         figure(f"{bias or 'prediction'}_biasing.png", f"{bias} biasing")
-        methods = _ordered((r["method"] for r in part), _METHOD_ORDER)
+        methods = ordered((r["method"] for r in part), METHOD_ORDER)
         lines += [f"Baselines on the same pushes, pooled over models and conditions ({title.lower()}):", ""]
         rows = []
         for obj in objects:
-            cells = [pool(_select(part, object=obj, method=m)) for m in methods]
+            cells = [pool(select(part, object=obj, method=m)) for m in methods]
             rows.append([obj] + [f"{_cell(c)} ({c['linear_cm']:.1f} cm{_nll_note(c)})" for c in cells])
-        lines += _table(["object"] + [f"{_method_label(m)} H_acc (linear, nll)" for m in methods], rows)
+        lines += table(["object"] + [f"{method_label(m)} H_acc (linear, nll)" for m in methods], rows)
         figure(f"{bias or 'prediction'}_baselines.png", f"{bias} baselines")
 
     matched = [r for r in prediction if r["method"] == "pushtorch" and r["model"] == r["condition"]]
     if matched:
-        objects = _ordered(r["object"] for r in matched)
+        objects = ordered(r["object"] for r in matched)
         lines += ["## Per object, model prior = test condition (paper: Fig. object_results)", "",
                   "Pooled over both biasing experiments where the test condition is the model's training "
                   "prior; the paper's raw linear errors beside ours.", ""]
         matched_frame = [r for r in frame if r["method"] == "pushtorch" and r["model"] == r["condition"]]
         rows = []
         for obj in objects:
-            st = pool(_select(matched, object=obj))
-            fr = pool(_select(matched_frame, object=obj))
+            st = pool(select(matched, object=obj))
+            fr = pool(select(matched_frame, object=obj))
             paper = PAPER_LINEAR_CM.get(obj)
             rows.append([obj, _cell(st), f"{st['linear_cm']:.2f}", paper if paper is not None else "—",
                          f"{st['angular_deg']:.1f}", f"{st['nll_mean']:.1f}",
@@ -189,13 +179,13 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
                          st["n"]])
         header = ["object", "H_acc (displacement)", "linear cm (ours)", "linear cm (paper)", "angular deg",
                   "nll", "frame score (secondary): H_acc, cm, deg", "n"]
-        lines += _table(header, rows)
+        lines += table(header, rows)
         figure("objects.png", "per object")
 
     lines += online_section(records, figure_names, extras.get("online_separability") or ())
     lines += transfer_section(records, extras.get("transfer"), figure_names)
 
-    counts = _thrown_counts(extras.get("thrown") or [])
+    counts = thrown_counts(extras.get("thrown") or [])
     if counts:
         from pushtorch.prediction import MAX_BACKOFF
 
@@ -205,7 +195,7 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
                   f"off more than {100 * MAX_BACKOFF:g} cm to clear the observed cloud (invalid conditions, still "
                   "pushed from the cleared start). Thrown pushes are included in the numbers above, as the "
                   "protocol compares against every ground truth.", ""]
-        lines += _table(["part", "method", "thrown / pushes", "invalid starts / starts"],
+        lines += table(["part", "method", "thrown / pushes", "invalid starts / starts"],
                         [(part, method, f"{c['thrown']} / {c['pushes']}",
                           f"{c['invalid_starts']} / {c['starts']}" if c["starts"] else "—")
                          for (part, method), c in counts.items()])
@@ -218,7 +208,7 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
                   "score is the held-out pool's log-likelihood in nats per push (higher is better).", ""]
         names = ("motion_p_std", "motion_rot_std", "contact_p_std", "contact_rot_std", "contact_robot_std",
                  "contact_patch_std", "contact_patch_yaw_std")
-        lines += _table(["model", "motion p (m)", "motion rot (rad)", "u p (m)", "u rot (rad)", "g (m)",
+        lines += table(["model", "motion p (m)", "motion rot (rad)", "u p (m)", "u rot (rad)", "g (m)",
                          "patch (m)", "patch heading (rad)", "held-out score: configured → chosen"],
                         [(name, *(f"{b['chosen'].get(k, float('nan')):.3g}" for k in names),
                           f"{_score_text(b['score_start'])} → {_score_text(b['score_chosen'])}")

@@ -15,6 +15,8 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
+from pushtorch.experiments.tables import ordered, select
+
 __all__ = ["ONLINE_ORDER", "online_checks", "online_figure", "online_section"]
 
 #: The predictors in tables and figures, in this order.
@@ -22,13 +24,9 @@ ONLINE_ORDER = ("online", "online_general", "general", "debiased", "congruent", 
                 "physics_from_cloud_online")
 
 
-def _ordered(values: Iterable[str], order: Sequence[str] = ()) -> list[str]:
-    seen = list(dict.fromkeys(values))
-    return [v for v in order if v in seen] + [v for v in seen if v not in order]
-
-
 def _online(records: Iterable[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
-    return [r for r in records if r.get("task") == "online"]
+    """The online-adaptation experiment's records."""
+    return select(records, task="online")
 
 
 def online_checks(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
@@ -62,12 +60,12 @@ def online_section(records: Sequence[Mapping[str, Any]], figure_names: set[str],
              "(general, low, medium, high) and predicts with the model of highest evidence; `online_general` "
              "conditions the general model alone; `debiased` (k = 0) re-weights the general model's kernels to "
              "its training prior (docs/method.md, \"Online adaptation\").", ""]
-    conditions = _ordered(r["condition"] for r in online)
-    for obj in _ordered(r["object"] for r in online):
+    conditions = ordered(r["condition"] for r in online)
+    for obj in ordered(r["object"] for r in online):
         lines += [f"**{obj}**", ""]
         rows = []
         part = [r for r in online if r["object"] == obj]
-        for method in _ordered((r["method"] for r in part), ONLINE_ORDER):
+        for method in ordered((r["method"] for r in part), ONLINE_ORDER):
             for k in sorted({r["observed"] for r in part if r["method"] == method}):
                 cells = []
                 for c in conditions:
@@ -137,9 +135,9 @@ def online_figure(plt, records: Sequence[Mapping[str, Any]]):
     online = _online(records)
     if not online:
         return None
-    objects = _ordered(r["object"] for r in online)
-    conditions = _ordered(r["condition"] for r in online)
-    methods = _ordered((r["method"] for r in online), ONLINE_ORDER)
+    objects = ordered(r["object"] for r in online)
+    conditions = ordered(r["condition"] for r in online)
+    methods = ordered((r["method"] for r in online), ONLINE_ORDER)
     fig, axes = plt.subplots(len(objects), len(conditions), figsize=(2.6 * len(conditions) + 1.8, 2.3 * len(objects)),
                              squeeze=False, layout="constrained")
     for a, obj in enumerate(objects):

@@ -1,9 +1,10 @@
 """Outputs of an experiment run: results.json, report.md with the paper's tables, PNG figures, checks.
 
 One module per concern: :mod:`~pushtorch.experiments.results` (results.json, checks),
-:mod:`~pushtorch.experiments.statistics` (intervals), :mod:`~pushtorch.experiments.figures` (PNG figures and the
-data behind them) and :mod:`~pushtorch.experiments.markdown` (report.md); :func:`write_outputs` writes them
-all, and this module gathers their names.
+:mod:`~pushtorch.experiments.statistics` (pooled groups, intervals), :mod:`~pushtorch.experiments.tables` (which
+records a table reads, in which order and under which labels), :mod:`~pushtorch.experiments.figures` (PNG figures
+and the data behind them) and :mod:`~pushtorch.experiments.markdown` (report.md); :func:`write_outputs` writes
+them all, and this module gathers their public names.
 
 Paper, Experimental Results: the report lays our numbers out as the paper's figures do (selection:
 Fig. adaptive_results; pose: Fig. position_accuracy_results; biasing: the friction and mass results
@@ -40,29 +41,25 @@ from pushtorch.experiments.markdown import (  # noqa: F401  (re-exported: the ou
     write_report,
 )
 from pushtorch.experiments.results import (  # noqa: F401  (re-exported: the outputs' one entry point)
-    ORACLES,
     PAPER_LINEAR_CM,
     PAPER_POSE_LINEAR_CM,
-    _select,
     acceptance_checks,
     engines,
-    frame_scores,
-    pool,
-    primary,
     write_results,
 )
 from pushtorch.experiments.statistics import (  # noqa: F401  (re-exported: the outputs' one entry point)
-    _SAMPLE_KEYS,
     BOOTSTRAP_RESAMPLES,
     LOG_AXIS_RATIO,
-    _group_stat,
-    _record_key,
-    _samples_by_record,
-    _stat_values,
     mean_interval,
+    pool,
     sample_entry,
     summary_interval,
     wants_log_axis,
+)
+from pushtorch.experiments.tables import (  # noqa: F401  (re-exported: the outputs' one entry point)
+    ORACLES,
+    frame_scores,
+    primary,
 )
 from pushtorch.viz.colours import METHOD_COLOURS, PRIOR_COLOURS, colour_of  # re-exported: the figures' colours
 

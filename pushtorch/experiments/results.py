@@ -17,16 +17,20 @@ from pathlib import Path
 from typing import Any
 
 from pushtorch.experiments.online_report import online_checks
+from pushtorch.experiments.statistics import pool
+from pushtorch.experiments.tables import ordered, select
 from pushtorch.experiments.transfer_report import transfer_checks
 
 __all__ = [
-    "ORACLES",
+    "METHOD_ORDER",
     "PAPER_LINEAR_CM",
     "PAPER_POSE_LINEAR_CM",
+    "POSE_ORDER",
+    "SELECTION_ORDER",
     "acceptance_checks",
-    "frame_scores",
-    "pool",
-    "primary",
+    "bias_of",
+    "engines",
+    "thrown_counts",
     "write_results",
 ]
 
@@ -42,86 +46,23 @@ PAPER_LINEAR_CM = {
 PAPER_POSE_LINEAR_CM = {"position_model": 1.41, "centroid": 7.06}
 
 
-_METHOD_ORDER = ("pushtorch", "no_motion", "mean_motion", "nearest_push", "physics_from_cloud", "oracle_physics",
-                 "nominal_physics")
+#: The prediction task's predictors in tables and figures, in this order (others follow as first seen).
+METHOD_ORDER = ("pushtorch", "no_motion", "mean_motion", "nearest_push", "physics_from_cloud", "oracle_physics",
+                "nominal_physics")
 
 
-#: Baselines that see more than the method (the true mesh; the true pose): labelled so, never in "beats the
-#: baselines". ``nominal_physics`` is the name runs before issue 15 gave the true-mesh baseline.
-ORACLES = frozenset({"oracle_physics", "nominal_physics"})
+#: The model-selection methods in tables and figures, in this order.
+SELECTION_ORDER = ("congruent", "incongruent", "adaptive")
 
 
-_SELECTION_ORDER = ("congruent", "incongruent", "adaptive")
+#: The pose estimators in tables and figures, in this order.
+POSE_ORDER = ("position_model", "centroid")
 
 
-_POSE_ORDER = ("position_model", "centroid")
-
-
-def primary(records: Iterable[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
-    """The records every table, figure and check reads: pose records, and prediction and selection records
-    scored on the predicted displacement (``metric: displacement``); ``metric: frame`` records (the
-    estimated frame's final pose as it is) are the secondary score, shown beside the primary one."""
-    return [r for r in records if r.get("metric", "displacement") == "displacement"]
-
-
-def frame_scores(records: Iterable[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
-    """The secondary (``metric: frame``) records."""
-    return [r for r in records if r.get("metric") == "frame"]
-
-
-def pool(records: Iterable[Mapping[str, Any]]) -> dict[str, float]:
-    """Pool groups into one: n-weighted means and the exact population std of the union of their samples.
-
-    Returns:
-        ``{"n", "hacc_mean", "hacc_std", "linear_cm", "angular_deg", "nll_mean", "coverage_50", "coverage_90"}``
-        (NaN means for no records; ``nll_mean`` and the coverages are NaN unless every record has one).
-    """
-    records = list(records)
-    n = sum(int(r["n"]) for r in records)
-    if n == 0:
-        return {"n": 0, **dict.fromkeys(("hacc_mean", "hacc_std", "linear_cm", "angular_deg", "nll_mean",
-                                         "coverage_50", "coverage_90"), math.nan)}
-    scored = all(r.get("nll_mean") is not None for r in records)
-
-    def covered(key: str) -> float:
-        if not all(r.get(key) is not None for r in records):
-            return math.nan
-        return sum(r["n"] * r[key] for r in records) / n
-
-    mean = sum(r["n"] * r["hacc_mean"] for r in records) / n
-    second = sum(r["n"] * (r["hacc_std"] ** 2 + r["hacc_mean"] ** 2) for r in records) / n
-    return {
-        "n": n,
-        "hacc_mean": mean,
-        "hacc_std": math.sqrt(max(second - mean**2, 0.0)),
-        "linear_cm": sum(r["n"] * r["linear_cm"] for r in records) / n,
-        "angular_deg": sum(r["n"] * r["angular_deg"] for r in records) / n,
-        "nll_mean": sum(r["n"] * r["nll_mean"] for r in records) / n if scored else math.nan,
-        "coverage_50": covered("coverage_50"),
-        "coverage_90": covered("coverage_90"),
-    }
-
-
-def _method_label(method: str) -> str:
-    """A method's name in tables and legends: baselines that see more than the method are marked."""
-    return f"{method} (oracle)" if method in ORACLES else method
-
-
-def _select(records: Iterable[Mapping[str, Any]], **keys: Any) -> list[Mapping[str, Any]]:
-    return [r for r in records if all(r.get(k) == v for k, v in keys.items())]
-
-
-def _ordered(values: Iterable[str], order: Sequence[str] = ()) -> list[str]:
-    seen = list(dict.fromkeys(values))
-    return [v for v in order if v in seen] + [v for v in seen if v not in order]
-
-
-def _bias_of(label: str | None) -> str:
+def bias_of(label: str | None) -> str:
+    """The biased parameter of a biasing record's model or condition label: ``"friction"`` of
+    ``"friction:low"`` (:func:`pushtorch.experiments.biasing.prior_label`); ``""`` for None."""
     return (label or "").split(":", 1)[0]
-
-
-def _prior_name(label: str) -> str:
-    return label.split(":", 1)[-1]
 
 
 def acceptance_checks(records: Sequence[Mapping[str, Any]],
@@ -138,21 +79,21 @@ def acceptance_checks(records: Sequence[Mapping[str, Any]],
       than the deliberately mismatched ``incongruent`` tipped or threw the object.
     """
     checks = []
-    for obj in _ordered(r["object"] for r in _select(records, task="prediction")):
-        ours = pool(_select(records, task="prediction", object=obj, method="pushtorch"))
-        still = pool(_select(records, task="prediction", object=obj, method="no_motion"))
+    for obj in ordered(r["object"] for r in select(records, task="prediction")):
+        ours = pool(select(records, task="prediction", object=obj, method="pushtorch"))
+        still = pool(select(records, task="prediction", object=obj, method="no_motion"))
         checks.append({"check": "pushtorch beats no-motion", "object": obj,
                        "passed": ours["hacc_mean"] < still["hacc_mean"],
                        "detail": f"H_acc {ours['hacc_mean']:.3f} vs {still['hacc_mean']:.3f}"})
-    for obj in _ordered(r["object"] for r in _select(records, task="pose")):
-        ours = pool(_select(records, task="pose", object=obj, method="position_model"))
-        centroid = pool(_select(records, task="pose", object=obj, method="centroid"))
+    for obj in ordered(r["object"] for r in select(records, task="pose")):
+        ours = pool(select(records, task="pose", object=obj, method="position_model"))
+        centroid = pool(select(records, task="pose", object=obj, method="centroid"))
         checks.append({"check": "position model beats centroid", "object": obj,
                        "passed": ours["hacc_mean"] < centroid["hacc_mean"],
                        "detail": f"H_acc {ours['hacc_mean']:.3f} vs {centroid['hacc_mean']:.3f}"})
-    for obj in _ordered(r["object"] for r in _select(records, task="selection")):
-        adaptive = pool(_select(records, task="selection", object=obj, method="adaptive"))
-        congruent = pool(_select(records, task="selection", object=obj, method="congruent"))
+    for obj in ordered(r["object"] for r in select(records, task="selection")):
+        adaptive = pool(select(records, task="selection", object=obj, method="adaptive"))
+        congruent = pool(select(records, task="selection", object=obj, method="congruent"))
         if adaptive["n"] == 0 or congruent["n"] == 0:
             continue
         se = math.sqrt(adaptive["hacc_std"] ** 2 / adaptive["n"]
@@ -164,7 +105,7 @@ def acceptance_checks(records: Sequence[Mapping[str, Any]],
                                  f"(difference {diff:+.3f}, 2 SE {2 * se:.3f})"})
     checks += online_checks(records)
     checks += transfer_checks(records, transfer)
-    for (part, method), count in _thrown_counts(thrown).items():
+    for (part, method), count in thrown_counts(thrown).items():
         if method != "incongruent":
             checks.append({"check": "no ground-truth push thrown", "object": f"{part}: {method}",
                            "passed": count["thrown"] == 0, "detail": f"{count['thrown']} / {count['pushes']}"})
@@ -199,13 +140,14 @@ def write_results(out_dir: Path, experiment: str, config: Mapping[str, Any], wal
     return path
 
 
-def _thrown_counts(thrown: Iterable[Mapping[str, Any]]) -> dict[tuple[str, str], dict[str, int]]:
-    """Thrown pushes and invalid starts summed per (part, method): the model-selection entries carry the
+def thrown_counts(thrown: Iterable[Mapping[str, Any]]) -> dict[tuple[str, str], dict[str, int]]:
+    """Thrown pushes and invalid starts summed per (part, method), for the checks and report.md's table
+    (keys ``thrown``, ``pushes``, ``invalid_starts``, ``starts``): the model-selection entries carry the
     selection method, the biasing entries ``pushtorch`` with the bias in the model label; an entry naming its
     ``part`` (shape transfer) is counted under it."""
     counts: dict[tuple[str, str], dict[str, int]] = {}
     for t in thrown:
-        part = t.get("part") or ("model selection" if t.get("model") is None else f"{_bias_of(t['model'])} biasing")
+        part = t.get("part") or ("model selection" if t.get("model") is None else f"{bias_of(t['model'])} biasing")
         entry = counts.setdefault((part, t["method"]), {"thrown": 0, "pushes": 0, "invalid_starts": 0,
                                                         "starts": 0})
         for key in entry:

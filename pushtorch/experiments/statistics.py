@@ -1,5 +1,6 @@
-"""Statistics of an experiment's records: intervals of the mean (bootstrap over clusters of samples, or
-from a record's n, mean and std), per-sample values behind each record, when an axis is logarithmic.
+"""Statistics of an experiment's records: groups pooled into one, intervals of the mean (bootstrap over
+clusters of samples, or from a record's n, mean and std), per-sample values behind each record, when an axis is
+logarithmic (paper, Experimental Results: the numbers behind its tables and figures, with their uncertainty).
 """
 
 from __future__ import annotations
@@ -11,13 +12,19 @@ from typing import Any
 
 import numpy as np
 
-from pushtorch.experiments.results import _select, pool
+from pushtorch.experiments.tables import select
 
 __all__ = [
     "BOOTSTRAP_RESAMPLES",
     "LOG_AXIS_RATIO",
+    "SAMPLE_KEYS",
+    "group_stat",
     "mean_interval",
+    "pool",
+    "record_key",
     "sample_entry",
+    "samples_by_record",
+    "stat_values",
     "summary_interval",
     "wants_log_axis",
 ]
@@ -31,7 +38,41 @@ LOG_AXIS_RATIO = 20.0
 BOOTSTRAP_RESAMPLES = 2000
 
 
-_SAMPLE_KEYS = ("task", "object", "method", "model", "condition")
+#: The record keys that name a group's per-sample values (:func:`sample_entry`, :func:`record_key`).
+SAMPLE_KEYS = ("task", "object", "method", "model", "condition")
+
+
+def pool(records: Iterable[Mapping[str, Any]]) -> dict[str, float]:
+    """Pool groups into one: n-weighted means and the exact population std of the union of their samples.
+
+    Returns:
+        ``{"n", "hacc_mean", "hacc_std", "linear_cm", "angular_deg", "nll_mean", "coverage_50", "coverage_90"}``
+        (NaN means for no records; ``nll_mean`` and the coverages are NaN unless every record has one).
+    """
+    records = list(records)
+    n = sum(int(r["n"]) for r in records)
+    if n == 0:
+        return {"n": 0, **dict.fromkeys(("hacc_mean", "hacc_std", "linear_cm", "angular_deg", "nll_mean",
+                                         "coverage_50", "coverage_90"), math.nan)}
+    scored = all(r.get("nll_mean") is not None for r in records)
+
+    def covered(key: str) -> float:
+        if not all(r.get(key) is not None for r in records):
+            return math.nan
+        return sum(r["n"] * r[key] for r in records) / n
+
+    mean = sum(r["n"] * r["hacc_mean"] for r in records) / n
+    second = sum(r["n"] * (r["hacc_std"] ** 2 + r["hacc_mean"] ** 2) for r in records) / n
+    return {
+        "n": n,
+        "hacc_mean": mean,
+        "hacc_std": math.sqrt(max(second - mean**2, 0.0)),
+        "linear_cm": sum(r["n"] * r["linear_cm"] for r in records) / n,
+        "angular_deg": sum(r["n"] * r["angular_deg"] for r in records) / n,
+        "nll_mean": sum(r["n"] * r["nll_mean"] for r in records) / n if scored else math.nan,
+        "coverage_50": covered("coverage_50"),
+        "coverage_90": covered("coverage_90"),
+    }
 
 
 def _cluster_sums(values: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -119,27 +160,28 @@ def sample_entry(record: Mapping[str, Any], hacc: Any) -> dict[str, Any]:
             one row per prediction, so the bootstrap resamples whole predictions.
     """
     rows = hacc.tolist() if hasattr(hacc, "tolist") else [list(r) for r in hacc]
-    return {**{k: record.get(k) for k in _SAMPLE_KEYS}, "hacc": rows}
+    return {**{k: record.get(k) for k in SAMPLE_KEYS}, "hacc": rows}
 
 
-def _record_key(record: Mapping[str, Any]) -> tuple:
-    return tuple(record.get(k) for k in _SAMPLE_KEYS)
+def record_key(record: Mapping[str, Any]) -> tuple:
+    """A record's (or a sample entry's) :data:`SAMPLE_KEYS` values: what its per-sample values are found by."""
+    return tuple(record.get(k) for k in SAMPLE_KEYS)
 
 
-def _samples_by_record(records: Sequence[Mapping[str, Any]],
-                       extras: Mapping[str, Any]) -> dict[tuple, list]:
+def samples_by_record(records: Sequence[Mapping[str, Any]],
+                      extras: Mapping[str, Any]) -> dict[tuple, list]:
     """Per-sample H_acc rows by record key, from what the run kept: extras ``hacc_samples`` (selection and
     prediction), ``pose_hacc`` (the position model's runs) and any n = 1 record (its value is its sample).
     A record whose samples do not number its n gets none (stale data): its figure falls back to the
     summary interval rather than drawing an interval of other numbers."""
     found: dict[tuple, list] = {}
     for entry in extras.get("hacc_samples") or []:
-        found[_record_key(entry)] = [row if isinstance(row, list) else [row] for row in entry["hacc"]]
+        found[record_key(entry)] = [row if isinstance(row, list) else [row] for row in entry["hacc"]]
     for obj, values in (extras.get("pose_hacc") or {}).items():
         found[("pose", obj, "position_model", None, None)] = [[float(v)] for v in values]
     by_record = {}
     for r in records:
-        key = _record_key(r)
+        key = record_key(r)
         if key in found and sum(len(row) for row in found[key]) == r["n"]:
             by_record[key] = found[key]
         elif r["n"] == 1:
@@ -147,13 +189,13 @@ def _samples_by_record(records: Sequence[Mapping[str, Any]],
     return by_record
 
 
-def _group_stat(records: Sequence[Mapping[str, Any]], samples: Mapping[tuple, list],
-                **keys: Any) -> dict[str, Any] | None:
+def group_stat(records: Sequence[Mapping[str, Any]], samples: Mapping[tuple, list],
+               **keys: Any) -> dict[str, Any] | None:
     """The mean H_acc of the records matching ``keys`` pooled, its 95 % interval and n (None: no data).
 
     The interval is the bootstrap one when every pooled record's samples were kept, else the summary one;
     ``"interval"`` says which."""
-    chosen = _select(records, **keys)
+    chosen = select(records, **keys)
     pooled = pool(chosen)
     if pooled["n"] == 0:
         return None
@@ -161,8 +203,8 @@ def _group_stat(records: Sequence[Mapping[str, Any]], samples: Mapping[tuple, li
     if pooled["n"] == 1:  # one value (the centroid's one estimate): no interval to draw or describe
         mean = low = high = pooled["hacc_mean"]
         kind = "single"
-    elif all(_record_key(r) in samples for r in chosen):
-        rows = [row for r in chosen for row in samples[_record_key(r)]]
+    elif all(record_key(r) in samples for r in chosen):
+        rows = [row for r in chosen for row in samples[record_key(r)]]
         mean, low, high = mean_interval(rows)
         kind = "bootstrap"
         clusters = len(rows)
@@ -174,8 +216,8 @@ def _group_stat(records: Sequence[Mapping[str, Any]], samples: Mapping[tuple, li
     return {"n": pooled["n"], "mean": mean, "low": low, "high": high, "interval": kind, "clusters": clusters}
 
 
-def _stat_values(stats: Iterable[Mapping[str, Any] | None], lows: bool = True) -> list[float]:
-    """The values a figure draws: means and interval ends (``lows=False``: without the lower ends, which
-    wants_log_axis leaves out)."""
+def stat_values(stats: Iterable[Mapping[str, Any] | None], lows: bool = True) -> list[float]:
+    """The values a figure draws of :func:`group_stat`'s results: means and interval ends (``lows=False``:
+    without the lower ends, which :func:`wants_log_axis` leaves out)."""
     keys = ("mean", "low", "high") if lows else ("mean", "high")
     return [st[k] for st in stats if st for k in keys]

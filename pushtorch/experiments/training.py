@@ -19,6 +19,8 @@ from pushtorch.paths import contained_path
 from pushtorch.sim.plan import Placement
 
 __all__ = [
+    "engine_tag",
+    "placement_tag",
     "train_model",
     "train_pooled",
     "training_records",
@@ -31,22 +33,22 @@ def _model_key(obj_name: str, friction: str, mass: str) -> str:
     return f"{obj_name}_{friction}_{mass}"
 
 
-def _placement_tag(placement: Placement) -> str:
+def placement_tag(placement: Placement) -> str:
     """'' for the paper's placement, else a suffix naming what differs from it, e.g. ``_lateral_jitter0.05``
-    (cached pushes and models of each placement keep apart)."""
+    (cached pushes, models and test sets of each placement keep apart)."""
     paper = asdict(Placement())
     return "".join(f"_{k}{v:g}" for k, v in asdict(placement).items() if v != paper[k])
 
 
-def _engine_tag(ctx: ExperimentContext) -> str:
-    """'' in the default pybullet world, else ``_<engine>`` (``_mujoco``): a run's cached pushes, models, truth
-    and scores of one engine never stand in for another's, and a run directory may hold both."""
+def engine_tag(ctx: ExperimentContext) -> str:
+    """'' in the default pybullet world, else ``_<engine>`` (``_mujoco``): a run's cached pushes, models,
+    predictions, truth and scores of one engine never stand in for another's, and a run directory may hold both."""
     return "" if ctx.sim.engine == "pybullet" else f"_{ctx.sim.engine}"
 
 
 def _cache_tag(ctx: ExperimentContext) -> str:
     """What names a run's cached pushes and models besides object and priors: the placement and the engine."""
-    return _placement_tag(ctx.placement) + _engine_tag(ctx)
+    return placement_tag(ctx.placement) + engine_tag(ctx)
 
 
 def _training_folder(ctx: ExperimentContext, obj_name: str, friction: str, mass: str) -> Path:
@@ -92,7 +94,7 @@ def _training_meta(ctx: ExperimentContext, friction: str, mass: str, **extra) ->
             **extra}
     if ctx.placement != Placement():  # absent at the paper's placement, so earlier caches stay valid
         meta["placement"] = asdict(ctx.placement)
-    if _engine_tag(ctx):  # likewise absent in the default world
+    if engine_tag(ctx):  # likewise absent in the default world
         meta["engine"] = ctx.sim.engine
     return meta
 

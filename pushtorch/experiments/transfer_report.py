@@ -1,6 +1,7 @@
 """The shape-transfer experiment's part of the outputs: its acceptance checks, its report section and the
-calibration figure (predicted against observed coverage). :mod:`pushtorch.experiments.shape_transfer` makes the
-records (``task: "transfer"``); this module only reads them.
+calibration figure (predicted against observed coverage) (paper, §Test Set and §Prediction Accuracy on Novel
+Contexts for the protocol; §Conclusion's transfer by local contact models for the thesis tested).
+:mod:`pushtorch.experiments.shape_transfer` makes the records (``task: "transfer"``); this module only reads them.
 """
 
 from __future__ import annotations
@@ -8,6 +9,9 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
+
+from pushtorch.experiments.statistics import pool
+from pushtorch.experiments.tables import method_label, ordered, primary, select, table
 
 __all__ = ["TRANSFER_ORDER", "coverage_figure", "transfer_checks", "transfer_section"]
 
@@ -19,18 +23,12 @@ DENSITY_METHODS = ("pushtorch_shapes", "pushtorch_library", "pushtorch", "mean_m
 
 
 def _transfer(records: Iterable[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
-    return [r for r in records if r.get("task") == "transfer" and r.get("metric", "displacement") == "displacement"]
+    """The primary (displacement) records of the transfer task."""
+    return select(primary(records), task="transfer")
 
 
-def _ordered(values: Iterable[str], order: Sequence[str] = ()) -> list[str]:
-    seen = list(dict.fromkeys(values))
-    return [v for v in order if v in seen] + [v for v in seen if v not in order]
-
-
-def _pooled(records, **keys):
-    from pushtorch.experiments.results import pool
-
-    return pool([r for r in records if all(r.get(k) == v for k, v in keys.items())])
+def _pooled(records: Iterable[Mapping[str, Any]], **keys: Any) -> dict[str, float]:
+    return pool(select(records, **keys))
 
 
 def transfer_checks(records: Sequence[Mapping[str, Any]], info: Mapping[str, Any] | None) -> list[dict[str, Any]]:
@@ -47,7 +45,7 @@ def transfer_checks(records: Sequence[Mapping[str, Any]], info: Mapping[str, Any
         return []
     checks = []
     held_out = set(info.get("held_out") or [])
-    objects = _ordered(r["object"] for r in transfer)
+    objects = ordered(r["object"] for r in transfer)
     for obj in [o for o in objects if o in set(info.get("transfer_objects") or [])]:
         ours, paper = _pooled(transfer, object=obj, method="pushtorch_shapes"), _pooled(
             transfer, object=obj, method="pushtorch")
@@ -93,8 +91,8 @@ def transfer_section(records: Sequence[Mapping[str, Any]], info: Mapping[str, An
     if not transfer:
         return []
     info = info or {}
-    objects = _ordered(r["object"] for r in transfer)
-    methods = _ordered((r["method"] for r in transfer), TRANSFER_ORDER)
+    objects = ordered(r["object"] for r in transfer)
+    methods = ordered((r["method"] for r in transfer), TRANSFER_ORDER)
     lines = ["## Transfer from many shapes", "",
              f"One model pooled over {info.get('training_shapes', '?')} generated shapes "
              f"({info.get('training_pushes_per_action_and_shape', '?')} training pushes per action and shape), "
@@ -102,8 +100,6 @@ def transfer_section(records: Sequence[Mapping[str, Any]], info: Mapping[str, An
              "object is new to the pooled model. `mean_motion` and `nearest_push` are the pooled training set's. "
              f"Widening chosen across training shapes: {info.get('widening')}. Cells: H_acc mean ± std "
              "(displacement), pooled over the test conditions.", ""]
-    from pushtorch.experiments.results import _method_label
-
     rows = []
     for obj in objects:
         row = [obj]
@@ -112,7 +108,7 @@ def transfer_section(records: Sequence[Mapping[str, Any]], info: Mapping[str, An
                 "mean_motion", "nearest_push") else {}))
             row.append("—" if st["n"] == 0 else f"{st['hacc_mean']:.3f} ± {st['hacc_std']:.3f}")
         rows.append(row + [_pooled(transfer, object=obj, method=methods[0])["n"]])
-    lines += _table(["object"] + [_method_label(m) for m in methods] + ["n"], rows)
+    lines += table(["object"] + [method_label(m) for m in methods] + ["n"], rows)
     dense = [m for m in methods if m in DENSITY_METHODS]
     lines += ["Density scores per object: nll (nats, lower is better) and the share of true outcomes inside the "
               "predicted density's 50 % and 90 % highest-density regions (a calibrated density has 0.50 and "
@@ -125,23 +121,17 @@ def transfer_section(records: Sequence[Mapping[str, Any]], info: Mapping[str, An
             row.append("—" if st["n"] == 0 else f"{_number(st['nll_mean'], 1)} / {_number(st['coverage_50'], 2)}"
                                                  f" / {_number(st['coverage_90'], 2)}")
         rows.append(row)
-    lines += _table(["object"] + [f"{m}: nll / cov50 / cov90" for m in dense], rows)
+    lines += table(["object"] + [f"{m}: nll / cov50 / cov90" for m in dense], rows)
     paper_mean = [r for r in transfer if r["method"] == "mean_motion" and r.get("model") != "shapes"]
     if paper_mean:
         rows = [[obj, _number(_pooled(paper_mean, object=obj)["hacc_mean"], 3),
                  _number(_pooled(transfer, object=obj, method="nearest_push",
                                  model=paper_mean[0]["model"])["hacc_mean"], 3)] for obj in objects]
         lines += [f"The two-object training set's own baselines ({paper_mean[0]['model']}): H_acc.", ""]
-        lines += _table(["object", "mean_motion", "nearest_push"], rows)
+        lines += table(["object", "mean_motion", "nearest_push"], rows)
     if "coverage.png" in figure_names:
         lines += ["![predicted against observed coverage](figures/coverage.png)", ""]
     return lines
-
-
-def _table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
-    return lines + [""]
 
 
 def coverage_figure(plt, records: Sequence[Mapping[str, Any]]):
@@ -155,10 +145,10 @@ def coverage_figure(plt, records: Sequence[Mapping[str, Any]]):
         return None
     fig, ax = plt.subplots(figsize=(4.8, 4.2), layout="constrained")
     ax.plot([0, 1], [0, 1], color="0.6", linestyle="--", linewidth=1, label="calibrated")
-    for m in _ordered((r["method"] for r in scored), TRANSFER_ORDER):
+    for m in ordered((r["method"] for r in scored), TRANSFER_ORDER):
         of_method = [r for r in scored if r["method"] == m]
         # a transfer baseline fit on each training set is drawn once per set
-        models = _ordered(r.get("model") or "" for r in of_method) if of_method[0]["task"] == "transfer" else [None]
+        models = ordered(r.get("model") or "" for r in of_method) if of_method[0]["task"] == "transfer" else [None]
         for model in models:
             group = [r for r in of_method if model is None or (r.get("model") or "") == model]
             n = sum(r["n"] for r in group)
