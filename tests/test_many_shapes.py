@@ -16,7 +16,7 @@ from pushtorch.errors import InvalidParameterError
 from pushtorch.evaluation.baselines import physics_ensemble_prediction
 from pushtorch.evaluation.likelihood import covered, ensemble_density, hdr_thresholds, point_density
 from pushtorch.evaluation.transfer import choose_widening
-from pushtorch.experiments.evaluation import observe
+from pushtorch.experiments.prediction_sets import observe
 from pushtorch.models.library import ModelSettings, load_model
 from pushtorch.models.motion import contact_distances, nearest_in_contact
 from pushtorch.models.pooled import fit_shape_parts, train_pooled_model

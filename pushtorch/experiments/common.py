@@ -1,9 +1,10 @@
 """Shared steps of the paper's experiments: training, test conditions, predictions, ground truth, records.
 
 The steps live in one module per concern: :mod:`~pushtorch.experiments.context` (configuration, seeds,
-caches), :mod:`~pushtorch.experiments.training` (pushes and models), :mod:`~pushtorch.experiments.evaluation`
-(predictions, ground truth, records) and :mod:`~pushtorch.experiments.recording` (Rerun). This module
-gathers their names for the experiment modules.
+caches), :mod:`~pushtorch.experiments.training` (pushes and models), :mod:`~pushtorch.experiments.prediction_sets`
+(test poses, clouds, every predictor's predictions), :mod:`~pushtorch.experiments.scoring` (ground truth,
+likelihood scores, records) and :mod:`~pushtorch.experiments.recording` (Rerun). This module gathers their names
+for the experiment modules.
 
 Paper, Experimental Setup (Fig. prediction_accuracy_methodology): *training* — full cloud, contact models,
 simulated pushes (PDRs) under a training prior; *prediction* — a single-shot cloud of the test object,
@@ -35,26 +36,28 @@ from pushtorch.experiments.context import (  # noqa: F401
     save_arrays,
     stable_seed,
 )
-from pushtorch.experiments.evaluation import (  # noqa: F401
-    METRICS,
+from pushtorch.experiments.prediction_sets import (  # noqa: F401
     PREDICTION_VERSION,
     Example,
     Examples,
     PredictionSet,
-    compare,
-    compare_displacement,
-    likelihood_scores,
     observe,
     predict_set,
     sample_test_poses,
-    simulate_truth,
     spread_test_start,
-    summarise,
-    truth_fingerprint,
 )
 from pushtorch.experiments.recording import (  # noqa: F401
     entity_label,
     log_examples,
+)
+from pushtorch.experiments.scoring import (  # noqa: F401
+    METRICS,
+    compare,
+    compare_displacement,
+    likelihood_scores,
+    simulate_truth,
+    summarise,
+    truth_fingerprint,
 )
 from pushtorch.experiments.training import (  # noqa: F401
     train_model,

@@ -53,7 +53,7 @@ from pushtorch.experiments.common import (
     stable_seed,
     train_model,
 )
-from pushtorch.experiments.evaluation import observe
+from pushtorch.experiments.prediction_sets import observe
 from pushtorch.io import atomic_write_bytes
 from pushtorch.models.conditioning import Observation
 from pushtorch.models.library import ModelLibrary
@@ -184,8 +184,10 @@ class _Scores:
     #: one case's scores by (prediction, action): a prediction every k shares is scored once
     scored: dict = field(default_factory=dict)
 
-    def add(self, method: str, k: int, prediction, truth_initial: se3.Pose, truth_final: se3.Pose, obj,
+    def add(self, predictor: str, k: int, prediction, truth_initial: se3.Pose, truth_final: se3.Pose, obj,
             j: int) -> None:
+        """Score ``predictor``'s ``prediction`` (estimate, final, density) of action ``j`` after ``k`` observed
+        pushes against the truth."""
         from pushtorch.evaluation.likelihood import nll
 
         key = (id(prediction), j)
@@ -197,7 +199,7 @@ class _Scores:
             numbers = (float(acc.hacc.reshape(-1)[0]), float(value.reshape(-1)[0]),
                        float(acc.linear_cm.reshape(-1)[0]), float(acc.angular_deg.reshape(-1)[0]))
             self.scored[key] = (prediction, numbers)  # the prediction kept: its id stays its own
-        self.pushes.setdefault((method, k), []).append(self.scored[key][1])
+        self.pushes.setdefault((predictor, k), []).append(self.scored[key][1])
 
 
 def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int, observed: list[int],
@@ -256,9 +258,9 @@ def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int,
                 best = grid[errors[:k].pow(2).sum(0).argmin()]
                 peer = group.cloud_physics(i, j, float(best[0]), float(best[1]), f"pfco|{condition}|{i}|{k}|{j}")
             final = se3.Pose.unchecked(truth.p[j].float(), truth.q[j].float())
-            for method, prediction in {**fixed, "online": online, "online_general": online_general,
-                                       "physics_from_cloud_online": peer}.items():
-                scores.add(method, k, prediction, truth_initial, final, obj, j)
+            for predictor, prediction in {**fixed, "online": online, "online_general": online_general,
+                                          "physics_from_cloud_online": peer}.items():
+                scores.add(predictor, k, prediction, truth_initial, final, obj, j)
         summaries = (conditioned.posterior(0).as_record(), conditioned.models[0].posterior(0).as_record())
         scores.posteriors.setdefault(("online", k), []).append(summaries[0])
         scores.posteriors.setdefault(("online_general", k), []).append(summaries[1])
@@ -267,18 +269,18 @@ def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int,
 
 
 def _condition_records(obj: str, condition: str, scores: _Scores, priors: Mapping[str, Any]) -> list[dict]:
-    """The records of one object and condition: one per method and k, with the posterior and the paired
+    """The records of one object and condition: one per predictor and k, with the posterior and the paired
     difference to ``congruent`` where they apply."""
     records = []
-    for (method, k), values in scores.pushes.items():
+    for (predictor, k), values in scores.pushes.items():
         t = torch.tensor(values, dtype=torch.float64)
-        record = _record(obj, method, k, condition, t[:, 0], t[:, 1], t[:, 2:])
-        if method in ("online", "online_general"):
-            summaries = scores.posteriors[(method, k)]
+        record = _record(obj, predictor, k, condition, t[:, 0], t[:, 1], t[:, 2:])
+        if predictor in ("online", "online_general"):
+            summaries = scores.posteriors[(predictor, k)]
             record.update({key: float(sum(s[key] for s in summaries) / len(summaries))
                            for key in ("mu_mean", "mu_std", "log_mass_mean", "log_mass_std")})
             record.update({"mu_true": priors["friction"].mean, "mass_true": priors["mass"].mean})
-        if method == "online":
+        if predictor == "online":
             diff = t[:, 0] - torch.tensor([v[0] for v in scores.pushes[("congruent", k)]], dtype=torch.float64)
             record["vs_congruent"] = {"difference": float(diff.mean()),
                                       "se": float(diff.std() / math.sqrt(len(diff))) if len(diff) > 1 else 0.0}
@@ -357,10 +359,11 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     return records, {"online_separability": separability}
 
 
-def _record(obj: str, method: str, k: int, condition: str, hacc: torch.Tensor, nll: torch.Tensor,
+def _record(obj: str, predictor: str, k: int, condition: str, hacc: torch.Tensor, nll: torch.Tensor,
             errors: torch.Tensor) -> dict[str, Any]:
-    """One results record (``errors``: ``(n, 2)`` linear cm and angular deg of each scored push)."""
-    return {"task": "online", "object": obj, "method": method, "model": None, "condition": condition,
+    """One results record of ``predictor`` (its ``method``; ``errors``: ``(n, 2)`` linear cm and angular deg of
+    each scored push)."""
+    return {"task": "online", "object": obj, "method": predictor, "model": None, "condition": condition,
             "observed": int(k), "metric": "displacement", "n": int(hacc.numel()),
             "hacc_mean": float(hacc.mean()), "hacc_std": float(hacc.std(unbiased=False)) if hacc.numel() > 1 else 0.0,
             "linear_cm": float(errors[:, 0].mean()), "angular_deg": float(errors[:, 1].mean()),

@@ -12,7 +12,8 @@ from pushtorch import se3
 from pushtorch.errors import InvalidParameterError
 from pushtorch.evaluation.metrics import accuracy, displaced
 from pushtorch.experiments.context import ExperimentContext
-from pushtorch.experiments.evaluation import Example, Examples, PredictionSet, compare_displacement
+from pushtorch.experiments.prediction_sets import Example, Examples, PredictionSet
+from pushtorch.experiments.scoring import compare_displacement
 from pushtorch.objects import ObjectModel
 
 __all__ = [
@@ -51,7 +52,7 @@ def _truth_push(ctx: ExperimentContext, obj: ObjectModel, predictions: Predictio
     """The ground-truth push shown with example ``(i, j)``: test condition 0, sample 0, re-simulated here
     with its trajectory (its final pose is compared with the recorded one by :func:`log_examples`: since
     every push rebuilds the object's shape they agree bit for bit; the check guards that); None if
-    :func:`simulate_truth` did not run for these predictions while recording."""
+    :func:`~pushtorch.experiments.scoring.simulate_truth` did not run for these predictions while recording."""
     from pushtorch.sim.runner import simulate_plan
     from pushtorch.sim.settings import object_spec
 
@@ -115,12 +116,13 @@ def log_examples(
     pose that differs from the recorded one is reported in the log and the summary. ``<root>/summary``
     holds the example's scores as text, also kept in ``ctx.logged_predictions``: H_acc (displacement, the
     records' primary score, with the frame score beside it), ``nll`` (the records' score of that truth,
-    :func:`likelihood_scores`) and the raw errors.
+    :func:`~pushtorch.experiments.scoring.likelihood_scores`) and the raw errors.
 
     Args:
         truth_final: ground-truth final poses ``(N, A, S)`` of test condition 0 (sample 0 is shown).
         nll: the group's ``pushtorch`` negative log-likelihoods ``(N, A, S)`` of the same truths
-            (:func:`likelihood_scores` of test condition 0), or None (the summary then has none).
+            (:func:`~pushtorch.experiments.scoring.likelihood_scores` of test condition 0), or None (the summary
+            then has none).
     """
     import rerun as rr
 
