@@ -17,8 +17,9 @@ import pytest
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 
-from pushtorch.apps.config_check import ConfigError, check_config, experiment_names
+from pushtorch.apps.config_check import ConfigError, check_config
 from pushtorch.errors import InvalidParameterError
+from pushtorch.experiments.registry import experiment_names
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 

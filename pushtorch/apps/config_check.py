@@ -19,7 +19,6 @@ before the sweep folder exists);
 from __future__ import annotations
 
 import fnmatch
-import importlib
 import math
 import os
 import sys
@@ -31,8 +30,9 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from pushtorch.errors import InvalidParameterError
+from pushtorch.experiments.registry import EXPERIMENTS, experiment_names
 
-__all__ = ["APPS", "ConfigCheck", "ConfigError", "check_config", "experiment_names", "memory_budget"]
+__all__ = ["APPS", "ConfigCheck", "ConfigError", "check_config", "memory_budget"]
 
 #: The apps whose configs are checked, by Hydra config name.
 APPS = ("config", "simulate", "train", "predict")
@@ -397,13 +397,8 @@ def _experiment_problems(c: Mapping[str, Any]) -> list[str]:
     if not isinstance(exp, Mapping):
         return ["experiment is not set: choose one, e.g. experiment=quickstart"]
     name = exp.get("name")
-    if isinstance(name, str) and _name_problem("experiment.name", name) is None:
-        try:
-            module = importlib.import_module(f"pushtorch.experiments.{name}")
-        except ModuleNotFoundError:
-            module = None
-        if not callable(getattr(module, "run", None)):
-            return [f"experiment.name {name!r} is not an experiment; known: {', '.join(experiment_names())}"]
+    if isinstance(name, str) and _name_problem("experiment.name", name) is None and name not in EXPERIMENTS:
+        return [f"experiment.name {name!r} is not an experiment; known: {', '.join(experiment_names())}"]
     problems = _prior_name_problems(c, exp)
     # the trajectories one simulation run keeps: the larger of a training run and a part's ground truth
     actions = exp.get("actions") or {}
@@ -463,20 +458,6 @@ def _prior_name_problems(c: Mapping[str, Any], exp: Mapping[str, Any]) -> list[s
                 problems.append(f"{key} names the {kind} prior {name!r}, which is not in priors.{kind} "
                                 f"(known: {known})")
     return problems
-
-
-def experiment_names() -> list[str]:
-    """The experiments ``experiment.name`` may name: modules of :mod:`pushtorch.experiments` with ``run``."""
-    import pkgutil
-
-    import pushtorch.experiments as package
-
-    names = []
-    for info in pkgutil.iter_modules(package.__path__):
-        module = importlib.import_module(f"pushtorch.experiments.{info.name}")
-        if callable(getattr(module, "run", None)):
-            names.append(info.name)
-    return sorted(names)
 
 
 def _memory_problems(what: str, pushes: int, duration: float, rate: float) -> list[str]:

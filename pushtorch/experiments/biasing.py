@@ -53,7 +53,8 @@ from pushtorch.experiments.common import (
     training_records,
     truth_fingerprint,
 )
-from pushtorch.experiments.report import sample_entry
+from pushtorch.experiments.statistics import sample_entry
+from pushtorch.experiments.suite import run_suite
 from pushtorch.objects import load_object
 
 __all__ = ["prior_label", "run", "run_part"]
@@ -97,7 +98,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
         ``{"training_scatter": {name: {training object: {prior label: [[dx, dy], ...]}}}}``, the action
         index of each of those pushes (``training_actions``, same layout), the thrown pushes, and each
         record's per-comparison H_acc for the figures' intervals (``hacc_samples``, see
-        :func:`pushtorch.experiments.report.sample_entry`).
+        :func:`pushtorch.experiments.statistics.sample_entry`).
     """
     part, objects, training_of, training, model_priors, conditions = _plan(cfg, part, model_cfg)
     name = part.get("name", "biasing")
@@ -173,6 +174,4 @@ def run(cfg, out_dir: Path, overrides: Sequence[str] = ()) -> dict:
 
     Returns the summary :func:`pushtorch.experiments.suite.run_suite` gives.
     """
-    from pushtorch.experiments.suite import run_suite
-
     return run_suite(cfg, out_dir, [("biasing", cfg.experiment, cfg.model)], overrides)

@@ -41,7 +41,8 @@ from pushtorch.experiments.common import (
     train_model,
     truth_fingerprint,
 )
-from pushtorch.experiments.report import sample_entry
+from pushtorch.experiments.statistics import sample_entry
+from pushtorch.experiments.suite import run_suite
 from pushtorch.objects import load_object
 
 __all__ = ["METHODS", "run", "run_part"]
@@ -137,6 +138,4 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
 
 def run(cfg, out_dir: Path, overrides: Sequence[str] = ()) -> dict:
     """``python -m pushtorch experiment=model_selection``: the experiment alone, with its report."""
-    from pushtorch.experiments.suite import run_suite
-
     return run_suite(cfg, out_dir, [("model_selection", cfg.experiment, cfg.model)], overrides)

@@ -54,6 +54,7 @@ from pushtorch.experiments.common import (
     train_model,
 )
 from pushtorch.experiments.prediction_sets import observe
+from pushtorch.experiments.suite import run_suite
 from pushtorch.io import atomic_write_bytes
 from pushtorch.models.conditioning import Observation
 from pushtorch.models.library import ModelLibrary
@@ -389,6 +390,4 @@ def _separability(obj: str, bias: str, outcomes: Mapping[str, torch.Tensor]) -> 
 
 def run(cfg, out_dir, overrides=()) -> dict:
     """``python -m pushtorch experiment=online_adaptation`` with its report."""
-    from pushtorch.experiments.suite import run_suite
-
     return run_suite(cfg, out_dir, [("online_adaptation", cfg.experiment, cfg.model)], overrides)

@@ -41,6 +41,7 @@ from pushtorch.experiments.common import (
     stable_seed,
     summarise,
 )
+from pushtorch.experiments.suite import run_suite
 from pushtorch.paths import contained_path
 
 __all__ = ["run", "run_part"]
@@ -147,6 +148,4 @@ def _log_pose_example(ctx: ExperimentContext, obj, truth: se3.Pose, points: torc
 
 def run(cfg, out_dir: Path, overrides: Sequence[str] = ()) -> dict:
     """``python -m pushtorch experiment=pose_estimation``: the experiment alone, with its report."""
-    from pushtorch.experiments.suite import run_suite
-
     return run_suite(cfg, out_dir, [("pose_estimation", cfg.experiment, cfg.model)], overrides)

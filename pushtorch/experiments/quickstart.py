@@ -1,10 +1,11 @@
 """Quickstart: all four paper experiments at small sizes in one run (``make demo``).
 
-Model selection, pose estimation, friction biasing and mass biasing (paper, Experimental Results), each
-with fewer test conditions, training pushes and annealing steps (``conf/experiment/quickstart.yaml``,
-``conf/model/quick.yaml``), into one ``results.json``, ``report.md`` (with the acceptance checks:
-our predictor beats no-motion and the position model beats the centroid on every object, adaptive
-selection matches congruent within noise), ``figures/`` and ``recording.rrd``.
+Model selection, pose estimation, friction biasing and mass biasing (paper, Experimental Results), with online
+adaptation and shape transfer, each with fewer test conditions, training pushes and annealing steps
+(``conf/experiment/quickstart.yaml``, ``conf/model/quick.yaml``), into one ``results.json``, ``report.md`` (with
+the acceptance checks: our predictor beats no-motion and the position model beats the centroid on every object,
+adaptive selection matches congruent within noise), ``figures/`` and ``recording.rrd``. Each part's ``kind``
+names its ``run_part`` in :data:`pushtorch.experiments.registry.PARTS`.
 
 ``python -m pushtorch`` (quickstart is the default) or ``python -m pushtorch experiment=quickstart``;
 parts can be dropped, e.g. ``~experiment.parts.mass_biasing``.
@@ -17,7 +18,8 @@ from pathlib import Path
 
 from pushtorch.errors import InvalidParameterError
 from pushtorch.experiments.common import merged_model_config, plain
-from pushtorch.experiments.suite import KINDS, run_suite
+from pushtorch.experiments.registry import PARTS
+from pushtorch.experiments.suite import run_suite
 
 __all__ = ["run"]
 
@@ -29,9 +31,9 @@ def run(cfg, out_dir: Path, overrides: Sequence[str] = ()) -> dict:
         if part is None:
             continue
         kind = part.get("kind", name)
-        if kind not in KINDS:
+        if kind not in PARTS:
             raise InvalidParameterError(
-                f"quickstart part {name!r} has unknown kind {kind!r}; use {', '.join(KINDS)}"
+                f"quickstart part {name!r} has unknown kind {kind!r}; use {', '.join(PARTS)}"
             )
         parts.append((kind, {"name": name, **part}, merged_model_config(cfg.model, part.get("model"))))
     if not parts:

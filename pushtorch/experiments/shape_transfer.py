@@ -50,7 +50,8 @@ from pushtorch.experiments.common import (
     train_pooled,
     truth_fingerprint,
 )
-from pushtorch.experiments.report import sample_entry
+from pushtorch.experiments.statistics import sample_entry
+from pushtorch.experiments.suite import run_suite
 from pushtorch.objects import catalogue_names, load_object
 from pushtorch.objects.shapes import held_out_shapes, resolve_training_objects
 
@@ -178,6 +179,4 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
 
 def run(cfg, out_dir, overrides=()) -> dict:
     """``python -m pushtorch experiment=shape_transfer`` with its report."""
-    from pushtorch.experiments.suite import run_suite
-
     return run_suite(cfg, out_dir, [("shape_transfer", cfg.experiment, cfg.model)], overrides)

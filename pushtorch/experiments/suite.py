@@ -1,8 +1,11 @@
-"""Run experiment parts into one run directory: shared context, one recording, one results.json and report.
+"""Run experiment parts into one run directory: shared context, one recording, one results.json and report
+(paper, Experimental Results: every experiment of it runs through here, alone or as a quickstart part).
 
-Each paper experiment (``model_selection``, ``pose_estimation``, ``friction_biasing``, ``mass_biasing``) is
-one *part*; ``quickstart`` runs all four at small sizes. A part is ``(kind, its experiment config, its
-model config)``: ``kind`` picks the module (``model_selection``, ``pose_estimation`` or ``biasing``).
+Each paper experiment (``model_selection``, ``pose_estimation``, ``friction_biasing``, ``mass_biasing``, and
+``online_adaptation``, ``shape_transfer``) is one *part*; ``quickstart`` runs them all at small sizes. A part is
+``(kind, its experiment config, its model config)``: ``kind`` picks its ``run_part`` in
+:data:`pushtorch.experiments.registry.PARTS` (``model_selection``, ``pose_estimation``, ``biasing``,
+``online_adaptation``, ``shape_transfer``).
 
 The recording (``recording.rrd``) gets, per part, each group's H_acc as a series and a markdown summary
 (:mod:`pushtorch.viz.scores`), and at the end the blueprint that lays it out for review
@@ -11,28 +14,18 @@ The recording (``recording.rrd``) gets, per part, each group's H_acc as a series
 
 from __future__ import annotations
 
-import importlib
 import logging
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pushtorch.errors import InvalidParameterError
 from pushtorch.experiments.common import ExperimentContext, context_from_config, entity_label, plain
+from pushtorch.experiments.registry import part_runner
 
-__all__ = ["KINDS", "run_suite"]
+__all__ = ["run_suite"]
 
 log = logging.getLogger("pushtorch.experiments")
-
-#: Part kind → module with ``run_part(cfg, part, ctx, model_cfg) -> (records, extras)``.
-KINDS = {
-    "model_selection": "pushtorch.experiments.model_selection",
-    "pose_estimation": "pushtorch.experiments.pose_estimation",
-    "biasing": "pushtorch.experiments.biasing",
-    "online_adaptation": "pushtorch.experiments.online_adaptation",
-    "shape_transfer": "pushtorch.experiments.shape_transfer",
-}
 
 
 def _merge_extras(into: dict[str, Any], extras: Mapping[str, Any]) -> None:
@@ -86,7 +79,8 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]],
         the number of records and the acceptance checks passed.
 
     Raises:
-        InvalidParameterError: an unknown part kind; PushtorchError from any step.
+        InvalidParameterError: an unknown part kind (:func:`pushtorch.experiments.registry.part_runner`);
+            PushtorchError from any step.
     """
     from pushtorch.experiments.report import write_outputs
     from pushtorch.viz.blueprint import experiment_blueprint
@@ -104,13 +98,11 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]],
     tabs = []
     try:
         for kind, part, model_cfg in parts:
-            if kind not in KINDS:
-                raise InvalidParameterError(f"unknown experiment part {kind!r}; use {', '.join(KINDS)}")
-            module = importlib.import_module(KINDS[kind])
+            run_part = part_runner(kind)
             part_start = time.perf_counter()
             model_cfg = plain(model_cfg)
             part_name = str(plain(part).get("name", kind))
-            part_records, part_extras = module.run_part(cfg, part, ctx.with_model(model_cfg), model_cfg)
+            part_records, part_extras = run_part(cfg, part, ctx.with_model(model_cfg), model_cfg)
             log.info("%s: %d records in %.0f s", part_name, len(part_records), time.perf_counter() - part_start)
             tabs.append(_log_part(ctx, kind, part_name, part_records, first_group=len(records)))
             records.extend(part_records)
