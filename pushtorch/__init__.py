@@ -18,9 +18,7 @@ from pushtorch.se3 import Pose
 
 __version__ = "0.1.0"
 
-#: name → the module that defines it, imported on first access (PEP 562). ``predict`` is also the name of
-#: a submodule: once that is imported the package attribute is the module, which is callable as the function
-#: (``pushtorch.prediction._CallableModule``).
+#: name → the module that defines it, imported on first access (PEP 562).
 _LAZY = {
     # objects and what a camera sees of them
     "load_object": "pushtorch.objects",
@@ -36,9 +34,9 @@ _LAZY = {
     "simulate_pushes": "pushtorch.sim.runner",
     "load_records": "pushtorch.sim.records",
     # models and predictions
-    "train_push_model": "pushtorch.models.library",
+    "train_push_model": "pushtorch.models.training",
     "train_pooled_model": "pushtorch.models.pooled",
-    "load_model": "pushtorch.models.library",
+    "load_model": "pushtorch.models.model",
     "ModelLibrary": "pushtorch.models.library",
     "Observation": "pushtorch.models.conditioning",
     "predict": "pushtorch.prediction",
@@ -54,8 +52,10 @@ __all__ = ["Fixed", "FinalPoseDistribution", "ModelLibrary", "Normal", "Observat
 if TYPE_CHECKING:  # what type checkers and IDEs see (py.typed ships with the package)
     from pushtorch.distribution import FinalPoseDistribution
     from pushtorch.models.conditioning import Observation
-    from pushtorch.models.library import ModelLibrary, load_model, train_push_model
+    from pushtorch.models.library import ModelLibrary
+    from pushtorch.models.model import load_model
     from pushtorch.models.pooled import train_pooled_model
+    from pushtorch.models.training import train_push_model
     from pushtorch.objects import load_object
     from pushtorch.perception import capture_partial_cloud
     from pushtorch.prediction import predict, predict_many

@@ -12,7 +12,7 @@ clouds (``()`` for one). Decisions (docs/method.md, "The prediction as a distrib
   included — and the product's normaliser ``Z = ∫ Π_e p_e^γ_e`` is estimated once, on first use, by
   importance sampling (:func:`pushtorch.kde.normaliser.log_normaliser`, seeded: the same value every time).
   Outside every kernel's cut-off the density is 0 and ``log_prob`` −inf.
-* **Evaluation methods.** ``method="fast"`` (default) evaluates the shared-kernel product
+* **Evaluation methods.** :attr:`Evaluation.FAST` (default) evaluates the shared-kernel product
   (:class:`pushtorch.kde.SharedKernelProduct`), ``"dense"`` every expert's kernels densely
   (:class:`pushtorch.kde.PoseKDE`); both give the same values (float rounding), broadcast alike, and let
   gradients flow to the query poses.
@@ -35,10 +35,10 @@ from torch.distributions import Distribution, constraints
 
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
-from pushtorch.kde import KernelBandwidth, PoseKDE, SharedKernelProduct
+from pushtorch.kde import Evaluation, KernelBandwidth, PoseKDE, SharedKernelProduct
 from pushtorch.kde.normaliser import NO_CUTOFF, expert_log_probs, log_kernel_normaliser, log_normaliser
-from pushtorch.models.library import as_generator
-from pushtorch.models.motion import stack_products
+from pushtorch.models.experts import stack_products
+from pushtorch.models.settings import as_generator
 
 Tensor = torch.Tensor
 
@@ -66,7 +66,7 @@ class FinalPoseDistribution(Distribution):
         bandwidth: the motion kernels' bandwidth and cut-offs; trial_rounds: ``(*B, 3)``.
         exponent: ``(E, *B)`` the experts' exponents ``γ_e`` (0: a padding expert).
         mode: ``(*B, 7)`` the annealed final pose of each prediction.
-        method: ``"fast"`` or ``"dense"`` (module docstring).
+        method: :attr:`Evaluation.FAST` or :attr:`Evaluation.DENSE`, or its string (module docstring).
         normaliser_centres: ``(*B, C)`` poses where the product's modes are (the annealed candidates);
             they guide the importance sampler of the normaliser.
         validate_args: torch's convention (default: ``torch.distributions.Distribution``'s global setting);
@@ -78,12 +78,11 @@ class FinalPoseDistribution(Distribution):
     has_rsample = False
 
     def __init__(self, means: se3.Pose, log_weights: Tensor, bandwidth: KernelBandwidth, trial_rounds: Tensor,
-                 exponent: Tensor, mode: Tensor | None, method: str = "fast",
+                 exponent: Tensor, mode: Tensor | None, method: Evaluation | str = Evaluation.FAST,
                  normaliser_centres: se3.Pose | None = None, validate_args: bool | None = None, *,
                  kernels: str = "cut", frame: tuple[se3.Pose, se3.Pose] | None = None,
                  log_z: Tensor | None = None) -> None:
-        if method not in ("dense", "fast"):
-            raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
+        method = Evaluation.of(method)
         if kernels not in KERNELS:
             raise InvalidParameterError(f"kernels must be one of {', '.join(map(repr, KERNELS))}, got {kernels!r}")
         batch = means.batch_shape[:-1]
@@ -106,7 +105,8 @@ class FinalPoseDistribution(Distribution):
 
     @staticmethod
     def from_motion_densities(densities, modes: se3.Pose, centres: list[se3.Pose] | None = None,
-                              method: str = "fast", validate_args: bool | None = None) -> FinalPoseDistribution:
+                              method: Evaluation | str = Evaluation.FAST,
+                              validate_args: bool | None = None) -> FinalPoseDistribution:
         """One distribution over the predictions of ``densities`` (a :class:`MotionDensity`, or a list of
         them: ``batch_shape (B,)``, kernels and experts padded and masked inside).
 
@@ -128,7 +128,7 @@ class FinalPoseDistribution(Distribution):
         return dist[0] if single else dist
 
     @staticmethod
-    def from_predictions(predictions, method: str | None = None,
+    def from_predictions(predictions, method: Evaluation | str | None = None,
                          validate_args: bool | None = None) -> FinalPoseDistribution:
         """One distribution of ``batch_shape (B,)`` over a batch of predictions (``predict_many``'s list);
         ``method``: default the first prediction's."""
@@ -237,7 +237,7 @@ class FinalPoseDistribution(Distribution):
     def _unnormalised(self, queries: Tensor) -> Tensor:
         """``Σ_e γ_e log P_e`` (normalised weights, kernels 1 at their means) at ``(*B, M, 7)`` → ``(*B, M)``."""
         pose = se3.Pose.from_vector(queries)
-        if self.method == "fast":
+        if self.method is Evaluation.FAST:
             if self._product is None:
                 self._product = SharedKernelProduct(self.means, self.log_weights, self.bandwidth, self.trial_rounds,
                                                     expert_exponent=self.exponent, validate_args=False)
@@ -335,9 +335,9 @@ class FinalPoseDistribution(Distribution):
                              mode=None if self._mode is None else move(self._mode), normaliser_centres=centres,
                              frame=frame, log_z=None if self._log_z is None else self._log_z.to(device))
 
-    def with_method(self, method: str) -> FinalPoseDistribution:
-        """The same distribution evaluated by ``method`` (``"fast"`` or ``"dense"``)."""
-        return self._replace(method=method, log_z=self._log_z)
+    def with_method(self, method: Evaluation | str) -> FinalPoseDistribution:
+        """The same distribution evaluated by ``method`` (an :class:`~pushtorch.kde.Evaluation` or its string)."""
+        return self._replace(method=Evaluation.of(method), log_z=self._log_z)
 
     def with_kernels(self, kernels: str) -> FinalPoseDistribution:
         """The same prediction with ``kernels="cut"`` (the model's cut-off kernels: 0 beyond their reach) or
@@ -349,4 +349,4 @@ class FinalPoseDistribution(Distribution):
 
     def __repr__(self) -> str:
         return (f"FinalPoseDistribution(batch_shape={tuple(self.batch_shape)}, experts={self.num_experts}, "
-                f"kernels={self.means.p.shape[-2]} {self.kernels}, method={self.method!r})")
+                f"kernels={self.means.p.shape[-2]} {self.kernels}, method={self.method.value!r})")

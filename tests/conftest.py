@@ -19,7 +19,8 @@ def small_model(tmp_path_factory):
     prediction sizes (seconds per prediction), trained once per test process and object."""
     import torch
 
-    from pushtorch.models.library import ModelSettings, train_push_model
+    from pushtorch.models.settings import ModelSettings
+    from pushtorch.models.training import train_push_model
     from pushtorch.objects import load_object
     from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_training_pushes, run_plan
 

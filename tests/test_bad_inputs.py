@@ -44,7 +44,9 @@ from pushtorch.errors import (
 )
 from pushtorch.io import folder_lock, sealed_archive
 from pushtorch.kde import KernelBandwidth, PoseKDE, ProductOfExperts, SharedKernelProduct
-from pushtorch.models.library import FORMAT, ModelSettings, load_model, train_push_model
+from pushtorch.models.model import FORMAT, load_model
+from pushtorch.models.settings import ModelSettings
+from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_mesh_file, load_object
 from pushtorch.paths import contained_path, safe_name
 from pushtorch.perception import PointCloud, capture_partial_cloud

@@ -12,7 +12,10 @@ from hypothesis import strategies as st
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError, PushtorchError
 from pushtorch.models.conditioning import Observation, PhysicsPosterior, ess_floor, new_posterior
-from pushtorch.models.library import ModelLibrary, ModelSettings, load_model, train_push_model
+from pushtorch.models.library import ModelLibrary
+from pushtorch.models.model import load_model
+from pushtorch.models.settings import ModelSettings
+from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 

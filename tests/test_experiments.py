@@ -25,7 +25,8 @@ from pushtorch.evaluation.metrics import Accuracy
 from pushtorch.experiments import quickstart
 from pushtorch.experiments.common import sample_test_poses, summarise
 from pushtorch.experiments.report import PAPER_LINEAR_CM, acceptance_checks, pool, primary
-from pushtorch.models.library import ModelSettings, load_model
+from pushtorch.models.model import load_model
+from pushtorch.models.settings import ModelSettings
 from pushtorch.objects import load_object
 
 ROOT = Path(__file__).resolve().parents[1]

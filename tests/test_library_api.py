@@ -47,16 +47,14 @@ def test_the_public_face_is_light_and_complete():
     assert (ROOT / "pushtorch" / "py.typed").is_file()
 
 
-def test_predict_is_callable_from_the_package_in_any_import_order():
-    """``pushtorch.predict`` is the function, and stays callable once the old module path ``pushtorch.predict``
-    (now :mod:`pushtorch.prediction`, which is callable as the function) has been imported."""
+def test_predict_is_the_function_of_the_prediction_package():
+    """``pushtorch.predict`` is the function :func:`pushtorch.prediction.predict` (no module of that name is left
+    to shadow it), and an unknown name is an AttributeError."""
     import pushtorch
     import pushtorch.prediction
 
-    assert callable(pushtorch.predict) and pushtorch.predict_many is pushtorch.prediction.predict_many
-    with pytest.warns(DeprecationWarning, match="pushtorch.prediction"):
-        import pushtorch.predict  # the old path binds the package attribute to the (callable) new module
-    assert callable(pushtorch.predict) and pushtorch.predict.predict_many is pushtorch.prediction.predict_many
+    assert pushtorch.predict is pushtorch.prediction.predict
+    assert pushtorch.predict_many is pushtorch.prediction.predict_many
     with pytest.raises(AttributeError):
         pushtorch.no_such_thing  # noqa: B018
 

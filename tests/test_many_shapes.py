@@ -17,9 +17,10 @@ from pushtorch.evaluation.baselines import physics_ensemble_prediction
 from pushtorch.evaluation.likelihood import covered, ensemble_density, hdr_thresholds, point_density
 from pushtorch.evaluation.transfer import choose_widening
 from pushtorch.experiments.prediction_sets import observe
-from pushtorch.models.library import ModelSettings, load_model
+from pushtorch.models.model import load_model
 from pushtorch.models.motion import contact_distances, nearest_in_contact
 from pushtorch.models.pooled import fit_shape_parts, train_pooled_model
+from pushtorch.models.settings import ModelSettings
 from pushtorch.objects import load_object
 from pushtorch.objects.shapes import (
     HELD_OUT_FIRST_SEED,
@@ -29,8 +30,7 @@ from pushtorch.objects.shapes import (
     resolve_training_objects,
     training_shape_seeds,
 )
-from pushtorch.prediction import predict
-from pushtorch.prediction.predict import transfer_bandwidth
+from pushtorch.prediction import predict, transfer_bandwidth
 from pushtorch.sim import Fixed, Uniform, make_actions, plan_training_pushes
 from pushtorch.sim.runner import simulate_pushes
 

@@ -23,7 +23,8 @@ from pushtorch.models.contact import (
     floor_relations,
     sample_environment_contacts,
 )
-from pushtorch.models.library import ModelLibrary, ModelSettings, load_model, train_push_model
+from pushtorch.models.library import ModelLibrary
+from pushtorch.models.model import load_model
 from pushtorch.models.motion import local_motions, motion_frames
 from pushtorch.models.position import (
     centroid_pose,
@@ -32,6 +33,8 @@ from pushtorch.models.position import (
     surface_fit_scores,
     verify_pose_candidates,
 )
+from pushtorch.models.settings import ModelSettings
+from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_full_cloud, capture_partial_cloud
 from pushtorch.prediction import estimate_pose, predict

@@ -191,7 +191,7 @@ def test_a_transferred_start_is_backed_off_and_marked_invalid_beyond_the_bound(s
     for i, yaw in enumerate((-0.5, 0.0, 0.3, 0.7)):
         cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=yaw))
         caplog.clear()
-        with caplog.at_level(logging.WARNING, logger="pushtorch.predict"):
+        with caplog.at_level(logging.WARNING, logger="pushtorch.apps.predict"):
             condition = predict(model, cloud, model.actions[i % 3], torch.Generator().manual_seed(i)).condition
         _check_clear(condition, cloud.points)  # backed off in every case: never an overlapping start
         logged = [r.getMessage() for r in caplog.records if "overlaps the observed object" in r.getMessage()]

@@ -22,7 +22,8 @@ from hypothesis import strategies as st
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.models.contact import closest_points_on_mesh
-from pushtorch.models.library import ModelSettings, train_push_model
+from pushtorch.models.settings import ModelSettings
+from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.prediction import predict

@@ -62,7 +62,7 @@ def quickstart_model(folder: Path) -> Path:
     from bench_predict import paper_size_model
     from omegaconf import OmegaConf
 
-    from pushtorch.models.library import ModelSettings
+    from pushtorch.models.settings import ModelSettings
     from pushtorch.sim.plan import Placement
 
     conf = ROOT / "conf"

@@ -68,7 +68,9 @@ from pushtorch.errors import RecordFormatError
 from pushtorch.evaluation import metrics
 from pushtorch.features import compute_surface_features
 from pushtorch.kde import declare_long_run, fast_path_compiled, straightforward_evaluation
-from pushtorch.models.library import ModelSettings, PushModel, load_model, train_push_model
+from pushtorch.models.model import PushModel, load_model
+from pushtorch.models.settings import ModelSettings
+from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
 from pushtorch.parallel import share_cores
 from pushtorch.perception import capture_partial_cloud

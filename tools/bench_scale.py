@@ -56,7 +56,7 @@ from dataclasses import replace
 from pushtorch.objects import load_object
 from pushtorch.sim import load_records
 from pushtorch.sim.records import PushRecords
-from pushtorch.models.library import train_push_model
+from pushtorch.models.training import train_push_model
 one = load_records({str(base)!r}, trajectories=False)
 copies = -(-{pushes} // len(one))
 records = PushRecords.cat([replace(one, index=one.index + k * len(one)) for k in range(copies)])

@@ -40,7 +40,7 @@ from bench_predict import cpu_name, paper_size_model, test_conditions  # tools/ 
 from pushtorch import se3
 from pushtorch.evaluation.baselines import physics_ensemble_prediction
 from pushtorch.evaluation.likelihood import ensemble_density, motion_product_density, nll
-from pushtorch.models.library import load_model
+from pushtorch.models.model import load_model
 from pushtorch.models.pooled import train_pooled_model
 from pushtorch.objects import load_object
 from pushtorch.objects.shapes import training_shapes

@@ -24,7 +24,7 @@ from bench_predict import cpu_name  # tools/ is on sys.path when a tool runs as 
 
 _PREDICT = r"""
 import json, sys, torch
-from pushtorch.models.library import load_model
+from pushtorch.models.model import load_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.prediction import predict_many
@@ -38,7 +38,8 @@ print(json.dumps([p.final_pose.p.tolist() + p.final_pose.q.tolist() for p in out
 
 
 def _simulate_and_train(folder: Path, workers: int, per_action: int) -> tuple[Path, Path]:
-    from pushtorch.models.library import ModelSettings, train_push_model
+    from pushtorch.models.settings import ModelSettings
+    from pushtorch.models.training import train_push_model
     from pushtorch.objects import load_object
     from pushtorch.sim.plan import plan_training_pushes
     from pushtorch.sim.priors import Uniform

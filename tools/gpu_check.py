@@ -34,7 +34,7 @@ def prepare(model_path: str) -> None:
 
     from pushtorch import se3
     from pushtorch.features import compute_surface_features
-    from pushtorch.models.library import load_model
+    from pushtorch.models.model import load_model
     from pushtorch.objects import load_object
     from pushtorch.perception import capture_partial_cloud
     from pushtorch.sim.push import place_robot_against
@@ -142,7 +142,7 @@ def run() -> None:
     from pushtorch import se3
     from pushtorch.features import SurfaceFeatures
     from pushtorch.models.conditioning import Observation
-    from pushtorch.models.library import load_model
+    from pushtorch.models.model import load_model
     from pushtorch.prediction import predict, predict_many
 
     cuda = torch.cuda.is_available()

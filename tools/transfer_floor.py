@@ -66,7 +66,8 @@ from pushtorch.evaluation.baselines import replay_motion
 from pushtorch.evaluation.metrics import accuracy, displaced
 from pushtorch.experiments.common import observe
 from pushtorch.experiments.report import PAPER_LINEAR_CM
-from pushtorch.models.library import ModelLibrary, PushModel, load_model
+from pushtorch.models.library import ModelLibrary
+from pushtorch.models.model import PushModel, load_model
 from pushtorch.models.motion import local_motions
 from pushtorch.objects import ObjectModel, load_object
 from pushtorch.objects.shapes import held_out_shapes, training_shapes

@@ -341,7 +341,7 @@ def _prior_problems(key: str, node: Any) -> list[str]:
 
 def _structured_problems(app: str, c: Mapping[str, Any]) -> list[str]:
     """Checks of whole sections by the library's constructors, and of names against what exists."""
-    from pushtorch.models.library import ModelSettings
+    from pushtorch.models.settings import ModelSettings
     from pushtorch.sim.settings import SimSettings
 
     problems: list[str] = []

@@ -2,7 +2,7 @@
 
 Paper, Fig. pipeline (prediction) and Fig. prediction_accuracy_methodology: capture the object's
 single-shot cloud, generate the push condition (robot start pose, contact frames, initial-pose estimate)
-and predict the final pose for each action (:func:`pushtorch.prediction.predict`); then simulate
+and predict the final pose for each action (:func:`pushtorch.prediction.forward`); then simulate
 ``truth_samples`` ground-truth pushes per action from the predicted robot start pose, with mass and
 friction drawn from the chosen priors, and measure H_acc. Usage::
 
@@ -36,7 +36,7 @@ from pushtorch.errors import InvalidParameterError
 
 __all__ = ["main", "predict_from_config"]
 
-log = logging.getLogger("pushtorch.predict")
+log = logging.getLogger("pushtorch-predict")
 
 
 def _pose_dict(pose) -> dict[str, list[float]]:
@@ -65,7 +65,8 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
     from pushtorch import se3
     from pushtorch.evaluation.metrics import accuracy
     from pushtorch.experiments.common import as_names, observe, plain, stable_seed
-    from pushtorch.models.library import ModelLibrary, load_model
+    from pushtorch.models.library import ModelLibrary
+    from pushtorch.models.model import load_model
     from pushtorch.objects import load_object
     from pushtorch.prediction import predict
     from pushtorch.sim.priors import prior_from_config
@@ -220,12 +221,12 @@ def _accuracy_dict(acc) -> dict[str, float]:
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="predict")
 def _app(cfg: DictConfig) -> dict[str, Any]:
-    return run_stage("pushtorch.predict", cfg, predict_from_config)
+    return run_stage("pushtorch-predict", cfg, predict_from_config)
 
 
 def main() -> None:
     """Entry point of ``python -m pushtorch.predict`` (a user error exits with status 2 and one line)."""
-    compose_or_exit("pushtorch.predict", "predict")
+    compose_or_exit("pushtorch-predict", "predict")
     _app()
 
 

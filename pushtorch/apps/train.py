@@ -32,7 +32,7 @@ from pushtorch.errors import InvalidParameterError
 
 __all__ = ["main", "train_from_config"]
 
-log = logging.getLogger("pushtorch.train")
+log = logging.getLogger("pushtorch-train")
 
 
 def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) -> dict[str, Any]:
@@ -57,7 +57,8 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
     import torch
 
     from pushtorch.experiments.common import as_names, plain
-    from pushtorch.models.library import ModelSettings, train_push_model
+    from pushtorch.models.settings import ModelSettings
+    from pushtorch.models.training import train_push_model
     from pushtorch.objects import load_object
     from pushtorch.sim.records import PushRecords, load_records
     from pushtorch.sim.run_manifest import run_status
@@ -138,12 +139,12 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="train")
 def _app(cfg: DictConfig) -> dict[str, Any]:
-    return run_stage("pushtorch.train", cfg, train_from_config)
+    return run_stage("pushtorch-train", cfg, train_from_config)
 
 
 def main() -> None:
     """Entry point of ``python -m pushtorch.train`` (a user error exits with status 2 and one line)."""
-    compose_or_exit("pushtorch.train", "train")
+    compose_or_exit("pushtorch-train", "train")
     _app()
 
 

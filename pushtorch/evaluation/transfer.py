@@ -6,7 +6,7 @@ training pushes whose contact resembles its own. When no training contact is clo
 weigh in move as *their* objects moved, and a density as narrow as the training spread is confidently wrong.
 The prediction therefore scales its motion kernels by ``sqrt(s0² + κ·d²)``, ``d`` the manipulator contact's
 distance to the nearest training contact in contact-kernel stds
-(:func:`pushtorch.prediction.predict.transfer_bandwidth`).
+(:func:`pushtorch.prediction.forward.transfer_bandwidth`).
 
 ``s0`` (which may also narrow a pool whose within-pool bandwidths are wider than transfer needs) and ``κ`` are
 chosen here, never on a test object: each training shape in turn is held out, the other
@@ -60,8 +60,7 @@ def choose_widening(model: PushModel, objects: list[ObjectModel], records: list,
     """
     from pushtorch.features import compute_surface_features
     from pushtorch.perception import capture_partial_cloud
-    from pushtorch.prediction import predict
-    from pushtorch.prediction.predict import transfer_distance
+    from pushtorch.prediction import predict, transfer_distance
 
     if len(parts) < 2:
         raise InvalidParameterError("choosing the widening holds one shape out: it needs at least two shapes")

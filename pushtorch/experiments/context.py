@@ -19,7 +19,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from pushtorch.errors import InvalidParameterError, RecordFormatError
-from pushtorch.models.library import ModelSettings, PushModel
+from pushtorch.models.model import PushModel
+from pushtorch.models.settings import ModelSettings
 from pushtorch.objects import ObjectModel, load_object
 from pushtorch.sim.executors import Executor, executor_from_config
 from pushtorch.sim.plan import Placement

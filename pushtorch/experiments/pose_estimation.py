@@ -102,8 +102,8 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
 def _position_model(obj, ctx: ExperimentContext, seed: int):
     """The object's position model, built as a push model's is (``train_push_model``): from a uniform
     subset of ``position_frames`` features of its full training cloud."""
-    from pushtorch.models.library import training_features
     from pushtorch.models.position import fit_position_model
+    from pushtorch.models.training import training_features
 
     training_pose, features = training_features(obj, ctx.settings)
     generator = torch.Generator().manual_seed(seed)

@@ -29,7 +29,9 @@ from pushtorch.experiments.context import (
 )
 from pushtorch.experiments.training import engine_tag, placement_tag
 from pushtorch.features import SurfaceFeatures, compute_surface_features
-from pushtorch.models.library import ModelLibrary, ModelSettings, PushModel
+from pushtorch.models.library import ModelLibrary
+from pushtorch.models.model import PushModel
+from pushtorch.models.settings import ModelSettings
 from pushtorch.objects import ObjectModel
 from pushtorch.paths import contained_path
 from pushtorch.perception import PointCloud

@@ -13,7 +13,8 @@ import torch
 
 from pushtorch.errors import RecordFormatError
 from pushtorch.experiments.context import ExperimentContext, stable_seed
-from pushtorch.models.library import PushModel, load_model, train_push_model
+from pushtorch.models.model import PushModel, load_model
+from pushtorch.models.training import train_push_model
 from pushtorch.objects import ObjectModel
 from pushtorch.paths import contained_path
 from pushtorch.sim.plan import Placement

@@ -26,7 +26,7 @@ class Evaluation(StrEnum):
     FAST = "fast"
 
     @classmethod
-    def of(cls, method: str) -> Evaluation:
+    def of(cls, method: Evaluation | str) -> Evaluation:
         """``method`` (an :class:`Evaluation` or its string) as an :class:`Evaluation`.
 
         Raises:

@@ -13,7 +13,7 @@ no closer than :data:`CELL_WIDTH` (one centre where the range is narrower); a ke
 Gaussian membership of one grid spacing, normalised over the cells: ``b_jg``.
 
 *The likelihood of one observation* (:func:`cell_log_likelihood`, evaluated by
-:func:`pushtorch.prediction.evidence.observation_evidence`): the observed push's contacts are placed as a
+:func:`pushtorch.models.evidence.observation_evidence`): the observed push's contacts are placed as a
 prediction places them at its robot start, and each expert ``e`` of the product (the manipulator frame and the
 environment frames) weighs kernel ``j`` by its contact weight ``w_ej = K^c(c_e | c_j)``. The observed outcome
 ``y`` (the observed world motion applied at the observed cloud's centroid) has, in cell ``g``, the likelihood

@@ -24,7 +24,10 @@ import trimesh
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.features import SurfaceFeatures
+from pushtorch.kde import Evaluation
 from pushtorch.models.frames import ContactFrames, embed_descriptors
+from pushtorch.models.query import QueryDensity, build_query_density
+from pushtorch.models.settings import ModelSettings
 
 Tensor = torch.Tensor
 
@@ -88,6 +91,17 @@ class ManipulatorContactModel:
     frames: ContactFrames
     cutoff: float
     drop_off: float
+
+    def robot_query(self, features: SurfaceFeatures, settings: ModelSettings, generator: torch.Generator | None,
+                    method: Evaluation) -> QueryDensity:
+        """This model's part of a push condition (paper, Query Density): the query density of the robot's start
+        on a new cloud's features, projected onto the ground plane."""
+        std = torch.full((2,), settings.descriptor_std)
+        return build_query_density(
+            self.frames, features, settings.query_kernels, std, settings.query_bandwidth,
+            r_cutoff_std=settings.descriptor_cutoff_std, alpha_t=settings.alpha_t, project_planar=True,
+            generator=generator, method=method,
+        )
 
 
 def fit_manipulator_contact_model(
@@ -261,7 +275,7 @@ def place_environment_contacts(
     v = se3.Pose.unchecked(features.p[pick], features.q[pick])  # (count, samples)
     u = floor_relations(v)
     r = embed_descriptors(features.r[pick])
-    log_p = density.log_prob(u, r, method="fast")  # (count, samples)
+    log_p = density.log_prob(u, r, method=Evaluation.FAST)  # (count, samples)
     if not torch.isfinite(log_p).any():  # trial rounds only when no pair survives: one pass otherwise
         density = density.fit_trial_rounds(u.reshape(1, -1), r.reshape(1, -1, 2))
         log_p = density.log_prob(u, r)

@@ -1,10 +1,8 @@
-"""The model library with selection by H_r (paper, §Model Selection), and the models' one entry point.
+"""The model library with selection by H_r (paper, §Model Selection).
 
 A :class:`ModelLibrary` holds several trained models (one per training object and prior) and selects, for a
-new cloud, the one whose manipulator contact model has the lowest feature-distance heuristic ``H_r``. This
-module also gathers the names of :mod:`~pushtorch.models.settings`, :mod:`~pushtorch.models.model` (a trained
-:class:`PushModel` and its file format) and :mod:`~pushtorch.models.training`, as it did before they were
-modules of their own.
+new cloud, the one whose manipulator contact model has the lowest feature-distance heuristic ``H_r``; a
+:class:`ConditionedLibrary` selects by the models' posterior once observed pushes were accepted.
 """
 
 from __future__ import annotations
@@ -13,36 +11,14 @@ import torch
 
 from pushtorch.errors import InvalidParameterError
 from pushtorch.features import SurfaceFeatures
-from pushtorch.models.model import (  # noqa: F401  (re-exported: the models' one entry point)
-    FORMAT,
-    VERSION,
-    PushModel,
-    load_model,
-)
-from pushtorch.models.settings import (  # noqa: F401  (re-exported: the models' one entry point)
-    DEFAULT_SEED,
-    ModelSettings,
-    as_generator,
-    check_action,
-)
-from pushtorch.models.training import (  # noqa: F401  (re-exported: the models' one entry point)
-    train_push_model,
-    training_features,
-)
+from pushtorch.models.conditioning import kernel_physics, summarise
+from pushtorch.models.model import PushModel
+from pushtorch.models.query import feature_distance_heuristic, heuristic_descriptors
+from pushtorch.models.settings import as_generator
 
 __all__ = [
     "ConditionedLibrary",
-    "DEFAULT_SEED",
-    "FORMAT",
     "ModelLibrary",
-    "ModelSettings",
-    "PushModel",
-    "VERSION",
-    "as_generator",
-    "check_action",
-    "load_model",
-    "train_push_model",
-    "training_features",
 ]
 
 
@@ -59,8 +35,6 @@ class ModelLibrary:
 
     def feature_distances(self, features: SurfaceFeatures) -> torch.Tensor:
         """``H_r`` of every model's manipulator contact model on the cloud's features, ``(L,)``."""
-        from pushtorch.models.query import feature_distance_heuristic, heuristic_descriptors
-
         r = heuristic_descriptors(features)
         return torch.stack([feature_distance_heuristic(r, m.contact.frames.r) for m in self.models])
 
@@ -72,9 +46,7 @@ class ModelLibrary:
     def condition_on(self, observations, seed: int | None = None) -> ConditionedLibrary:
         """Every model conditioned on the observed pushes (:meth:`PushModel.condition_on`), and the library's
         posterior over its models by their evidence (:class:`ConditionedLibrary`)."""
-        from pushtorch.prediction.evidence import condition_library  # the evidence needs a push condition
-
-        return condition_library(self, observations, seed)
+        return ConditionedLibrary([m.condition_on(observations, seed) for m in self.models])
 
 
 class ConditionedLibrary(ModelLibrary):
@@ -107,8 +79,6 @@ class ConditionedLibrary(ModelLibrary):
     def posterior(self, n: int = 256, generator: torch.Generator | int | None = None):
         """The mixture of the models' posteriors by the models' posterior weights
         (:class:`~pushtorch.models.conditioning.PosteriorSummary` with ``model_weights``)."""
-        from pushtorch.models.conditioning import kernel_physics, summarise
-
         thetas, weights = [], []
         log_post = self.model_log_posterior()
         for m, log_pm in zip(self.models, log_post, strict=True):

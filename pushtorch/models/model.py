@@ -34,10 +34,11 @@ from pushtorch.models.conditioning import (
     summarise,
 )
 from pushtorch.models.contact import ManipulatorContactModel
+from pushtorch.models.evidence import condition_model
 from pushtorch.models.frames import ContactFrames
 from pushtorch.models.motion import MotionKernels, MotionModel
 from pushtorch.models.position import PositionModel
-from pushtorch.models.settings import ModelSettings, check_action
+from pushtorch.models.settings import ModelSettings, as_generator, check_action
 
 __all__ = [
     "FORMAT",
@@ -126,15 +127,11 @@ class PushModel:
                 condition cannot be built (its robot start does not touch the cloud).
             InvalidParameterError: an observation of an action the model was not trained for, or a malformed one.
         """
-        from pushtorch.prediction.evidence import condition_model  # the evidence needs a push condition
-
         return condition_model(self, observations, seed, prior)
 
     def posterior(self, n: int = 256, generator: torch.Generator | int | None = None) -> PosteriorSummary:
         """The posterior over ``(μ, m)`` this model holds (the kernels' own spread before any observation):
         ``n`` draws, the mean and spread of ``μ`` and of ``log m`` (:class:`PosteriorSummary`)."""
-        from pushtorch.models.settings import as_generator
-
         kernels = self.motion_kernels
         theta = kernel_physics(kernels)
         post = self.physics_posterior or new_posterior(kernels)

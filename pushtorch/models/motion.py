@@ -7,8 +7,8 @@ with ``w_Z w_CD w_AG``. Contact frames are rigidly attached to the object, so ea
 follows from the object's motion alone: ``m = w0⁻¹ ∘ w1 = w0⁻¹ ∘ W ∘ w0`` with ``W = B1 ∘ B0⁻¹``.
 A kernel stores ``(r, u, m, g)``.
 
-Prediction (:class:`MotionDensity`). For each contact frame ``c_e = (v_e, r_e, u_e)`` placed on the new
-object and the estimated object pose ``B0'`` (``h_e = w_e⁻¹ ∘ B0'``), the training kernel ``j`` of the
+Prediction (:class:`~pushtorch.models.experts.MotionDensity`). For each contact frame ``c_e = (v_e, r_e, u_e)``
+placed on the new object and the estimated object pose ``B0'`` (``h_e = w_e⁻¹ ∘ B0'``), the training kernel ``j`` of the
 same kind becomes a kernel over the object's final pose ``w_e ∘ m_j ∘ h_e`` ("shifted by h into the
 same motion space") with weight ``K^c(c_e | c_j) / P(c_e)`` (Eq. pdf_motion, the contact-frame kernel
 compares ``r`` and ``u``, Eq. contact_frame_probability). The experts' product (Eq. poe) with
@@ -40,9 +40,8 @@ Decisions of issue 17 (docs/method.md): every kernel also carries its push's con
 the experts weigh the training pushes whose object sat where this one sits; and ``w^P`` weighs the experts
 as exponents (:func:`expert_exponents`) rather than as a constant added to the log product.
 
-Fast path: :func:`anneal_motion_densities` anneals the products of experts of many push conditions in
-one batch; each kind's kernels, shared by all of its experts, are evaluated once per query
-(:class:`pushtorch.kde.SharedKernelProduct`), and the candidates are polished by mean shift.
+The product of experts these kernels make for a new push condition, and its annealing, are in
+:mod:`pushtorch.models.experts`.
 """
 
 from __future__ import annotations
@@ -54,26 +53,25 @@ import torch
 import trimesh
 
 from pushtorch import se3
-from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal, polish_candidates
 from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.features import SurfaceFeatures
-from pushtorch.kde import KernelBandwidth, PoseKDE, ProductOfExperts, SharedKernelProduct
+from pushtorch.kde import KernelBandwidth, PoseKDE
 from pushtorch.models.contact import (
     bumper_contact_patch,
     bumper_contacts,
     floor_relations,
+    place_environment_contacts,
     sample_environment_contacts,
 )
 from pushtorch.models.frames import ContactFrames, embed_descriptors
+from pushtorch.models.settings import ModelSettings
 
 Tensor = torch.Tensor
 
 __all__ = [
     "CONTACT_DESCRIPTOR_DIM",
-    "MotionDensity",
     "MotionKernels",
     "MotionModel",
-    "anneal_motion_densities",
     "contact_distances",
     "contact_log_weights",
     "expert_exponents",
@@ -176,6 +174,19 @@ class MotionModel:
     manipulator: MotionKernels
     environment: MotionKernels
     mean_motion: se3.Pose
+
+    def environment_frames(self, features: SurfaceFeatures, settings: ModelSettings,
+                           generator: torch.Generator | None) -> ContactFrames:
+        """This model's part of a push condition (paper, Environment Contact Model, prediction time): the
+        environment contacts placed on a new cloud's features by (at most ``environment_kernels`` of) this
+        action's environment kernels (:func:`~pushtorch.models.contact.place_environment_contacts`)."""
+        kernels = self.environment
+        if len(kernels) > settings.environment_kernels:
+            kernels = kernels.take(torch.randperm(len(kernels), generator=generator)[:settings.environment_kernels])
+        return place_environment_contacts(
+            features, kernels.r, kernels.u, settings.environment_contact_bandwidth,
+            settings.environment_contacts, settings.environment_samples, generator,
+        )
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> MotionModel:
         """The model on ``device`` and in ``dtype``."""
@@ -371,290 +382,3 @@ def nearest_in_contact(frames: ContactFrames, kernels: MotionKernels, robot_star
     d2 = contact_distances(frames, kernels, robot_start, contact_bandwidth, patch).amin(0)
     return kernels.take(torch.topk(d2, count, largest=False).indices.sort().values)
 
-
-def _block_diagonal(blocks: list[Tensor], fill: float) -> Tensor:
-    """Matrices placed along the diagonal of one matrix, ``fill`` elsewhere."""
-    rows, cols = sum(b.shape[0] for b in blocks), sum(b.shape[1] for b in blocks)
-    out = torch.full((rows, cols), fill, dtype=blocks[0].dtype, device=blocks[0].device)
-    r = c = 0
-    for b in blocks:
-        out[r : r + b.shape[0], c : c + b.shape[1]] = b
-        r, c = r + b.shape[0], c + b.shape[1]
-    return out
-
-
-@dataclass
-class MotionPrediction:
-    """Result of :meth:`MotionDensity.predict`: the best final pose and the annealed candidates."""
-
-    final_pose: se3.Pose  # ()
-    log_prob: Tensor  # ()
-    anneal: AnnealResult
-
-
-class MotionDensity:
-    """The density ``P(B1 | a)`` over the object's final pose (Eq. poe), built for one push condition.
-
-    Args:
-        model: the action's motion kernels.
-        manipulator_frame: the manipulator contact frame ``c^m`` on the new object (one frame, world).
-        environment_frames: environment contact frames ``(E,)`` on the new object (world).
-        object_pose: the estimated initial object pose ``B0'``.
-        robot_start: the robot's start pose for this push.
-        contact_patch: ``(3,)`` where and how the object sits on the bumper at ``robot_start``
-            (:func:`~pushtorch.models.contact.bumper_contact_patch` of the observed cloud).
-        contact_bandwidth: bandwidth of the contact-frame kernel ``K^c`` over ``(u, r, g, patch)``: ``r``
-            compared after :func:`~pushtorch.models.frames.embed_descriptors` (2 stds), ``g``, the frame's
-            position in the robot's start frame (3 stds, m), and the contact patch (2 stds, m, and 1, rad) — see the
-            module docstring.
-        motion_bandwidth: bandwidth of the motion kernels over the final pose.
-        drop_cut_kernels: leave out the kernels whose contact weight ``K^c`` is zero (cut off) before
-            anything is evaluated (default; the fast path). False keeps every kernel, with weight 0: the
-            same density, evaluated the straightforward way (the dense reference, ``method="dense"``).
-        pool_sharpness: ``Σ_e γ_e`` of the experts' exponents (:func:`expert_exponents`).
-    """
-
-    def __init__(
-        self,
-        model: MotionModel,
-        manipulator_frame: ContactFrames,
-        environment_frames: ContactFrames,
-        object_pose: se3.Pose,
-        robot_start: se3.Pose,
-        contact_patch: Tensor,
-        contact_bandwidth: KernelBandwidth,
-        motion_bandwidth: KernelBandwidth,
-        drop_cut_kernels: bool = True,
-        pool_sharpness: float = 1.0,
-    ) -> None:
-        if contact_bandwidth.descriptor_dim != CONTACT_DESCRIPTOR_DIM:
-            raise InvalidParameterError(
-                f"the contact bandwidth needs {CONTACT_DESCRIPTOR_DIM} descriptor stds: 2 for the embedded "
-                "curvatures, 3 (m) for the frame's position in the robot frame and 3 for the contact patch "
-                f"on the bumper; got {contact_bandwidth.descriptor_dim}"
-            )
-        frames = [(manipulator_frame, model.manipulator), (environment_frames, model.environment)]
-        # Motions are expressed in the robot's start frame (motion_frames), the same for every contact
-        # frame: each kind's kernels become one set of final poses R0 ∘ m_j ∘ R0⁻¹ ∘ B0' that all of its
-        # experts share; the experts differ only in their contact weights K^c.
-        to_final = se3.relative(robot_start, object_pose)
-        experts, shared_means, shared_weights = [], [], []
-        for frame, kernels in frames:
-            n_frames = frame.r.reshape(-1, 2).shape[0]
-            log_w = contact_log_weights(frame, kernels, robot_start, contact_bandwidth, contact_patch)  # (F, N)
-            if kernels.log_weight is not None:  # a conditioned model: the posterior's weight of each kernel
-                log_w = log_w + kernels.log_weight.to(log_w)
-            finals = se3.compose(se3.compose(robot_start, kernels.m), to_final)  # (N,)
-            # kernels the contact kernel cut off carry no weight
-            keep = torch.isfinite(log_w) | (not drop_cut_kernels)  # (F, N)
-            for i in range(n_frames):  # a handful of experts (1 + E), not kernels
-                experts.append(PoseKDE(finals.take(keep[i]), motion_bandwidth, log_w[i, keep[i]]))
-            used = keep.any(0)
-            shared_means.append(finals.take(used))
-            shared_weights.append(torch.where(keep, log_w, -math.inf)[:, used])
-        self.experts = PoseKDE.stack(experts)
-        self._shared_means = se3.Pose.unchecked(torch.cat([m.p for m in shared_means]),
-                                                torch.cat([m.q for m in shared_means]))
-        self._shared_log_weights = _block_diagonal(shared_weights, -math.inf)  # (1 + E, K)
-        self._shared_product: SharedKernelProduct | None = None
-        self.expert_exponent = expert_exponents(len(model.manipulator), len(model.environment), len(experts) - 1,
-                                                pool_sharpness, object_pose.p.dtype)
-        self.object_pose = object_pose
-
-    @property
-    def num_experts(self) -> int:
-        return int(self.experts.batch_shape[0])
-
-    def shared_kernels(self) -> tuple[se3.Pose, Tensor]:
-        """The experts' kernels laid out for the fast path: final poses ``(K,)`` shared by the experts of
-        one contact kind and each expert's log weights ``(1 + E, K)`` (``-inf``: not in that expert)."""
-        return self._shared_means, self._shared_log_weights
-
-    def shared_product(self) -> SharedKernelProduct:
-        """The product of experts as a :class:`~pushtorch.kde.SharedKernelProduct` (the fast path): each
-        kind's kernels evaluated once for all of its experts."""
-        if self._shared_product is None:
-            rounds = self.experts.trial_rounds
-            if not bool((rounds == rounds[0]).all()):
-                raise ModelError("the experts of one product must share their trial rounds")
-            self._shared_product = SharedKernelProduct(self._shared_means, self._shared_log_weights,
-                                                       self.experts.bandwidth, rounds[0],
-                                                       expert_exponent=self.expert_exponent)
-        return self._shared_product
-
-    def log_prob(self, final_pose: se3.Pose, method: str = "dense") -> Tensor:
-        """``log P(B1 | a)`` up to the constant of the unnormalised kernels, for poses ``(..., M)``.
-
-        ``method``: ``"dense"`` (reference) or ``"fast"`` (:meth:`shared_product`: each contact kind's
-        kernels evaluated once for all of its experts, fused; same values up to float rounding).
-
-        Raises:
-            InvalidPoseError: (both methods alike) misshaped, non-finite or non-unit poses.
-            InvalidParameterError: an unknown method.
-        """
-        if method not in ("dense", "fast"):
-            raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
-        se3.check_pose(final_pose, "final pose")
-        if method == "fast":
-            flat = se3.Pose.unchecked(final_pose.p.reshape(-1, 3), final_pose.q.reshape(-1, 4))
-            return self.shared_product().log_prob(flat).reshape(final_pose.p.shape[:-1])
-        return ProductOfExperts(self.experts, expert_exponent=self.expert_exponent).log_prob(final_pose,
-                                                                                             method=method)
-
-    def proposal(self, n: int, generator: torch.Generator | None = None) -> se3.Pose:
-        """``n`` poses drawn from the experts' mixture (equal shares): annealing's starting candidates."""
-        samples, _ = self.experts.sample(max(1, math.ceil(n / self.num_experts)), generator)  # (E, k)
-        flat = samples.reshape(-1)
-        return flat.take(torch.randperm(flat.p.shape[0], generator=generator)[:n])
-
-    def widen_until_supported(
-        self, candidates: se3.Pose, max_rounds: int = 10, method: str = "dense"
-    ) -> se3.Pose:
-        """Trial rounds for the product: widen every expert until some candidate has non-zero density."""
-        for _ in range(max_rounds + 1):
-            if torch.isfinite(self.log_prob(candidates, method)).any():
-                return candidates
-            rounds = self.experts.trial_rounds.clone()
-            rounds[..., :2] += 1  # translation and rotation of the motion kernels (no descriptors here)
-            self.experts = self.experts.with_trial_rounds(rounds)
-            self._shared_product = None
-        raise ModelError(
-            f"the {self.num_experts} experts share no final pose even after {max_rounds} trial rounds: "
-            "the contact frames' predictions contradict each other"
-        )
-
-    def mean_shift(self, final_pose: se3.Pose) -> se3.Pose:
-        """One mean-shift step of poses ``(..., M)`` towards a local mode of the product
-        (:meth:`pushtorch.kde.SharedKernelProduct.mean_shift`)."""
-        flat = se3.Pose.unchecked(final_pose.p.reshape(-1, 3), final_pose.q.reshape(-1, 4))
-        moved = self.shared_product().mean_shift(flat)
-        return se3.Pose.unchecked(moved.p.reshape(final_pose.p.shape), moved.q.reshape(final_pose.q.shape))
-
-    def predict(
-        self,
-        n_candidates: int,
-        schedule: AnnealSchedule,
-        generator: torch.Generator | None = None,
-        record_history: bool = False,
-        method: str = "dense",
-        polish_steps: int = 0,
-    ) -> MotionPrediction:
-        """Simulated annealing on the product of experts from candidates drawn from the experts.
-
-        ``method``: ``"dense"`` (reference) or ``"fast"`` (pruned, fused product and cheaper proposals;
-        the same law, another random stream). See :func:`anneal_motion_densities` for many at once.
-        ``polish_steps``: mean-shift moves of every candidate afterwards
-        (:func:`pushtorch.anneal.polish_candidates`).
-        """
-        if method == "fast":
-            return anneal_motion_densities([self], n_candidates, schedule, generator, record_history,
-                                           polish_steps)[0]
-        init = self.proposal(n_candidates, generator)
-        init = self.widen_until_supported(init)
-        result = anneal(self.log_prob, init, schedule, generator, record_history=record_history)
-        result = polish_candidates(result, self.mean_shift, self.log_prob, polish_steps)
-        return MotionPrediction(result.best, result.best_log_prob, result)
-
-
-@dataclass
-class StackedProducts:
-    """The products of experts of several conditions, padded to common kernel and expert counts and stacked
-    along a problem dim ``B`` (:func:`stack_products`)."""
-
-    means: se3.Pose  # (B, K) shared kernel means (padding: the identity)
-    log_weights: Tensor  # (E, B, K) each expert's kernel log weights (-inf: not in it, or padding)
-    exponent: Tensor  # (E, B) the experts' exponents (0: a padding expert)
-    trial_rounds: Tensor  # (B, 3)
-    bandwidth: KernelBandwidth
-
-
-def stack_products(densities: list[MotionDensity]) -> StackedProducts:
-    """Every density's :meth:`MotionDensity.shared_kernels`, padded and stacked: padding kernels weigh
-    nothing; a padding expert copies the condition's first expert (so no expert is empty) and counts for
-    nothing (exponent 0).
-
-    Raises:
-        InvalidParameterError: no densities, or densities of different dtype or motion bandwidth.
-    """
-    if not densities:
-        raise InvalidParameterError("stacking products of experts needs at least one density")
-    layouts = [d.shared_kernels() for d in densities]
-    n_experts = max(w.shape[0] for _, w in layouts)
-    n_kernels = max(w.shape[1] for _, w in layouts)
-    first = densities[0].experts
-    dtype, device = first.dtype, first.device
-    p = torch.zeros(len(densities), n_kernels, 3, dtype=dtype, device=device)
-    q = torch.zeros(len(densities), n_kernels, 4, dtype=dtype, device=device)
-    q[..., 0] = 1.0
-    log_w = torch.full((n_experts, len(densities), n_kernels), -math.inf, dtype=dtype, device=device)
-    rounds = torch.zeros(len(densities), 3, dtype=torch.int64, device=device)
-    exponent = torch.zeros(n_experts, len(densities), dtype=dtype, device=device)
-    for b, (density, (means, weights)) in enumerate(zip(densities, layouts, strict=True)):
-        experts = density.experts
-        if experts.bandwidth != first.bandwidth or experts.dtype != dtype:
-            raise InvalidParameterError("products stacked together need one motion bandwidth and dtype")
-        e, n = weights.shape
-        p[b, :n], q[b, :n] = means.p, means.q
-        log_w[:e, b, :n] = weights
-        log_w[e:, b, :n] = weights[0]
-        rounds[b] = density.shared_product().rounds
-        exponent[:e, b] = density.expert_exponent.to(dtype)
-    return StackedProducts(se3.Pose.unchecked(p, q), log_w, exponent, rounds, first.bandwidth)
-
-
-def anneal_motion_densities(
-    densities: list[MotionDensity],
-    n_candidates: int,
-    schedule: AnnealSchedule,
-    generator: torch.Generator | None = None,
-    record_history: bool = False,
-    polish_steps: int = 0,
-) -> list[MotionPrediction]:
-    """Anneal the products of experts of several push conditions in one batch on the fast path, then
-    move every candidate ``polish_steps`` mean-shift steps up (:func:`pushtorch.anneal.polish_candidates`).
-
-    Every condition's :meth:`MotionDensity.shared_kernels` are padded to common kernel and expert
-    counts (padding kernels weigh nothing, padding experts are masked out) and stacked along a problem
-    dim, in order of kernel count, so each annealing step is one fused evaluation per chunk of
-    conditions, each chunk up to its own largest count (:class:`pushtorch.kde.SharedKernelProduct`).
-    Each condition's start candidates and trial rounds are its own (:meth:`MotionDensity.proposal`,
-    :meth:`MotionDensity.widen_until_supported`); a batch of one anneals exactly as
-    :meth:`MotionDensity.predict`'s fast path.
-
-    Returns:
-        One :class:`MotionPrediction` per density, in order.
-
-    Raises:
-        InvalidParameterError: no densities, or densities of different dtype/bandwidth.
-        ModelError: as :meth:`MotionDensity.widen_until_supported`.
-    """
-    if not densities:
-        raise InvalidParameterError("anneal_motion_densities needs at least one density")
-    starts = []
-    for density in densities:
-        init = density.proposal(n_candidates, generator)
-        starts.append(density.widen_until_supported(init, method="fast"))
-    # problems in order of kernel count: the product's chunks of neighbouring problems then evaluate about
-    # their own counts, not the batch's largest (SharedKernelProduct.chunk_layout)
-    order = sorted(range(len(densities)), key=lambda b: densities[b].shared_kernels()[1].shape[1])
-    densities, starts = [densities[b] for b in order], [starts[b] for b in order]
-    stacked = stack_products(densities)
-    # its only queries are the annealing's own (finite, normalised) candidates: no per-step checks
-    product = SharedKernelProduct(stacked.means, stacked.log_weights, stacked.bandwidth, stacked.trial_rounds,
-                                  validate_args=False, expert_exponent=stacked.exponent)
-    init = se3.Pose.unchecked(torch.stack([s.p for s in starts]), torch.stack([s.q for s in starts]))  # (B, C)
-    result = anneal(product, init, schedule, generator, record_history=record_history, method="fast")
-    result = polish_candidates(result, product.mean_shift, product.log_prob, polish_steps)
-    out: list[MotionPrediction | None] = [None] * len(densities)
-    for b, original in enumerate(order):
-        part = AnnealResult(
-            best=se3.Pose.unchecked(result.best.p[b], result.best.q[b]),
-            best_log_prob=result.best_log_prob[b],
-            candidates=se3.Pose.unchecked(result.candidates.p[b], result.candidates.q[b]),
-            log_prob=result.log_prob[b],
-            history=(None if result.history is None
-                     else se3.Pose.unchecked(result.history.p[:, b], result.history.q[:, b])),
-            history_log_prob=None if result.history_log_prob is None else result.history_log_prob[:, b],
-        )
-        out[original] = MotionPrediction(part.best, part.best_log_prob, part)
-    return out  # type: ignore[return-value]

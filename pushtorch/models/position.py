@@ -25,7 +25,10 @@ import torch
 from pushtorch import se3
 from pushtorch.errors import InvalidPointCloudError
 from pushtorch.features import SurfaceFeatures
+from pushtorch.kde import Evaluation
 from pushtorch.models.frames import DESCRIPTOR_SCALE, ContactFrames, embed_descriptors
+from pushtorch.models.query import QueryDensity, build_query_density
+from pushtorch.models.settings import ModelSettings
 
 Tensor = torch.Tensor
 
@@ -59,6 +62,17 @@ class PositionModel:
     # queries, and their capped distance field on a grid
     _search: object | None = field(default=None, repr=False, compare=False)
     _distance_grid: tuple[Tensor, Tensor, Tensor, float] | None = field(default=None, repr=False, compare=False)
+
+    def pose_query(self, features: SurfaceFeatures, settings: ModelSettings, generator: torch.Generator | None,
+                   method: Evaluation) -> QueryDensity:
+        """This model's part of a push condition (paper, Object Position Model): the query density of the
+        object's pose on a new cloud's features."""
+        std = torch.full((2,), settings.descriptor_std)
+        return build_query_density(
+            self.frames, features, settings.query_kernels, std, settings.query_bandwidth,
+            r_cutoff_std=settings.descriptor_cutoff_std, alpha_t=settings.alpha_t, generator=generator,
+            method=method,
+        )
 
     def nearest_search(self):
         """An open3d nearest-neighbour index over the frames' points (object frame), built once."""

@@ -11,8 +11,8 @@ for a manipulator model the kernel nearest the best candidate gives the manipula
 The selection heuristic ``H_r`` (Eq. for H_r with d'_r) is computed at the same time
 (:func:`feature_distance_heuristic`).
 
-Fast path (``method="fast"``): the same draws without the ``(kernels × frames)`` weight matrix (fused
-group sums and a two-level categorical draw), and several densities annealed in one batch
+Fast path (:attr:`~pushtorch.kde.Evaluation.FAST`): the same draws without the ``(kernels × frames)`` weight
+matrix (fused group sums and a two-level categorical draw), and several densities annealed in one batch
 (:func:`optimise_query_densities`) with the pruned, fused :meth:`pushtorch.kde.PoseKDE.log_prob`.
 """
 
@@ -29,6 +29,7 @@ from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal, initial_candi
 from pushtorch.errors import InvalidParameterError, InvalidPointCloudError, ModelError
 from pushtorch.features import SurfaceFeatures
 from pushtorch.kde import (
+    Evaluation,
     KernelBandwidth,
     PoseKDE,
     descriptor_distance,
@@ -94,14 +95,15 @@ def heuristic_descriptors(features: SurfaceFeatures) -> Tensor:
     return features.r[sample.to(features.r.device)]
 
 
-def feature_distance_heuristic(r_features: Tensor, r_frames: Tensor, method: str = "dense") -> Tensor:
+def feature_distance_heuristic(r_features: Tensor, r_frames: Tensor,
+                               method: Evaluation | str = Evaluation.DENSE) -> Tensor:
     """``H_r``: mean over cloud features i and model frames j of ``d'_r(r_i, r_j)^(1/4)``.
 
     The paper sums over the query kernels and the model's frames; the mean orders models the same way
     when they have equal frame counts and stays fair when they do not (docs/method.md). Chunked over i.
-    ``method="fast"`` fuses the per-row sums (float32 rows, float64 total): the same value up to rounding.
+    :attr:`Evaluation.FAST` fuses the per-row sums (float32 rows, float64 total): the same value up to rounding.
     """
-    if method == "fast" and r_features.shape[-1] == 2:
+    if Evaluation.of(method) is Evaluation.FAST and r_features.shape[-1] == 2:
         rows = fused_function("heuristic_rows", _heuristic_row_sums, r_features.device)
         step = max(1, _BLOCK // max(1, r_frames.shape[0]))
         total = sum(rows(r_features[s : s + step], r_frames).double().sum()
@@ -242,7 +244,7 @@ def build_query_density(
     project_planar: bool = False,
     heuristic: bool = False,
     generator: torch.Generator | None = None,
-    method: str = "dense",
+    method: Evaluation | str = Evaluation.DENSE,
 ) -> QueryDensity:
     """Build the query density of a contact/position model on a cloud's features (paper, Query Density).
 
@@ -252,7 +254,7 @@ def build_query_density(
     bandwidth widens by trial rounds (β_r = α_T^(−T_r)) up to ``max_rounds``. With ``heuristic`` the
     selection heuristic ``H_r`` is estimated on :func:`heuristic_descriptors` (it is a mean).
 
-    ``method="fast"`` draws the same law without the ``(kernels × frames)`` weight matrix
+    :attr:`Evaluation.FAST` draws the same law without the ``(kernels × frames)`` weight matrix
     (:func:`_fast_kernel_draws`, fused); it falls back to the dense build when features in reach are
     rare (then trial rounds may be needed). The seed's random stream differs between the two.
 
@@ -263,12 +265,11 @@ def build_query_density(
     if len(features) == 0:
         raise InvalidPointCloudError("the query cloud has no surface features")
     r_std = r_std.to(features.r)
-    if method not in ("dense", "fast"):
-        raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
+    method = Evaluation.of(method)
     e_features = embed_descriptors(features.r, descriptor_scale)
     e_frames = embed_descriptors(frames.r, descriptor_scale)
     draws = None
-    if method == "fast":
+    if method is Evaluation.FAST:
         draws = _fast_kernel_draws(e_features, e_frames, frames.weight, r_std, r_cutoff_std, n_kernels,
                                    generator)
     if draws is not None:
@@ -331,16 +332,16 @@ def optimise_query_density(
     schedule: AnnealSchedule,
     generator: torch.Generator | None = None,
     record_history: bool = False,
-    method: str = "dense",
+    method: Evaluation | str = Evaluation.DENSE,
     polish_steps: int = 0,
 ) -> QueryResult:
     """Simulated annealing on the query density from candidates drawn at the kernel means by weight.
 
-    ``method``: ``"dense"`` (reference) or ``"fast"`` (pruned, fused density and cheaper proposals,
-    see :meth:`pushtorch.kde.PoseKDE.log_prob` and :func:`pushtorch.anneal.anneal`). ``polish_steps``:
+    ``method``: :attr:`Evaluation.DENSE` (reference) or :attr:`Evaluation.FAST` (pruned, fused density and cheaper
+    proposals, see :meth:`pushtorch.kde.PoseKDE.log_prob` and :func:`pushtorch.anneal.anneal`). ``polish_steps``:
     mean-shift moves of every candidate after annealing (:func:`pushtorch.anneal.polish_candidates`).
     """
-    if method == "fast":
+    if Evaluation.of(method) is Evaluation.FAST:
         return optimise_query_densities([density], n_candidates, schedule, [schedule.planar], generator,
                                         record_history, polish_steps)[0]
     init = initial_candidates(density.kde, n_candidates, generator)
@@ -371,7 +372,7 @@ def optimise_query_densities(
     ``polish_steps`` mean-shift moves of every candidate (:func:`pushtorch.anneal.polish_candidates`).
 
     The densities must share bandwidth and dtype; kernel counts may differ (padding). Each result is
-    the one :func:`optimise_query_density` would give with ``method="fast"`` up to the random stream.
+    the one :func:`optimise_query_density` would give with :attr:`Evaluation.FAST` up to the random stream.
 
     Raises:
         InvalidParameterError: ``planar`` does not match ``densities``.
@@ -385,9 +386,10 @@ def optimise_query_densities(
     kde.validate_args = False  # its only queries are the annealing's own (finite, normalised) proposals
     init = initial_candidates(kde, n_candidates, generator)  # (D, C)
     mask = torch.tensor(planar, dtype=torch.bool, device=init.p.device)
-    log_prob = partial(kde.log_prob, method="fast")
-    result = anneal(kde, init, schedule, generator, record_history=record_history, planar=mask, method="fast")
-    result = polish_candidates(result, partial(kde.mean_shift, method="fast"), log_prob, polish_steps)
+    log_prob = partial(kde.log_prob, method=Evaluation.FAST)
+    result = anneal(kde, init, schedule, generator, record_history=record_history, planar=mask,
+                    method=Evaluation.FAST)
+    result = polish_candidates(result, partial(kde.mean_shift, method=Evaluation.FAST), log_prob, polish_steps)
     out = []
     for i, density in enumerate(densities):
         history = None if result.history is None else se3.Pose.unchecked(result.history.p[:, i], result.history.q[:, i])

@@ -1,16 +1,13 @@
 """Prediction: partial cloud + action → robot start pose, contact frames, initial pose, final-pose density.
 
-Paper, Fig. pipeline (prediction) and §Query Density / §Motion Model / §Model Selection:
-
-:mod:`~pushtorch.prediction.conditions` builds push conditions, :mod:`~pushtorch.prediction.clearance`
-keeps their robot starts clear of the observed cloud, :mod:`~pushtorch.prediction.predict` predicts. This
-package is callable as :func:`predict` (``pushtorch.predict(model, cloud, action)`` works in any import
-order, see :class:`~pushtorch.prediction.predict._CallableModule`).
+Paper, Fig. pipeline (prediction) and §Motion Model / §Model Selection: :func:`predict` and
+:func:`predict_many` (:mod:`pushtorch.prediction.forward`) build each cloud's push condition
+(:mod:`pushtorch.models.push_condition`, its start cleared of the cloud by :mod:`pushtorch.models.clearance`)
+and anneal the action's product of experts over the object's final pose. The names a user needs around a
+prediction are gathered here.
 """
 
-import sys
-
-from pushtorch.prediction.clearance import (
+from pushtorch.models.clearance import (
     GIVEN_START_OVERLAP,
     MAX_BACKOFF,
     OCCLUDED_DEPTH,
@@ -19,7 +16,7 @@ from pushtorch.prediction.clearance import (
     clear_robot_start,
     clearance_points,
 )
-from pushtorch.prediction.conditions import (
+from pushtorch.models.push_condition import (
     PushCondition,
     contact_bandwidth,
     estimate_pose,
@@ -28,12 +25,7 @@ from pushtorch.prediction.conditions import (
     motion_bandwidth,
     query_bandwidth,
 )
-from pushtorch.prediction.predict import (
-    Prediction,
-    _CallableModule,
-    predict,
-    predict_many,
-)
+from pushtorch.prediction.forward import Prediction, predict, predict_many, transfer_bandwidth, transfer_distance
 
 __all__ = [
     "GIVEN_START_OVERLAP",
@@ -53,6 +45,6 @@ __all__ = [
     "predict",
     "predict_many",
     "query_bandwidth",
+    "transfer_bandwidth",
+    "transfer_distance",
 ]
-
-sys.modules[__name__].__class__ = _CallableModule

@@ -3,22 +3,22 @@ the action's product of experts over the object's final pose, optimised by simul
 
 With a :class:`~pushtorch.models.library.ModelLibrary`, the model is chosen first by the lowest ``H_r``.
 
-Two implementations of the same method: ``method="fast"`` (default) evaluates the densities only where
-the kernels' hard cut-offs let them reach, in fused (compiled when possible) passes, anneals the robot's
-and the object's query densities in one batch and, in :func:`predict_many`, many conditions at once;
-it anneals for ``ModelSettings.fast_anneal_fraction`` of the steps and then moves every candidate to
-its local mode by mean shift (``polish_steps``, :func:`pushtorch.anneal.polish_candidates`).
-``method="dense"`` is the reference implementation of the paper (every query against every kernel — the
-motion kernels whose contact weight is zero included — one density at a time, the full annealing
-schedule). Both optimise the same densities; their random streams differ; ``tools/bench_predict.py``
-checks that their accuracy agrees.
+Two implementations of the same method (:class:`~pushtorch.kde.Evaluation`): :attr:`Evaluation.FAST`
+(default) evaluates the densities only where the kernels' hard cut-offs let them reach, in fused (compiled
+when possible) passes, anneals the robot's and the object's query densities in one batch and, in
+:func:`predict_many`, many conditions at once; it anneals for ``ModelSettings.fast_anneal_fraction`` of the
+steps and then moves every candidate to its local mode by mean shift (``polish_steps``,
+:func:`pushtorch.anneal.polish_candidates`). :attr:`Evaluation.DENSE` is the reference implementation of the
+paper (every query against every kernel — the motion kernels whose contact weight is zero included — one
+density at a time, the full annealing schedule). Both optimise the same densities; their random streams
+differ; ``tools/bench_predict.py`` checks that their accuracy agrees. The push conditions are built by
+:mod:`pushtorch.models.push_condition`.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import types
 from dataclasses import dataclass, field, replace
 
 import torch
@@ -28,19 +28,21 @@ from pushtorch.anneal import AnnealResult
 from pushtorch.distribution import FinalPoseDistribution
 from pushtorch.errors import InvalidParameterError
 from pushtorch.features import SurfaceFeatures
-from pushtorch.kde import KernelBandwidth
-from pushtorch.models.library import ModelLibrary, PushModel, as_generator, check_action
-from pushtorch.models.motion import MotionDensity, anneal_motion_densities, contact_distances, nearest_in_contact
-from pushtorch.perception import PointCloud
-from pushtorch.prediction.clearance import _check_start
-from pushtorch.prediction.conditions import (
+from pushtorch.kde import Evaluation, KernelBandwidth
+from pushtorch.models.clearance import check_start
+from pushtorch.models.experts import MotionDensity, MotionPrediction, anneal_motion_densities
+from pushtorch.models.library import ModelLibrary
+from pushtorch.models.model import PushModel
+from pushtorch.models.motion import contact_distances, nearest_in_contact
+from pushtorch.models.push_condition import (
     PushCondition,
-    _as_features,
-    _check_method,
-    _push_conditions_fast,
-    _schedule,
+    anneal_schedule,
+    features_for,
     generate_push_condition,
+    push_conditions,
 )
+from pushtorch.models.settings import as_generator, check_action
+from pushtorch.perception import PointCloud
 
 __all__ = [
     "Prediction",
@@ -103,7 +105,7 @@ def predict(
     action,
     generator: torch.Generator | None = None,
     record_history: bool = False,
-    method: str = "fast",
+    method: Evaluation | str = Evaluation.FAST,
     robot_start: se3.Pose | None = None,
 ) -> Prediction:
     """Predict where the object in ``cloud`` ends up after ``action`` (paper, Motion Model, Eq. poe).
@@ -114,12 +116,12 @@ def predict(
         action: ``(2,)`` (ẋ m/s, θ̇ rad/s), one of the model's actions.
         generator: seeded generator (or an int seed): the same seed (and method) gives the same prediction.
         record_history: keep every annealing step (for Rerun).
-        method: ``"fast"`` (default): densities evaluated only where the hard cut-offs let kernels
-            reach, fused (compiled when a compiler is available, :func:`pushtorch.kde.fast_path_compiled`),
-            query densities annealed together, cheaper exact proposal draws, a shorter annealing
-            polished by mean shift (module docstring); ``"dense"``: the reference implementation, the
-            paper's full schedule. Both optimise the same densities; their random streams differ, so
-            single predictions differ as two seeds do.
+        method: :attr:`Evaluation.FAST` or ``"fast"`` (default): densities evaluated only where the hard
+            cut-offs let kernels reach, fused (compiled when a compiler is available,
+            :func:`pushtorch.kde.fast_path_compiled`), query densities annealed together, cheaper exact proposal
+            draws, a shorter annealing polished by mean shift (module docstring); :attr:`Evaluation.DENSE` or
+            ``"dense"``: the reference implementation, the paper's full schedule. Both optimise the same
+            densities; their random streams differ, so single predictions differ as two seeds do.
         robot_start: the robot's start pose (one pose, world), when the caller places the robot instead of
             the manipulator contact model; the bumper must touch the observed cloud there. Default None:
             the model chooses (the paper's push condition generation).
@@ -142,8 +144,7 @@ def predict(
                         method=method, robot_starts=None if robot_start is None else [robot_start])[0]
 
 
-def _motion_density(model: PushModel, condition: PushCondition, a: int, generator: torch.Generator | None,
-                    method: str) -> MotionDensity:
+def _motion_density(model: PushModel, condition: PushCondition, a: int, method: Evaluation) -> MotionDensity:
     """The action's product of experts; the dense reference keeps every motion kernel of the budget (those the
     contact weight cuts off weigh zero), the fast path drops them before anything is evaluated. Over the
     budget (``manipulator_kernels``, ``environment_kernels``) the kernels nearest in contact are kept
@@ -168,7 +169,7 @@ def _motion_density(model: PushModel, condition: PushCondition, a: int, generato
         condition.contact_patch,
         settings.contact_bandwidth,
         transfer_bandwidth(model, condition, a),
-        drop_cut_kernels=method == "fast",
+        drop_cut_kernels=method is Evaluation.FAST,
         pool_sharpness=settings.pool_sharpness,
     )
 
@@ -202,7 +203,7 @@ def predict_many(
     seed: int = 0,
     generator: torch.Generator | None = None,
     record_history: bool = False,
-    method: str = "fast",
+    method: Evaluation | str = Evaluation.FAST,
     batch_size: int = 1,
     robot_starts: list[se3.Pose | None] | None = None,
 ) -> list[Prediction]:
@@ -210,7 +211,7 @@ def predict_many(
 
     With ``generator`` None, batch ``k`` (conditions ``k·batch_size …``) draws from its own generator
     seeded ``seed + k·batch_size``, so ``batch_size=1`` gives each condition ``i`` exactly
-    ``predict(..., generator=torch.Generator().manual_seed(seed + i))``. With ``method="fast"`` and
+    ``predict(..., generator=torch.Generator().manual_seed(seed + i))``. On the fast path with
     ``batch_size > 1`` the conditions of a batch are annealed together (one density call per step for
     all of them: the robot and pose query densities, then the products of experts), which amortises
     the per-step overhead; the memory of a batch grows linearly with its size (at the paper's sizes,
@@ -231,7 +232,7 @@ def predict_many(
     Every condition's robot start is cleared of its cloud as in :func:`predict`. An empty list of clouds
     gives an empty list of predictions.
     """
-    _check_method(method)
+    method = Evaluation.of(method)
     if isinstance(batch_size, bool) or not isinstance(batch_size, int | float) or int(batch_size) != batch_size \
             or batch_size < 1:
         raise InvalidParameterError(f"batch_size must be an integer >= 1, got {batch_size!r}")
@@ -250,8 +251,8 @@ def predict_many(
         raise InvalidParameterError(
             f"robot_starts must be a list with one pose (or None) per cloud, {len(clouds)} in all")
     else:  # refused before any annealing is spent on the batch
-        robot_starts = [None if start is None else _check_start(start) for start in robot_starts]
-    step = int(batch_size) if method == "fast" else 1
+        robot_starts = [None if start is None else check_start(start) for start in robot_starts]
+    step = int(batch_size) if method is Evaluation.FAST else 1
     out: list[Prediction] = []
     for start in range(0, len(clouds), step):
         g = generator if generator is not None else torch.Generator().manual_seed(seed + start)
@@ -266,57 +267,60 @@ def _predict_batch(
     actions: torch.Tensor,
     generator: torch.Generator | None,
     record_history: bool,
-    method: str,
+    method: Evaluation,
     starts: list[se3.Pose | None],
 ) -> list[Prediction]:
     """One batch of :func:`predict_many`: a library selects per cloud, then each model's share runs
-    together."""
+    together (:func:`_predict_fast`, or :func:`_predict_dense` one by one)."""
     first = model.models[0] if isinstance(model, ModelLibrary) else model
-    features = [_as_features(c, first.settings, first) for c in clouds]
+    features = [features_for(c, first.settings, first.position) for c in clouds]
     chosen = [model.select(f)[0] if isinstance(model, ModelLibrary) else model for f in features]
     out: list[Prediction | None] = [None] * len(clouds)
     distinct = [m for i, m in enumerate(chosen) if all(m is not c for c in chosen[:i])]  # first-use order
+    share = _predict_fast if method is Evaluation.FAST else _predict_dense
     for m in distinct:
         rows = [i for i, c in enumerate(chosen) if c is m]
         a_idx = [m.action_index(actions[i]) for i in rows]
-        settings = m.settings
-        schedule = _schedule(settings, False, method)
-        if method == "fast":
-            shares = [features[i] for i in rows]
-            conditions = _push_conditions_fast(m, shares, a_idx, generator, record_history,
-                                               [starts[i] for i in rows])
-            densities = [_motion_density(m, c, a, generator, method)
-                         for c, a in zip(conditions, a_idx, strict=True)]
-            results = anneal_motion_densities(densities, settings.anneal_candidates, schedule, generator,
-                                              record_history, settings.polish_steps)
-        else:
-            conditions, densities, results = [], [], []
-            for i, a in zip(rows, a_idx, strict=True):
-                condition = generate_push_condition(m, features[i], a, generator, record_history, method,
-                                                    starts[i])
-                density = _motion_density(m, condition, a, generator, method)
-                conditions.append(condition)
-                densities.append(density)
-                results.append(
-                    density.predict(settings.anneal_candidates, schedule, generator, record_history)
-                )
-        for i, a, condition, density, result in zip(rows, a_idx, conditions, densities, results, strict=True):
-            distribution = FinalPoseDistribution.from_motion_densities(
-                density, result.final_pose, [result.anneal.candidates], method)
-            out[i] = Prediction(m.name, m.motions[a].action, condition, result.final_pose, result.log_prob,
-                                distribution, result.anneal.candidates, result.anneal.log_prob, result.anneal,
-                                density)
+        predictions = share(m, [features[i] for i in rows], a_idx, generator, record_history, [starts[i] for i in rows])
+        for i, prediction in zip(rows, predictions, strict=True):
+            out[i] = prediction
     return out  # type: ignore[return-value]
 
 
-class _CallableModule(types.ModuleType):
-    """This module, callable as :func:`predict`.
+def _predict_fast(model: PushModel, features: list[SurfaceFeatures], a_idx: list[int],
+                  generator: torch.Generator | None, record_history: bool,
+                  starts: list[se3.Pose | None]) -> list[Prediction]:
+    """One model's share of a batch on the fast path: push conditions, then products of experts, each
+    annealed together."""
+    settings = model.settings
+    conditions = push_conditions(model, features, a_idx, generator, record_history, starts)
+    densities = [_motion_density(model, c, a, Evaluation.FAST) for c, a in zip(conditions, a_idx, strict=True)]
+    results = anneal_motion_densities(densities, settings.anneal_candidates,
+                                      anneal_schedule(settings, False, Evaluation.FAST), generator, record_history,
+                                      settings.polish_steps)
+    return [_prediction(model, a, c, d, r, Evaluation.FAST)
+            for a, c, d, r in zip(a_idx, conditions, densities, results, strict=True)]
 
-    ``pushtorch.predict`` names both this module and, in the package's public face, the function: once the
-    module is imported, Python binds the package attribute to the module, whatever the package bound first.
-    Calling the module calls the function, so ``pushtorch.predict(model, cloud, action)`` works in any
-    import order, and ``from pushtorch.predict import predict_many`` keeps working.
-    """
 
-    def __call__(self, *args, **kwargs) -> Prediction:
-        return predict(*args, **kwargs)
+def _predict_dense(model: PushModel, features: list[SurfaceFeatures], a_idx: list[int],
+                   generator: torch.Generator | None, record_history: bool,
+                   starts: list[se3.Pose | None]) -> list[Prediction]:
+    """One model's share of a batch by the dense reference, one condition after the other."""
+    settings = model.settings
+    schedule = anneal_schedule(settings, False, Evaluation.DENSE)
+    out = []
+    for f, a, start in zip(features, a_idx, starts, strict=True):
+        condition = generate_push_condition(model, f, a, generator, record_history, Evaluation.DENSE, start)
+        density = _motion_density(model, condition, a, Evaluation.DENSE)
+        result = density.predict(settings.anneal_candidates, schedule, generator, record_history)
+        out.append(_prediction(model, a, condition, density, result, Evaluation.DENSE))
+    return out
+
+
+def _prediction(model: PushModel, a: int, condition: PushCondition, density: MotionDensity,
+                result: MotionPrediction, method: Evaluation) -> Prediction:
+    """The :class:`Prediction` of one annealed product of experts, with its normalised distribution."""
+    distribution = FinalPoseDistribution.from_motion_densities(density, result.final_pose,
+                                                               [result.anneal.candidates], method)
+    return Prediction(model.name, model.motions[a].action, condition, result.final_pose, result.log_prob,
+                      distribution, result.anneal.candidates, result.anneal.log_prob, result.anneal, density)

@@ -10,9 +10,10 @@ weighed against each other by it). Where the observation has the robot's own fin
 robot's motion is scored too, under the kernels'
 (:func:`~pushtorch.models.conditioning.odometry_log_likelihood`).
 :func:`pushtorch.models.conditioning.cell_log_likelihood` pools that into the likelihood of every cell of
-``(μ, log m)``; :func:`condition_model` and :func:`condition_library` are what
-:meth:`PushModel.condition_on <pushtorch.models.model.PushModel.condition_on>` and
-:meth:`ModelLibrary.condition_on <pushtorch.models.library.ModelLibrary.condition_on>` run. The method and its
+``(μ, log m)``; :func:`condition_model` is what
+:meth:`PushModel.condition_on <pushtorch.models.model.PushModel.condition_on>` runs (and
+:meth:`ModelLibrary.condition_on <pushtorch.models.library.ModelLibrary.condition_on>` for each of its models).
+The push conditions come from :mod:`pushtorch.models.push_condition`, as a prediction's do. The method and its
 likelihood are written down in :mod:`pushtorch.models.conditioning` and docs/method.md.
 """
 
@@ -21,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -42,17 +44,13 @@ from pushtorch.models.conditioning import (
     odometry_log_likelihood,
 )
 from pushtorch.models.contact import bumper_contact_patch
-from pushtorch.models.library import ConditionedLibrary, ModelLibrary, PushModel
 from pushtorch.models.motion import contact_log_weights, expert_exponents
-from pushtorch.prediction.conditions import (
-    _as_features,
-    _environment_frames,
-    _given_start_frame,
-    _push_conditions_fast,
-)
+from pushtorch.models.push_condition import features_for, given_start_frame, push_conditions
+
+if TYPE_CHECKING:
+    from pushtorch.models.model import PushModel
 
 __all__ = [
-    "condition_library",
     "condition_model",
     "observation_evidence",
     "observed_outcome",
@@ -94,12 +92,12 @@ def _contacts(model: PushModel, features, a: int, start: se3.Pose | None, genera
     """The robot start, the manipulator and environment frames and the contact patch of an observed push: from
     its given start without any annealing, or the model's own push condition when the start is unknown."""
     if start is None:
-        condition = _push_conditions_fast(model, [features], [a], generator, False, [None])[0]
+        condition = push_conditions(model, [features], [a], generator, False, [None])[0]
         return condition.robot_start, condition.manipulator_frame, condition.environment_frames, \
             condition.contact_patch
     start = se3.Pose.unchecked(start.p.reshape(3).to(features.p), start.q.reshape(4).to(features.p))
-    frame = _given_start_frame(start, features, model)
-    environment = _environment_frames(model, features, a, generator)
+    frame = given_start_frame(start, features, model)
+    environment = model.motions[a].environment_frames(features, model.settings, generator)
     patch = bumper_contact_patch(se3.apply(se3.inverse(start), features.p), model.settings.contact_cutoff)
     return start, frame, environment, patch
 
@@ -116,7 +114,7 @@ def observation_evidence(model: PushModel, observation: Observation, posterior: 
     """
     settings = model.settings
     a = model.action_index(observation.action)
-    features = _as_features(observation.cloud, settings, model)
+    features = features_for(observation.cloud, settings, model.position)
     start, manipulator_frame, environment_frames, patch = _contacts(model, features, a, observation.robot_start,
                                                                     generator)
     reference = reference_pose(features)
@@ -181,9 +179,3 @@ def condition_model(model: PushModel, observations, seed: int | None = None, pri
                         model.name, OUTLIER_DISTANCE, OUTLIER_ANGLE * 57.29577951308232)
         posterior = posterior.with_evidence(cells)
     return conditioned_model(model, posterior)
-
-
-def condition_library(library: ModelLibrary, observations, seed: int | None = None) -> ConditionedLibrary:
-    """:meth:`ModelLibrary.condition_on <pushtorch.models.library.ModelLibrary.condition_on>`."""
-    observations = _as_list(observations)
-    return ConditionedLibrary([condition_model(m, observations, seed) for m in library.models])

@@ -36,8 +36,10 @@ __all__ = [
     "OCCLUDED_DEPTH",
     "OCCLUDED_STEP",
     "START_CLEARANCE",
+    "check_start",
     "clear_robot_start",
     "clearance_points",
+    "overlap_message",
 ]
 
 log = logging.getLogger(__name__)
@@ -91,7 +93,8 @@ def clearance_points(features: SurfaceFeatures, depth: float = OCCLUDED_DEPTH,
     return (features.p.unsqueeze(0) - offsets[:, None, None] * features.normal.unsqueeze(0)).reshape(-1, 3)
 
 
-def _overlap_message(backoff: float, model_name: str | None) -> str:
+def overlap_message(backoff: float, model_name: str | None) -> str:
+    """Why a start backed off ``backoff`` m is no longer the model's choice (beyond :data:`MAX_BACKOFF`)."""
     who = f" of model {model_name!r}" if model_name else ""
     return (
         f"the predicted robot start{who} overlaps the observed object: its bumper or chassis stays within "
@@ -117,7 +120,7 @@ def clear_robot_start(robot_start: se3.Pose, features: SurfaceFeatures,
     return backed_off(robot_start, distance), value
 
 
-def _check_start(robot_start: se3.Pose) -> se3.Pose:
+def check_start(robot_start: se3.Pose) -> se3.Pose:
     """``robot_start`` if it is one finite pose with a unit quaternion, else InvalidPoseError."""
     robot_start = se3.check_pose(robot_start, "robot_start")
     if robot_start.batch_shape != torch.Size([]):

@@ -1,17 +1,19 @@
 """Push conditions (paper, Fig. pipeline, prediction; §Query Density, §Model Selection): the robot's start
-and manipulator contact frame, the environment contacts and the object's estimated initial pose, for every
-method.
+and manipulator contact frame, the environment contacts and the object's estimated initial pose.
 
-1. *Push condition generation* (:func:`generate_push_condition`): the manipulator contact model's query
-   density gives the robot's start pose (annealed on the ground plane) and the manipulator contact frame;
-   environment contacts are placed by the environment contact model; the position model's query density
-   estimates the object's initial pose (:func:`estimate_pose`, usable on its own).
-2. *Prediction* (:func:`predict`): the action's motion model becomes a product of experts over the
-   object's final pose (:class:`pushtorch.models.motion.MotionDensity`), optimised by simulated annealing.
+*Push condition generation* (:func:`generate_push_condition`, :func:`push_conditions` for several clouds):
+each model does its part in one call. The manipulator contact model's query density gives the robot's start
+pose (:meth:`~pushtorch.models.contact.ManipulatorContactModel.robot_query`, annealed on the ground plane) and
+the manipulator contact frame; the action's motion model places the environment contacts
+(:meth:`~pushtorch.models.motion.MotionModel.environment_frames`); the position model's query density
+estimates the object's initial pose (:meth:`~pushtorch.models.position.PositionModel.pose_query`,
+:func:`estimate_pose`, usable on its own). The annealed start is then cleared of the observed cloud
+(:mod:`pushtorch.models.clearance`). Prediction (:mod:`pushtorch.prediction`) and the evidence of observed
+pushes (:mod:`pushtorch.models.evidence`) build their conditions here.
 
-A caller may also give the robot's start (``predict(..., robot_start=...)``): step 1 then skips the robot
-query and takes as manipulator contact frame the observed feature that touches the bumper at that start
-(:func:`manipulator_frame_at`); the rest is unchanged.
+A caller may also give the robot's start: the robot query is skipped and the manipulator contact frame is
+the observed feature that touches the bumper at that start (:func:`manipulator_frame_at`); the rest is
+unchanged.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -26,39 +29,43 @@ from pushtorch import se3
 from pushtorch.anneal import AnnealSchedule
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.features import SurfaceFeatures, compute_surface_features
-from pushtorch.kde import KernelBandwidth
-from pushtorch.models.contact import bumper_contact_patch, bumper_contacts, place_environment_contacts
+from pushtorch.kde import Evaluation, KernelBandwidth
+from pushtorch.models.clearance import (
+    GIVEN_START_OVERLAP,
+    MAX_BACKOFF,
+    check_start,
+    clear_robot_start,
+    clearance_points,
+    overlap_message,
+)
+from pushtorch.models.contact import bumper_contact_patch, bumper_contacts
 from pushtorch.models.frames import ContactFrames
-from pushtorch.models.library import ModelSettings, PushModel, as_generator
-from pushtorch.models.motion import MotionKernels
 from pushtorch.models.position import PositionModel, verify_pose_candidates
 from pushtorch.models.query import (
-    QueryDensity,
     QueryResult,
-    build_query_density,
     feature_distance_heuristic,
     heuristic_descriptors,
     optimise_query_densities,
     optimise_query_density,
 )
+from pushtorch.models.settings import ModelSettings, as_generator
 from pushtorch.perception import PointCloud
-from pushtorch.prediction.clearance import (
-    GIVEN_START_OVERLAP,
-    MAX_BACKOFF,
-    _check_start,
-    _overlap_message,
-    clear_robot_start,
-    clearance_points,
-)
 from pushtorch.robot import backoff_distance, bumper_mesh
+
+if TYPE_CHECKING:
+    from pushtorch.models.model import PushModel
 
 __all__ = [
     "PushCondition",
+    "anneal_schedule",
     "contact_bandwidth",
     "estimate_pose",
+    "features_for",
     "generate_push_condition",
+    "given_start_frame",
     "manipulator_frame_at",
     "motion_bandwidth",
+    "push_conditions",
     "query_bandwidth",
 ]
 
@@ -102,7 +109,7 @@ class PushCondition:
                 back-off (the message names the overlap).
         """
         if not self.valid:
-            raise ModelError(_overlap_message(self.backoff, self.model.name))
+            raise ModelError(overlap_message(self.backoff, self.model.name))
         return self
 
     @cached_property
@@ -117,7 +124,8 @@ class PushCondition:
     def feature_distance(self) -> torch.Tensor:
         """``H_r`` of the model's manipulator contact model on this cloud (computed on first use; the
         value :meth:`ModelLibrary.feature_distances` selects by)."""
-        return feature_distance_heuristic(heuristic_descriptors(self.features), self.model.contact.frames.r, "fast")
+        return feature_distance_heuristic(heuristic_descriptors(self.features), self.model.contact.frames.r,
+                                          Evaluation.FAST)
 
 
 def query_bandwidth(settings: ModelSettings) -> KernelBandwidth:
@@ -136,23 +144,18 @@ def motion_bandwidth(settings: ModelSettings) -> KernelBandwidth:
     return settings.motion_bandwidth
 
 
-def _schedule(settings: ModelSettings, planar: bool, method: str) -> AnnealSchedule:
+def anneal_schedule(settings: ModelSettings, planar: bool, method: Evaluation) -> AnnealSchedule:
     """The paper's schedule for the dense reference; the fast path's shorter one (then polished)."""
-    steps = settings.fast_anneal_steps if method == "fast" else settings.anneal_steps
+    steps = settings.fast_anneal_steps if method is Evaluation.FAST else settings.anneal_steps
     return AnnealSchedule(steps=steps, planar=planar)
 
 
-def _polish_steps(settings: ModelSettings, method: str) -> int:
-    return settings.polish_steps if method == "fast" else 0
-
-
-def _as_features(cloud: PointCloud | SurfaceFeatures, settings: ModelSettings,
-                 model: PushModel | PositionModel) -> SurfaceFeatures:
-    """The cloud's surface features in the ``model``'s dtype on its device (a float64 cloud is cast
-    before its features are computed, so it predicts exactly as the same cloud in float32). Features are
-    computed on the CPU (open3d's neighbourhoods and normals) and then moved."""
-    frames = (model.position if isinstance(model, PushModel) else model).frames.r
-    dtype, device = frames.dtype, frames.device
+def features_for(cloud: PointCloud | SurfaceFeatures, settings: ModelSettings,
+                 position: PositionModel) -> SurfaceFeatures:
+    """The cloud's surface features in the dtype of ``position`` (a model's position model) on its device (a
+    float64 cloud is cast before its features are computed, so it predicts exactly as the same cloud in float32).
+    Features are computed on the CPU (open3d's neighbourhoods and normals) and then moved."""
+    dtype, device = position.frames.r.dtype, position.frames.r.device
     if isinstance(cloud, SurfaceFeatures):
         features = cloud if cloud.p.dtype == dtype else cloud.to(dtype)
     else:
@@ -173,24 +176,28 @@ def estimate_pose(
     settings: ModelSettings | None = None,
     generator: torch.Generator | None = None,
     record_history: bool = False,
-    method: str = "fast",
+    method: Evaluation | str = Evaluation.FAST,
 ) -> QueryResult:
     """Estimate an object's pose from a (partial) cloud with a position model (paper, Object Position Model).
 
     Returns the best pose (full SE(3)) with its log density and the annealing record: the annealing's
     candidates (hypotheses of the query density) verified by their surface fit to the cloud
     (:func:`pushtorch.models.position.verify_pose_candidates`).
-    ``method``: ``"fast"`` (default: pruned, fused densities) or ``"dense"`` (the reference); the
-    same law, another random stream.
+    ``method``: :attr:`Evaluation.FAST` (default: pruned, fused densities) or :attr:`Evaluation.DENSE` (the
+    reference), or its string; the same law, another random stream.
+
+    Raises:
+        InvalidParameterError: an unknown method.
     """
-    _check_method(method)
+    method = Evaluation.of(method)
     settings = settings or ModelSettings()
     generator = as_generator(generator)
-    features = _as_features(cloud, settings, position)
-    density = _pose_density(position, features, settings, generator, method)
+    features = features_for(cloud, settings, position)
+    density = position.pose_query(features, settings, generator, method)
+    polish = settings.polish_steps if method is Evaluation.FAST else 0
     result = optimise_query_density(
-        density, settings.anneal_candidates, _schedule(settings, False, method), generator, record_history,
-        method, _polish_steps(settings, method),
+        density, settings.anneal_candidates, anneal_schedule(settings, False, method), generator, record_history,
+        method, polish,
     )
     return _verified_pose(result, position, features, generator)
 
@@ -201,38 +208,6 @@ def _verified_pose(result: QueryResult, position: PositionModel, features: Surfa
     candidates = result.anneal.candidates
     best = verify_pose_candidates(position, features.p, candidates, result.anneal.log_prob, generator)
     return replace(result, pose=candidates.take(best), log_prob=result.anneal.log_prob[best])
-
-
-def _check_method(method: str) -> None:
-    if method not in ("dense", "fast"):
-        raise InvalidParameterError(f"method must be 'dense' or 'fast', got {method!r}")
-
-
-def _pose_density(position: PositionModel, features: SurfaceFeatures, settings: ModelSettings,
-                  generator: torch.Generator | None, method: str) -> QueryDensity:
-    std = torch.full((2,), settings.descriptor_std)
-    return build_query_density(
-        position.frames, features, settings.query_kernels, std, settings.query_bandwidth,
-        r_cutoff_std=settings.descriptor_cutoff_std, alpha_t=settings.alpha_t, generator=generator,
-        method=method,
-    )
-
-
-def _robot_density(model: PushModel, features: SurfaceFeatures, generator: torch.Generator | None,
-                   method: str) -> QueryDensity:
-    settings = model.settings
-    std = torch.full((2,), settings.descriptor_std)
-    return build_query_density(
-        model.contact.frames, features, settings.query_kernels, std, settings.query_bandwidth,
-        r_cutoff_std=settings.descriptor_cutoff_std, alpha_t=settings.alpha_t, project_planar=True,
-        generator=generator, method=method,
-    )
-
-
-def _subsample(kernels: MotionKernels, count: int, generator: torch.Generator | None) -> MotionKernels:
-    if len(kernels) <= count:
-        return kernels
-    return kernels.take(torch.randperm(len(kernels), generator=generator)[:count])
 
 
 def manipulator_frame_at(features: SurfaceFeatures, robot_start: se3.Pose, cutoff: float = 0.01,
@@ -248,9 +223,9 @@ def manipulator_frame_at(features: SurfaceFeatures, robot_start: se3.Pose, cutof
         ModelError: no observed feature lies within ``cutoff`` of the bumper facing it (the start does not
             touch the object where the camera saw it).
     """
-    robot_start = _check_start(robot_start)
+    robot_start = check_start(robot_start)
     robot_start = se3.Pose.unchecked(robot_start.p.detach().cpu().to(features.p.dtype),
-                           robot_start.q.detach().cpu().to(features.p.dtype))
+                                     robot_start.q.detach().cpu().to(features.p.dtype))
     inside = float(backoff_distance(robot_start, clearance_points(features).cpu(), 0.0))
     if inside > GIVEN_START_OVERLAP:
         raise InvalidPoseError(
@@ -276,7 +251,7 @@ def manipulator_frame_at(features: SurfaceFeatures, robot_start: se3.Pose, cutof
     return ContactFrames(v, features.r[best : best + 1], u, weight[best : best + 1].to(device))
 
 
-def _given_start_frame(start: se3.Pose | None, features: SurfaceFeatures, model: PushModel) -> ContactFrames | None:
+def given_start_frame(start: se3.Pose | None, features: SurfaceFeatures, model: PushModel) -> ContactFrames | None:
     """The manipulator frame of a start the caller gave (None for none), read before any annealing so that
     a start touching nothing or sitting inside the object is refused first."""
     if start is None:
@@ -298,7 +273,7 @@ def _condition(robot: QueryResult, environment: ContactFrames, pose: QueryResult
     condition = PushCondition(start, robot.nearest_kernel, environment, pose.pose, robot, pose, features, model,
                               backoff)
     if not condition.valid:
-        log.warning("%s; the condition is marked invalid (PushCondition.valid)", _overlap_message(backoff, model.name))
+        log.warning("%s; the condition is marked invalid (PushCondition.valid)", overlap_message(backoff, model.name))
     return condition
 
 
@@ -308,81 +283,76 @@ def generate_push_condition(
     action_index: int = 0,
     generator: torch.Generator | None = None,
     record_history: bool = False,
-    method: str = "fast",
+    method: Evaluation | str = Evaluation.FAST,
     robot_start: se3.Pose | None = None,
 ) -> PushCondition:
     """Robot start pose, manipulator and environment contact frames, and initial pose (paper, Query Density).
 
-    ``method``: ``"fast"`` (default) anneals the robot's (planar) and the object's query densities in
-    one batch with pruned, fused densities; ``"dense"`` is the reference, one after the other. The
-    annealed start is then backed off along the approach to clear the observed cloud
-    (:func:`clear_robot_start`; ``PushCondition.backoff``); beyond :data:`MAX_BACKOFF` the condition is
-    marked invalid (``PushCondition.valid``) and a warning is logged. A given ``robot_start`` is used as it
-    is, with the manipulator frame the cloud shows at it (:func:`manipulator_frame_at`).
+    ``method``: :attr:`Evaluation.FAST` (default) anneals the robot's (planar) and the object's query
+    densities in one batch with pruned, fused densities (:func:`push_conditions`); :attr:`Evaluation.DENSE`
+    is the reference, one after the other. The annealed start is then backed off along the approach to clear
+    the observed cloud (:func:`~pushtorch.models.clearance.clear_robot_start`; ``PushCondition.backoff``);
+    beyond :data:`MAX_BACKOFF` the condition is marked invalid (``PushCondition.valid``) and a warning is
+    logged. A given ``robot_start`` is used as it is, with the manipulator frame the cloud shows at it
+    (:func:`manipulator_frame_at`).
+
+    Raises:
+        InvalidParameterError: an unknown method or action index.
     """
-    _check_method(method)
+    method = Evaluation.of(method)
     generator = as_generator(generator)
-    features = _as_features(cloud, model.settings, model)
+    features = features_for(cloud, model.settings, model.position)
     if not (isinstance(action_index, int) and 0 <= action_index < len(model.motions)):
         raise InvalidParameterError(
             f"action_index must be an int in [0, {len(model.motions)}) for model {model.name!r}, got {action_index!r}"
         )
-    if method == "fast":
-        return _push_conditions_fast(model, [features], [action_index], generator, record_history, [robot_start])[0]
+    if method is Evaluation.FAST:
+        return push_conditions(model, [features], [action_index], generator, record_history, [robot_start])[0]
     settings = model.settings
-    given_frame = _given_start_frame(robot_start, features, model)
+    given_frame = given_start_frame(robot_start, features, model)
     if robot_start is None:
-        robot_density = _robot_density(model, features, generator, method)
         robot = optimise_query_density(
-            robot_density, settings.anneal_candidates, _schedule(settings, True, method), generator, record_history
+            model.contact.robot_query(features, settings, generator, method), settings.anneal_candidates,
+            anneal_schedule(settings, True, method), generator, record_history,
         )
-    environment = _environment_frames(model, features, action_index, generator)
+    environment = model.motions[action_index].environment_frames(features, settings, generator)
     pose = estimate_pose(model.position, features, settings, generator, record_history, method)
     if robot_start is not None:
         return _given_start_condition(robot_start, given_frame, environment, pose, features, model)
     return _condition(robot, environment, pose, features, model)
 
 
-def _environment_frames(model: PushModel, features: SurfaceFeatures, action_index: int,
-                        generator: torch.Generator | None) -> ContactFrames:
-    settings = model.settings
-    motion = model.motions[action_index]
-    env_kernels = _subsample(motion.environment, settings.environment_kernels, generator)
-    return place_environment_contacts(
-        features, env_kernels.r, env_kernels.u, settings.environment_contact_bandwidth,
-        settings.environment_contacts, settings.environment_samples, generator,
-    )
-
-
-def _push_conditions_fast(
+def push_conditions(
     model: PushModel,
     features: list[SurfaceFeatures],
     action_indices: list[int],
     generator: torch.Generator | None,
-    record_history: bool,
+    record_history: bool = False,
     starts: list[se3.Pose | None] | None = None,
 ) -> list[PushCondition]:
-    """Push conditions of several clouds: every robot and pose query density annealed in one batch (a cloud
-    whose start is given, ``starts[i]``, has no robot query)."""
+    """Push conditions of several clouds' features (:func:`features_for`) on the fast path: every robot and
+    pose query density annealed in one batch (a cloud whose start is given, ``starts[i]``, has no robot
+    query; its manipulator frame is :func:`given_start_frame`)."""
     settings = model.settings
     starts = starts if starts is not None else [None] * len(features)
-    given_frames = [_given_start_frame(start, f, model) for f, start in zip(features, starts, strict=True)]
+    given_frames = [given_start_frame(start, f, model) for f, start in zip(features, starts, strict=True)]
     robot_densities, pose_densities = [], []
     for f, start in zip(features, starts, strict=True):
         if start is None:
-            robot_densities.append(_robot_density(model, f, generator, "fast"))
-        pose_densities.append(_pose_density(model.position, f, settings, generator, "fast"))
+            robot_densities.append(model.contact.robot_query(f, settings, generator, Evaluation.FAST))
+        pose_densities.append(model.position.pose_query(f, settings, generator, Evaluation.FAST))
     n_robot = len(robot_densities)
     results = optimise_query_densities(
-        robot_densities + pose_densities, settings.anneal_candidates, _schedule(settings, False, "fast"),
-        [True] * n_robot + [False] * len(features), generator, record_history, settings.polish_steps,
+        robot_densities + pose_densities, settings.anneal_candidates,
+        anneal_schedule(settings, False, Evaluation.FAST), [True] * n_robot + [False] * len(features), generator,
+        record_history, settings.polish_steps,
     )
     robots = iter(results[:n_robot])
     conditions = []
     for f, a, start, frame, pose_result in zip(features, action_indices, starts, given_frames, results[n_robot:],
                                                strict=True):
         pose = _verified_pose(pose_result, model.position, f, generator)
-        environment = _environment_frames(model, f, a, generator)
+        environment = model.motions[a].environment_frames(f, settings, generator)
         if start is None:
             conditions.append(_condition(next(robots), environment, pose, f, model))
         else:
