@@ -1,7 +1,7 @@
 """Sweeps a researcher can read: job folders named by what was swept, one run per folder, one tidy table.
 
 Real runs only: a joblib sweep of two training priors at the tiny model's size, then
-``python -m pushtorch.collect`` on its folder, read back as CSV.
+``python -m pushtorch.apps.collect`` on its folder, read back as CSV.
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ def test_sweep_jobs_are_named_by_the_swept_value(prior_sweep: Path):
 def test_collect_writes_one_row_per_job_and_record_with_the_swept_value(prior_sweep: Path, tmp_path: Path):
     import json
 
-    result = subprocess.run([sys.executable, "-m", "pushtorch.collect", str(prior_sweep), "--out", str(tmp_path)],
+    result = subprocess.run([sys.executable, "-m", "pushtorch.apps.collect", str(prior_sweep), "--out", str(tmp_path)],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     with open(tmp_path / "collected.csv", newline="") as handle:
@@ -63,7 +63,7 @@ def test_collect_writes_one_row_per_job_and_record_with_the_swept_value(prior_sw
 
 
 def test_collect_refuses_a_folder_without_results(tmp_path: Path):
-    result = subprocess.run([sys.executable, "-m", "pushtorch.collect", str(tmp_path)], capture_output=True,
+    result = subprocess.run([sys.executable, "-m", "pushtorch.apps.collect", str(tmp_path)], capture_output=True,
                             text=True, timeout=120)
     assert result.returncode == 2
     assert "holds no results.json" in result.stderr and "Traceback" not in result.stderr

@@ -129,19 +129,20 @@ _SLOW = pytest.mark.slow
 @pytest.mark.parametrize("argv", [
     pytest.param(("pushtorch", "seed=abc"), id="seed"),
     pytest.param(("pushtorch", "-m", "model=tiny", "seed=1,abc"), id="sweep"),
-    pytest.param(("pushtorch.simulate", "actions.duration=1e5"), id="duration", marks=_SLOW),
-    pytest.param(("pushtorch.predict", "models=[a.npz]", "x=1e9"), id="position", marks=_SLOW),
-    pytest.param(("pushtorch.train", "data=x", "hydra.run.dir=a_file/run"), id="folder-under-a-file", marks=_SLOW),
+    pytest.param(("pushtorch.apps.simulate", "actions.duration=1e5"), id="duration", marks=_SLOW),
+    pytest.param(("pushtorch.apps.predict", "models=[a.npz]", "x=1e9"), id="position", marks=_SLOW),
+    pytest.param(("pushtorch.apps.train", "data=x", "hydra.run.dir=a_file/run"), id="folder-under-a-file", marks=_SLOW),
     pytest.param(("pushtorch", "experiment=nope"), id="unknown-option"),
     pytest.param(("pushtorch", "sed=1"), id="unknown-key", marks=_SLOW),
     pytest.param(("pushtorch", "-m", "model=tiny,huge"), id="unknown-option-in-a-sweep", marks=_SLOW),
-    pytest.param(("pushtorch.train", "data=nowhere"), id="error-after-the-folder-is-made"),
+    pytest.param(("pushtorch.apps.train", "data=nowhere"), id="error-after-the-folder-is-made"),
 ])
 def test_the_command_line_exits_2_with_one_line_and_makes_no_folder(tmp_path, argv):
     (tmp_path / "a_file").write_text("")
     result = _cli(tmp_path, *argv)
     assert result.returncode == 2, result.stderr
     lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith(argv[0] + ":"), result.stderr
+    app = argv[0].replace("pushtorch.apps.", "pushtorch-")  # an app's errors open with its console script's name
+    assert len(lines) == 1 and lines[0].startswith(app + ":"), result.stderr
     assert "Traceback" not in result.stderr
     assert not any(tmp_path.glob("runs/*")), "a refused run leaves no run folder"

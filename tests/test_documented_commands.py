@@ -1,6 +1,8 @@
-"""Every ``python -m pushtorch…`` command in README.md, docs/ and the configs' comments runs as written.
+"""Every documented command in README.md, docs/ and the configs' comments runs as written: the console scripts
+(``pushtorch``, ``pushtorch-simulate``, ``pushtorch-train``, ``pushtorch-predict``, ``pushtorch-collect``),
+``python -m pushtorch`` and ``python -m pushtorch.apps.<app>``.
 
-Each command goes through the argument parser its app really uses (Hydra's, or ``pushtorch.collect``'s), so
+Each command goes through the argument parser its app really uses (Hydra's, or ``pushtorch-collect``'s), so
 an ``unrecognized arguments`` like the one that broke the README's sweep (overrides on both sides of ``-m``)
 fails here; then every job of it (a sweep expanded into its combinations) is composed from the installed
 configs (``pushtorch.conf``), Hydra's own config included, so an unknown group option or key fails here too.
@@ -29,10 +31,13 @@ from pushtorch.apps import collect
 from pushtorch.apps.config_check import ConfigError, check_config
 
 ROOT = Path(__file__).resolve().parents[1]
-#: Module run with ``python -m`` → the config its Hydra app composes.
-HYDRA_APPS = {"pushtorch": "config", "pushtorch.simulate": "simulate", "pushtorch.train": "train",
-              "pushtorch.predict": "predict"}
-_COMMAND = re.compile(r"(?:\S*/)?python3? -m (pushtorch[\w.]*)(.*)")
+#: Console script → the config its Hydra app composes.
+HYDRA_APPS = {"pushtorch": "config", "pushtorch-simulate": "simulate", "pushtorch-train": "train",
+              "pushtorch-predict": "predict"}
+#: ``python -m`` module → the console script it is.
+MODULES = {"pushtorch": "pushtorch", "pushtorch.apps.experiment": "pushtorch",
+           **{f"pushtorch.apps.{app}": f"pushtorch-{app}" for app in ("simulate", "train", "predict", "collect")}}
+_COMMAND = re.compile(r"(?:\S*/)?(?:python3? -m (pushtorch[\w.]*)|(pushtorch(?:-[a-z]+)?))(?=\s|$)(.*)")
 
 
 def _sources() -> list[Path]:
@@ -76,8 +81,10 @@ def documented_commands() -> list[tuple[str, str, list[str]]]:
             for candidate in candidates:
                 match = _COMMAND.match(candidate.strip())
                 if match:
-                    found.append((f"{path.relative_to(ROOT)}:{number}", match.group(1),
-                                  shlex.split(match.group(2), comments=True)))
+                    script = MODULES.get(match.group(1), f"python -m {match.group(1)}") if match.group(1) \
+                        else match.group(2)
+                    found.append((f"{path.relative_to(ROOT)}:{number}", script,
+                                  shlex.split(match.group(3), comments=True)))
     return found
 
 
@@ -86,7 +93,7 @@ COMMANDS = documented_commands()
 
 def test_the_docs_document_every_app():
     modules = {module for _, module, _ in COMMANDS}
-    assert set(HYDRA_APPS) | {"pushtorch.collect"} <= modules, modules
+    assert set(HYDRA_APPS) | {"pushtorch-collect"} <= modules, modules
     assert any("-m" in argv or "--multirun" in argv for _, _, argv in COMMANDS)  # the sweeps are checked too
 
 
@@ -105,9 +112,11 @@ def _jobs(argv_overrides: list[str], multirun: bool) -> list[list[str]]:
     return [list(combination) for combination in itertools.product(*choices)]
 
 
-@pytest.mark.parametrize("module", sorted(HYDRA_APPS))
+@pytest.mark.parametrize("module", sorted(MODULES))
 def test_every_app_runs_from_any_folder(module, tmp_path):
     """``python -m <app> --help`` outside the checkout: the app exists and finds its installed configs."""
+    if module.endswith("collect"):
+        return  # not a Hydra app: its parser is checked below
     result = subprocess.run([sys.executable, "-m", module, "--help"], cwd=tmp_path, capture_output=True,
                             text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-2000:]
@@ -116,10 +125,11 @@ def test_every_app_runs_from_any_folder(module, tmp_path):
 
 @pytest.mark.parametrize(("where", "module", "argv"), COMMANDS, ids=[c[0] for c in COMMANDS])
 def test_documented_command_runs_as_written(where, module, argv):
-    if module == "pushtorch.collect":
-        collect.parser().parse_args(argv)  # exits (SystemExit) on arguments it does not take
+    if module == "pushtorch-collect":
+        if argv:  # a bare mention of the app names no folders
+            collect.parser().parse_args(argv)  # exits (SystemExit) on arguments it does not take
         return
-    assert module in HYDRA_APPS, f"{where}: `python -m {module}` is not one of pushtorch's apps"
+    assert module in HYDRA_APPS, f"{where}: `{module}` is not one of pushtorch's apps"
     args = get_args_parser().parse_args(argv)  # the parser @hydra.main uses: unknown arguments exit here
     for overrides in _jobs(args.overrides, args.multirun):
         GlobalHydra.instance().clear()
@@ -129,5 +139,5 @@ def test_documented_command_runs_as_written(where, module, argv):
         try:  # types, bounds and names as the app's callback checks them
             check_config(cfg, HYDRA_APPS[module])
         except ConfigError as exc:
-            # a bare mention of an app (`python -m pushtorch.train`) leaves its mandatory keys to the reader
+            # a bare mention of an app (`pushtorch-train`) leaves its mandatory keys to the reader
             assert not argv and "is not set" in str(exc), f"{where}: {exc}"

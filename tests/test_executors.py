@@ -120,14 +120,14 @@ def test_executor_without_its_extra_is_a_clear_error_before_any_file(cube_plan, 
 def test_an_unreachable_ray_address_is_one_line_and_leaves_no_run_folder(tmp_path):
     run_dir = tmp_path / "run"
     result = subprocess.run(
-        [sys.executable, "-m", "pushtorch.simulate", "executor=ray", "executor.address=127.0.0.1:9",
+        [sys.executable, "-m", "pushtorch.apps.simulate", "executor=ray", "executor.address=127.0.0.1:9",
          "samples_per_action=1", "progress=false", f"hydra.run.dir={run_dir}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=120,
         env=dict(os.environ, PYTHONPATH=str(ROOT)),
     )
     assert result.returncode == 2
     last = result.stderr.strip().splitlines()[-1]
-    assert last.startswith("pushtorch.simulate: executor.address='127.0.0.1:9'") and "Traceback" not in result.stderr
+    assert last.startswith("pushtorch-simulate: executor.address='127.0.0.1:9'") and "Traceback" not in result.stderr
     assert not run_dir.exists()
 
 

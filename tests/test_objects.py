@@ -395,7 +395,7 @@ def test_the_command_line_refuses_a_millimetre_mesh_in_one_line_without_a_run_fo
     run = tmp_path / "run"
     env = {k: v for k, v in os.environ.items() if not k.startswith("HYDRA_")}
     result = subprocess.run(
-        [sys.executable, "-m", "pushtorch.simulate", "object=mesh", f"object.path={path}", "samples_per_action=2",
+        [sys.executable, "-m", "pushtorch.apps.simulate", "object=mesh", f"object.path={path}", "samples_per_action=2",
          "workers=1", "rerun_pushes=0", "progress=false", f"hydra.run.dir={run}"],
         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
     )

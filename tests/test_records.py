@@ -170,7 +170,7 @@ def _all_arrays(folder: Path) -> dict[str, np.ndarray]:
 def test_killed_run_resumes_and_matches_an_uninterrupted_run(tmp_path):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
     run_dir = tmp_path / "killed"
-    command = [sys.executable, "-m", "pushtorch.simulate", "workers=1", *_overrides(run_dir)]
+    command = [sys.executable, "-m", "pushtorch.apps.simulate", "workers=1", *_overrides(run_dir)]
     process = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL,
                                stderr=subprocess.DEVNULL)
     first = run_dir / "pushes" / "shard-000000.json"

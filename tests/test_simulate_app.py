@@ -92,7 +92,7 @@ def _env() -> dict[str, str]:
 def test_real_run_writes_shards_summary_and_recording(tmp_path):
     run_dir = tmp_path / "run"
     result = subprocess.run(
-        [sys.executable, "-m", "pushtorch.simulate", "object=hybrid", "friction=general", "mass=fixed",
+        [sys.executable, "-m", "pushtorch.apps.simulate", "object=hybrid", "friction=general", "mass=fixed",
          "samples_per_action=2", "shard_size=4", "workers=2", "rerun_pushes=2", "progress=false",
          f"hydra.run.dir={run_dir}"],
         cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=300,
@@ -119,7 +119,7 @@ def test_world_mujoco_simulates_in_mujoco_and_says_so(tmp_path):
 
 def test_user_error_exits_with_one_line(tmp_path):
     result = subprocess.run(
-        [sys.executable, "-m", "pushtorch.simulate", "object=mesh", f"object.path={tmp_path / 'missing.stl'}",
+        [sys.executable, "-m", "pushtorch.apps.simulate", "object=mesh", f"object.path={tmp_path / 'missing.stl'}",
          f"hydra.run.dir={tmp_path / 'run'}"],
         cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=300,
     )
@@ -131,7 +131,7 @@ def test_user_error_exits_with_one_line(tmp_path):
 def test_multirun_over_priors_with_the_joblib_launcher(tmp_path):
     sweep = tmp_path / "sweep"
     result = subprocess.run(
-        [sys.executable, "-m", "pushtorch.simulate", "-m", "friction=low,high", "hydra/launcher=joblib",
+        [sys.executable, "-m", "pushtorch.apps.simulate", "-m", "friction=low,high", "hydra/launcher=joblib",
          "samples_per_action=1", "rerun_pushes=0", "progress=false", "workers=1", f"hydra.sweep.dir={sweep}"],
         cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=600,
     )

@@ -109,7 +109,7 @@ class Result:
 
 def cases(fx: Fixtures) -> list[Case]:
     """Every case of the battery, in categories: configs, meshes, model files, records, folders."""
-    m, sim, train, pred = "pushtorch", "pushtorch.simulate", "pushtorch.train", "pushtorch.predict"
+    m, sim, train, pred = "pushtorch", "pushtorch.apps.simulate", "pushtorch.apps.train", "pushtorch.apps.predict"
     model = f"models=[{fx.model}]"
     data = f"data={fx.sim}"
     out: list[Case] = []
@@ -202,7 +202,7 @@ def cases(fx: Fixtures) -> list[Case]:
     add("model-given-as-train-data", "model files", train, [f"data={fx.model}", *TRAIN_SMALL], "model.npz")
     # push records
     add("rec-missing-shard", "records", train, [f"data={fx.sim_missing_shard}", *TRAIN_SMALL],
-        "pushtorch.simulate")
+        "pushtorch.apps.simulate")
     add("rec-tampered-shard", "records", train, [f"data={fx.sim_tampered}", *TRAIN_SMALL], "shard-000001")
     add("rec-empty-folder", "records", train, [f"data={fx.empty_dir}", *TRAIN_SMALL], "empty")
     add("rec-not-a-run", "records", train, [f"data={fx.train}", *TRAIN_SMALL], "train")
@@ -214,11 +214,11 @@ def cases(fx: Fixtures) -> list[Case]:
     add("folder-sweep-dir-under-file", "folders", sim,
         ["-m", "seed=0,1", f"hydra.sweep.dir={fx.a_file}/sweep", *SIM_SMALL], "a_file")
     add("folder-run-dir-locked", "folders", train, [data, f"hydra.run.dir={fx.locked}", *TRAIN_SMALL], "in use")
-    add("collect-no-folder", "folders", "pushtorch.collect", [], "folders")
-    add("collect-missing-folder", "folders", "pushtorch.collect", [str(fx.nowhere)], "nowhere")
-    add("collect-empty-folder", "folders", "pushtorch.collect", [str(fx.empty_dir)], "results.json")
-    add("collect-junk-results", "folders", "pushtorch.collect", [str(fx.junk_results)], "results.json")
-    add("collect-out-under-file", "folders", "pushtorch.collect",
+    add("collect-no-folder", "folders", "pushtorch.apps.collect", [], "folders")
+    add("collect-missing-folder", "folders", "pushtorch.apps.collect", [str(fx.nowhere)], "nowhere")
+    add("collect-empty-folder", "folders", "pushtorch.apps.collect", [str(fx.empty_dir)], "results.json")
+    add("collect-junk-results", "folders", "pushtorch.apps.collect", [str(fx.junk_results)], "results.json")
+    add("collect-out-under-file", "folders", "pushtorch.apps.collect",
         [str(fx.min_results), "--out", f"{fx.a_file}/out"], "a_file")
     return out
 
@@ -255,12 +255,12 @@ def make_fixtures(root: Path) -> tuple[Fixtures, object]:
     fx = Fixtures(root)
     work = root / "fixture_cwd"
     work.mkdir(parents=True)
-    _fixture_run(["pushtorch.simulate", *SIM_SMALL, "shard_size=2", f"hydra.run.dir={fx.sim}"], work, "simulate")
+    _fixture_run(["pushtorch.apps.simulate", *SIM_SMALL, "shard_size=2", f"hydra.run.dir={fx.sim}"], work, "simulate")
     shards = sorted((fx.sim / "pushes").glob("shard-*.json"))
     if len(shards) != 3 or not (fx.sim / "pushes" / "manifest.json").is_file():
         sys.stderr.write(f"fixture simulate: expected 3 shards and a manifest, found {[p.name for p in shards]}\n")
         raise SystemExit(3)
-    _fixture_run(["pushtorch.train", f"data={fx.sim}", f"hydra.run.dir={fx.train}", *TRAIN_SMALL], work, "train")
+    _fixture_run(["pushtorch.apps.train", f"data={fx.sim}", f"hydra.run.dir={fx.train}", *TRAIN_SMALL], work, "train")
     if not fx.model.is_file():
         sys.stderr.write(f"fixture train: no {fx.model}\n")
         raise SystemExit(3)

@@ -21,14 +21,14 @@ echo "check-install: installing it at the lower bounds: $(tr '\n' ' ' < "$work/l
 cd "$work"   # outside the checkout: nothing of the repository is on the path
 "$work/venv/bin/pushtorch" --help > "$work/help.txt"   # (piped into grep -q, --help would lose its stdout)
 grep -q "experiment: .*quickstart" "$work/help.txt"
-"$work/venv/bin/python" -m pushtorch.simulate --help > /dev/null
-"$work/venv/bin/python" -m pushtorch.train --help > /dev/null
-"$work/venv/bin/python" -m pushtorch.predict --help > /dev/null
+"$work/venv/bin/python" -m pushtorch.apps.simulate --help > /dev/null
+"$work/venv/bin/python" -m pushtorch.apps.train --help > /dev/null
+"$work/venv/bin/python" -m pushtorch.apps.predict --help > /dev/null
 echo "check-install: a tiny quickstart from $work"
 start=$(date +%s)
 "$work/venv/bin/python" -m pushtorch experiment=quickstart model=tiny experiment.progress=false \
     hydra.run.dir="$work/run" > "$work/quickstart.log" 2>&1 || { tail -40 "$work/quickstart.log"; exit 1; }
 grep "checks:" "$work/quickstart.log"
 test -s "$work/run/results.json" && test -s "$work/run/recording.rrd" && test -s "$work/run/report.md"
-"$work/venv/bin/python" -m pushtorch.collect "$work/run" > /dev/null && test -s "$work/run/collected.csv"
+"$work/venv/bin/python" -m pushtorch.apps.collect "$work/run" > /dev/null && test -s "$work/run/collected.csv"
 echo "check-install: passed ($(( $(date +%s) - start )) s for the quickstart)"

@@ -223,12 +223,12 @@ class _OneLineParser(argparse.ArgumentParser):
     """argparse, but a usage error is one line (as every pushtorch app's errors are) and exit 2."""
 
     def error(self, message: str):
-        self.exit(2, f"pushtorch.collect: {message} (usage: {self.format_usage().strip().removeprefix('usage: ')})\n")
+        self.exit(2, f"pushtorch-collect: {message} (usage: {self.format_usage().strip().removeprefix('usage: ')})\n")
 
 
 def parser() -> argparse.ArgumentParser:
     """The command line of ``python -m pushtorch.collect``."""
-    parser = _OneLineParser(prog="python -m pushtorch.collect", description=__doc__.split("\n\n")[0])
+    parser = _OneLineParser(prog="pushtorch-collect", description=__doc__.split("\n\n")[0])
     parser.add_argument("folders", nargs="+", help="run or sweep folders (searched for results.json)")
     parser.add_argument("--out", default=None,
                         help="where to write the table and figures (default: the folder given, or . for several)")
@@ -243,10 +243,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         columns, rows = collect(args.folders)
         written = write_tables(columns, rows, out)
     except PushtorchError as exc:
-        print(f"pushtorch.collect: {exc}", file=sys.stderr)
+        print(f"pushtorch-collect: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:
-        print(f"pushtorch.collect: {exc.filename or out}: {exc.strerror or exc}", file=sys.stderr)
+        print(f"pushtorch-collect: {exc.filename or out}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     print(f"rows: {len(rows)}")
     for path in written:

@@ -32,7 +32,7 @@ from pushtorch.errors import InvalidParameterError
 
 __all__ = ["main", "simulate_from_config"]
 
-log = logging.getLogger("pushtorch.simulate")
+log = logging.getLogger("pushtorch-simulate")
 
 
 def _plain(cfg: Any) -> Any:
@@ -140,17 +140,17 @@ def _resume_command(out_dir: Path) -> str:
     from pushtorch.apps.cli import current_overrides
 
     kept = [o for o in current_overrides() if not o.lstrip("+~").startswith("hydra.run.dir=")]
-    return shlex.join(["python", "-m", "pushtorch.simulate", *kept, f"hydra.run.dir={out_dir}"])
+    return shlex.join(["python", "-m", "pushtorch-simulate", *kept, f"hydra.run.dir={out_dir}"])
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="simulate")
 def _app(cfg: DictConfig) -> dict[str, Any]:
-    return run_stage("pushtorch.simulate", cfg, simulate_from_config)
+    return run_stage("pushtorch-simulate", cfg, simulate_from_config)
 
 
 def main() -> None:
     """Entry point of ``python -m pushtorch.simulate`` (a user error exits with status 2 and one line)."""
-    compose_or_exit("pushtorch.simulate", "simulate")
+    compose_or_exit("pushtorch-simulate", "simulate")
     _app()
 
 

@@ -1,5 +1,0 @@
-"""Deprecated path of :mod:`pushtorch.apps.config_check`, kept for one release."""
-
-from pushtorch.deprecation import alias_module
-
-alias_module(__name__, "pushtorch.apps.config_check")
