@@ -139,3 +139,46 @@ def test_executor_configs_are_checked():
         executor_from_config({"kind": "ray", "adress": "auto"})
     with pytest.raises(InvalidParameterError, match="executor.timeout_min"):
         Executor("slurm", timeout_min=0)
+
+
+def _without_slurm() -> dict:
+    """This environment with a ``PATH`` of folders that hold no ``sbatch`` (CI's machines have none)."""
+    import shutil
+
+    folders = [f for f in os.environ.get("PATH", "").split(os.pathsep)
+               if f and not shutil.which("sbatch", path=f)]
+    return dict(os.environ, PATH=os.pathsep.join([str(Path(sys.executable).parent), *folders]),
+                PYTHONPATH=str(ROOT))
+
+
+@pytest.mark.parametrize("app", ["pushtorch.apps.simulate", "pushtorch"])
+def test_slurm_asked_for_without_slurm_is_one_line_exit_2_and_no_run_folder(tmp_path, app):
+    """submitit would fall back to local processes without a word: a user on a login node would run there."""
+    run_dir = tmp_path / "run"
+    result = subprocess.run([sys.executable, "-m", app, "executor=slurm", f"hydra.run.dir={run_dir}"],
+                            cwd=tmp_path, capture_output=True, text=True, timeout=120, env=_without_slurm())
+    assert result.returncode == 2, result.stderr[-2000:]
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "sbatch is not on this machine's PATH" in lines[0], result.stderr
+    assert "executor.cluster=local" in lines[0]
+    assert not run_dir.exists()
+
+
+def test_an_unknown_slurm_partition_is_refused_and_a_local_array_needs_no_slurm(tmp_path, monkeypatch):
+    from pushtorch.sim.executors import slurm_problem
+
+    for name, body in (("sbatch", "exit 0"), ("sinfo", "printf 'cpu*\\ngpu\\n'")):
+        script = tmp_path / name  # stand-ins for Slurm's commands: only what they print is read
+        script.write_text(f"#!/bin/sh\n{body}\n")
+        script.chmod(0o755)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    assert "is not a Slurm partition here; sinfo lists cpu, gpu" in slurm_problem(Executor("slurm", partition="x"))
+    assert slurm_problem(Executor("slurm", partition="gpu")) is None
+    assert slurm_problem(Executor("slurm")) is None
+    monkeypatch.setenv("PATH", str(tmp_path / "nothing"))
+    assert "sbatch" in slurm_problem(Executor("slurm"))
+    assert slurm_problem(Executor("slurm", cluster="local")) is None
+    with pytest.raises(InvalidParameterError, match="sbatch"):
+        from pushtorch.sim.executors import SlurmPool
+
+        SlurmPool(None, None, Executor("slurm"))

@@ -350,6 +350,14 @@ def _structured_problems(app: str, c: Mapping[str, Any]) -> list[str]:
             SimSettings(**c["sim"])
         except (InvalidParameterError, TypeError) as exc:
             problems.append(f"sim: {exc}")
+    if isinstance(c.get("executor"), Mapping):
+        from pushtorch.sim.executors import executor_from_config, slurm_problem
+
+        try:
+            if problem := slurm_problem(executor_from_config(c["executor"])):
+                problems.append(problem)
+        except InvalidParameterError as exc:
+            problems.append(f"executor: {exc}")
     settings = [(k[: -len(".settings")], v) for k, v in _sections(c, "settings")]
     for where, node in settings:
         if where.endswith("model") or where == "model":
@@ -560,7 +568,7 @@ class ConfigCheck(Callback):
         elif not os.access(existing, os.W_OK | os.X_OK):
             problem = f"{existing} is not writable"
         if problem:
-            app = {"config": "pushtorch"}.get(str(config_name), f"pushtorch.{config_name}")
+            app = {"config": "pushtorch"}.get(str(config_name), f"pushtorch-{config_name}")
             print(f"{app}: cannot make the {mode} folder {folder}: {problem} (hydra.{mode}.dir)", file=sys.stderr)
             sys.exit(2)
 
@@ -571,6 +579,6 @@ class ConfigCheck(Callback):
         try:
             check_config(config, config_name)
         except ConfigError as exc:
-            app = {"config": "pushtorch"}.get(config_name, f"pushtorch.{config_name}")
+            app = {"config": "pushtorch"}.get(config_name, f"pushtorch-{config_name}")
             print(f"{app}: {exc}{where}", file=sys.stderr)
             sys.exit(2)

@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import hashlib
 import os
+import shutil
 import socket
+import subprocess
 import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, fields
@@ -32,7 +34,7 @@ from pathlib import Path
 
 from pushtorch.errors import InvalidParameterError, MissingDependencyError
 
-__all__ = ["EXECUTORS", "Executor", "executor_from_config"]
+__all__ = ["EXECUTORS", "Executor", "executor_from_config", "slurm_problem"]
 
 #: The executors ``executor.kind`` may name.
 EXECUTORS = ("local", "ray", "slurm")
@@ -198,10 +200,43 @@ class RayPool(_RemotePool):
             yield self.ray.get(done[0])
 
 
+def slurm_problem(executor: Executor) -> str | None:
+    """Why ``executor`` (kind ``slurm``) cannot reach Slurm from this machine, or None.
+
+    submitit's ``AutoExecutor`` falls back to local processes without a word when it finds no Slurm, and so
+    does a partition Slurm does not know: a paper-size run would then run on a login node. So a Slurm array
+    asks for ``sbatch`` on the ``PATH``, and a named partition must be one ``sinfo`` lists (when ``sinfo``
+    answers). ``cluster=local`` is the explicit way to run an array as local processes.
+    """
+    if executor.kind != "slurm" or executor.cluster == "local":
+        return None
+    if executor.cluster not in (None, "slurm"):
+        return f"executor.cluster must be null (Slurm) or local, got {executor.cluster!r}"
+    if shutil.which("sbatch") is None:
+        return ("executor=slurm needs Slurm, but sbatch is not on this machine's PATH: run from a Slurm login "
+                "node, or set executor.cluster=local to run the array as local processes")
+    if executor.partition and shutil.which("sinfo") is not None:
+        try:
+            listed = subprocess.run(["sinfo", "-h", "-o", "%P"], capture_output=True, text=True, timeout=30)
+        except (OSError, subprocess.SubprocessError):
+            return None  # Slurm is there; its own submission names a bad partition
+        known = {name.strip().rstrip("*") for name in listed.stdout.split()} if listed.returncode == 0 else set()
+        if known and executor.partition not in known:
+            return (f"executor.partition={executor.partition!r} is not a Slurm partition here; sinfo lists "
+                    f"{', '.join(sorted(known))}")
+    return None
+
+
 class SlurmPool(_RemotePool):
-    """Shards as one submitit array job, a task per block of shards; yields each block's results as it ends."""
+    """Shards as one submitit array job, a task per block of shards; yields each block's results as it ends.
+
+    Raises:
+        InvalidParameterError: no Slurm reachable, or an unknown partition (:func:`slurm_problem`).
+    """
 
     def __init__(self, spec, settings, executor: Executor):
+        if problem := slurm_problem(executor):
+            raise InvalidParameterError(problem)
         self.submitit = _require("submitit", "slurm")
         self.spec, self.settings, self.executor = spec, settings, executor
 
