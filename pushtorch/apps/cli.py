@@ -1,7 +1,7 @@
 """What every Hydra app of pushtorch does around its stage: find its configs, claim its run folder, run, report.
 
-Shared by the main app (``python -m pushtorch``) and the stage apps (``pushtorch.simulate``,
-``pushtorch.train``, ``pushtorch.predict``). Configs are the package ``pushtorch.conf`` (:data:`CONFIG_PATH`),
+Shared by the main app (``python -m pushtorch``) and the stage apps (``pushtorch-simulate``,
+``pushtorch-train``, ``pushtorch-predict``). Configs are the package ``pushtorch.conf`` (:data:`CONFIG_PATH`),
 so an installed copy runs from any folder. A user error (a :class:`PushtorchError`) is printed as one line
 naming the problem and exits with status 2; it must be caught inside the Hydra task, because Hydra catches
 exceptions itself before they reach code around the decorated function.

@@ -1,4 +1,4 @@
-"""Combine the ``results.json`` of runs and sweeps into one tidy table: ``python -m pushtorch.collect``.
+"""Combine the ``results.json`` of runs and sweeps into one tidy table: ``pushtorch-collect``.
 
 Not a paper section: the step after a Hydra multirun (README, "A sweep over training priors"). Each job of a
 sweep writes its own ``results.json`` (records of the paper's tables) with the command-line overrides it ran
@@ -11,7 +11,7 @@ with; this module finds them under the folders it is given and writes
 
 Usage::
 
-    python -m pushtorch.collect runs/multirun/2026-11-25/10-00-00-000000 [more folders] [--out folder]
+    pushtorch-collect runs/multirun/2026-11-25/10-00-00-000000 [more folders] [--out folder]
 """
 
 from __future__ import annotations
@@ -227,7 +227,7 @@ class _OneLineParser(argparse.ArgumentParser):
 
 
 def parser() -> argparse.ArgumentParser:
-    """The command line of ``python -m pushtorch.collect``."""
+    """The command line of ``pushtorch-collect``."""
     parser = _OneLineParser(prog="pushtorch-collect", description=__doc__.split("\n\n")[0])
     parser.add_argument("folders", nargs="+", help="run or sweep folders (searched for results.json)")
     parser.add_argument("--out", default=None,
@@ -236,7 +236,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m pushtorch.collect FOLDER... [--out DIR]``; a user error exits with status 2 and one line."""
+    """``pushtorch-collect FOLDER... [--out DIR]``; a user error exits with status 2 and one line."""
     args = parser().parse_args(argv)
     out = args.out if args.out is not None else (args.folders[0] if len(args.folders) == 1 else ".")
     try:

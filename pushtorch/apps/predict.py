@@ -6,8 +6,8 @@ and predict the final pose for each action (:func:`pushtorch.prediction.forward`
 ``truth_samples`` ground-truth pushes per action from the predicted robot start pose, with mass and
 friction drawn from the chosen priors, and measure H_acc. Usage::
 
-    python -m pushtorch.predict 'models=[runs/train_cube/model.npz]' object=prism_long yaw_deg=20
-    python -m pushtorch.predict 'models=[cube.npz,cylinder.npz]' object=mesh object.path=part.stl
+    pushtorch-predict 'models=[runs/train_cube/model.npz]' object=prism_long yaw_deg=20
+    pushtorch-predict 'models=[cube.npz,cylinder.npz]' object=mesh object.path=part.stl
 
 (``python -m pushtorch.predict_cli`` is the same app.) Output in the run directory: ``predictions.json``
 (each action's H_acc and ``nll``, the negative log-likelihood of each ground truth under the predicted
@@ -36,7 +36,7 @@ from pushtorch.errors import InvalidParameterError
 
 __all__ = ["main", "predict_from_config"]
 
-log = logging.getLogger("pushtorch-predict")
+log = logging.getLogger("pushtorch.apps.predict")
 
 
 def _pose_dict(pose) -> dict[str, list[float]]:
@@ -225,7 +225,7 @@ def _app(cfg: DictConfig) -> dict[str, Any]:
 
 
 def main() -> None:
-    """Entry point of ``python -m pushtorch.predict`` (a user error exits with status 2 and one line)."""
+    """Entry point of ``pushtorch-predict`` (a user error exits with status 2 and one line)."""
     compose_or_exit("pushtorch-predict", "predict")
     _app()
 

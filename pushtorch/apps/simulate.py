@@ -3,9 +3,9 @@
 Paper, Experimental Setup and Biasing Transferable Push Manipulation Models: for each action, place the
 robot against the object, draw the physical parameters from the prior, push, record. Usage::
 
-    python -m pushtorch.simulate object=cube friction=general mass=fixed samples_per_action=500
-    python -m pushtorch.simulate -m friction=general,low,medium,high hydra/launcher=joblib
-    python -m pushtorch.simulate -m hydra/launcher=slurm hydra.launcher.partition=<p> \
+    pushtorch-simulate object=cube friction=general mass=fixed samples_per_action=500
+    pushtorch-simulate -m friction=general,low,medium,high hydra/launcher=joblib
+    pushtorch-simulate -m hydra/launcher=slurm hydra.launcher.partition=<p> \
         mass=general,low,medium,high
 
 Output in the run directory: ``pushes/`` (shards + ``manifest.json``, see :mod:`pushtorch.sim.shards`),
@@ -32,7 +32,7 @@ from pushtorch.errors import InvalidParameterError
 
 __all__ = ["main", "simulate_from_config"]
 
-log = logging.getLogger("pushtorch-simulate")
+log = logging.getLogger("pushtorch.apps.simulate")
 
 
 def _plain(cfg: Any) -> Any:
@@ -140,7 +140,7 @@ def _resume_command(out_dir: Path) -> str:
     from pushtorch.apps.cli import current_overrides
 
     kept = [o for o in current_overrides() if not o.lstrip("+~").startswith("hydra.run.dir=")]
-    return shlex.join(["python", "-m", "pushtorch-simulate", *kept, f"hydra.run.dir={out_dir}"])
+    return shlex.join(["pushtorch-simulate", *kept, f"hydra.run.dir={out_dir}"])
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="simulate")
@@ -149,7 +149,7 @@ def _app(cfg: DictConfig) -> dict[str, Any]:
 
 
 def main() -> None:
-    """Entry point of ``python -m pushtorch.simulate`` (a user error exits with status 2 and one line)."""
+    """Entry point of ``pushtorch-simulate`` (a user error exits with status 2 and one line)."""
     compose_or_exit("pushtorch-simulate", "simulate")
     _app()
 

@@ -4,9 +4,9 @@ Stage one (full cloud → manipulator contact model and position model) and stag
 environment contact and motion models) of :func:`pushtorch.models.library.train_push_model`, as a
 Hydra app. Usage::
 
-    python -m pushtorch.simulate object=cube friction=general hydra.run.dir=runs/sim_cube
-    python -m pushtorch.train object=cube data=runs/sim_cube
-    python -m pushtorch.train object=cylinder 'data=[runs/a,runs/b]' model=quick
+    pushtorch-simulate object=cube friction=general hydra.run.dir=runs/sim_cube
+    pushtorch-train object=cube data=runs/sim_cube
+    pushtorch-train object=cylinder 'data=[runs/a,runs/b]' model=quick
 
 Output in the run directory: ``model.npz`` (load with :func:`pushtorch.models.library.load_model`),
 ``summary.json``, ``resolved_config.yaml`` and ``recording.rrd`` (the contact and position frames, see
@@ -32,7 +32,7 @@ from pushtorch.errors import InvalidParameterError
 
 __all__ = ["main", "train_from_config"]
 
-log = logging.getLogger("pushtorch-train")
+log = logging.getLogger("pushtorch.apps.train")
 
 
 def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) -> dict[str, Any]:
@@ -76,7 +76,7 @@ def train_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path) 
     except (KeyError, TypeError) as exc:
         raise InvalidParameterError(f"train config is missing or mistypes a key: {exc}") from exc
     if not folders:
-        raise InvalidParameterError("no training data: set data=<a pushtorch.simulate run directory>")
+        raise InvalidParameterError("no training data: set data=<a pushtorch-simulate run directory>")
     allow_partial = c.get("allow_partial", False)
     if not isinstance(allow_partial, bool):
         raise InvalidParameterError(f"allow_partial must be true or false, got {allow_partial!r}")
@@ -143,7 +143,7 @@ def _app(cfg: DictConfig) -> dict[str, Any]:
 
 
 def main() -> None:
-    """Entry point of ``python -m pushtorch.train`` (a user error exits with status 2 and one line)."""
+    """Entry point of ``pushtorch-train`` (a user error exits with status 2 and one line)."""
     compose_or_exit("pushtorch-train", "train")
     _app()
 

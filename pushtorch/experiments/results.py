@@ -126,7 +126,7 @@ def write_results(out_dir: Path, experiment: str, config: Mapping[str, Any], wal
     """``results.json`` in the run directory (the layout in the module docstring).
 
     ``overrides`` are the run's command-line overrides (Hydra's task overrides), so a sweep's jobs can be
-    told apart and tabulated by what was swept (``python -m pushtorch.collect``). ``model_bandwidths``: per
+    told apart and tabulated by what was swept (``pushtorch-collect``). ``model_bandwidths``: per
     trained model, the bandwidths its search chose (``PushModel.meta["bandwidths"]``). ``separability``: the
     online-adaptation experiment's separability of adjacent test conditions (key ``separability``, when any).
     """

@@ -251,7 +251,7 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32,
     if version is not None and version != VERSION:  # before the seal: older versions have none
         raise RecordFormatError(
             f"{path} is model format version {version}, this pushtorch reads version {VERSION}: "
-            "retrain the model with this version (python -m pushtorch.train ...)"
+            "retrain the model with this version (pushtorch-train ...)"
         )
     archive_bytes = read_sealed_archive(data, path, sealed="the header and every array",
                                         remedy="retrain or restore the model")

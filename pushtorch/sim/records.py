@@ -235,7 +235,7 @@ def load_records(
     if path.is_file():
         return records_from_arrays(_trimmed(read_shard(path), trajectories), dtype, device)
     if not path.exists():
-        raise RecordFormatError(f"{path} does not exist: give a pushtorch.simulate run folder (or its pushes/)")
+        raise RecordFormatError(f"{path} does not exist: give a pushtorch-simulate run folder (or its pushes/)")
     folder = shard_folder(path)
     status = run_status(folder)
     if status is not None and not status.complete and not allow_partial:

@@ -185,7 +185,7 @@ def read_shard(path: str | Path) -> dict[str, np.ndarray]:
     manifest_path = path.with_suffix(".json")
     if not _SHARD_RE.match(manifest_path.name):
         raise RecordFormatError(
-            f"{path} is not a push-record shard (shard-<number>.json/.npz): give a pushtorch.simulate run folder,"
+            f"{path} is not a push-record shard (shard-<number>.json/.npz): give a pushtorch-simulate run folder,"
             " its pushes/ folder or one of its shards"
         )
     manifest = read_manifest(manifest_path)
