@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf
 
@@ -97,11 +97,12 @@ def test_training_placement_comes_from_the_protocol_and_keeps_its_own_caches(tmp
         context_from_config(_compose(["experiment=quickstart", "+model.placement.lateral=0.05"]), tmp_path)
 
 
-def test_quickstart_runs_every_experiment_smaller():
+def test_quickstart_runs_every_paper_experiment_smaller_and_points_to_the_rest():
     cfg = _compose(["experiment=quickstart"])
     parts = cfg.experiment.parts
-    assert {p.kind for p in parts.values()} == {"model_selection", "pose_estimation", "biasing", "online_adaptation",
-                                                "shape_transfer"}
+    assert {p.kind for p in parts.values() if not p.get("skip")} == {"model_selection", "pose_estimation", "biasing",
+                                                                    "online_adaptation"}
+    assert parts.shape_transfer.skip and "pushtorch experiment=quickstart_transfer" in cfg.experiment.more
     assert {p.bias for p in parts.values() if p.kind == "biasing"} == {"friction", "mass"}
     assert parts.pose_estimation.runs < 100 and parts.model_selection.test_conditions < 50
     assert cfg.model.samples_per_action < 500
@@ -109,7 +110,9 @@ def test_quickstart_runs_every_experiment_smaller():
     assert online.test_conditions * cfg.experiment.actions.count >= 30  # scored pushes per object and condition
     # the extreme conditions of both parameters at least
     assert {"low", "high"} <= set(online.conditions.friction) and {"low", "high"} <= set(online.conditions.mass)
-    transfer = parts.shape_transfer
+    transfer_cfg = _compose(["experiment=quickstart_transfer"])
+    assert [name for name, part in transfer_cfg.experiment.parts.items() if not part.skip] == ["shape_transfer"]
+    transfer = transfer_cfg.experiment.parts.shape_transfer
     assert transfer.test_conditions * cfg.experiment.actions.count >= 30  # scored pushes per object
     assert set(transfer.transfer_objects) <= set(transfer.objects)
     assert not set(transfer.model.training_objects) & set(transfer.objects)
@@ -150,6 +153,54 @@ def test_acceptance_checks_fail_when_a_baseline_wins():
     assert [c["passed"] for c in acceptance_checks([good, still])] == [True]
     worse = summarise("prediction", "cube", "no_motion", _accuracy([0.01, 0.02]), *group)
     assert [c["passed"] for c in acceptance_checks([good, worse])] == [False]
+
+
+def _selection(method: str, values: list[float]) -> dict:
+    return summarise("selection", "cube", method, _accuracy(values), "cube", "selection")
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(0.01, 1.0), st.floats(0.0, 0.3), st.integers(2, 30), st.floats(-6.0, 6.0))
+def test_a_match_claim_holds_within_three_standard_errors_or_five_percent(level, spread, n, shift_in_se):
+    """``adaptive matches congruent`` holds exactly when |difference| <= max(3 SE, 5 % of congruent's H_acc)."""
+    base = [level + spread * ((-1) ** i) for i in range(n)]
+    congruent = _selection("congruent", base)
+    se0 = math.sqrt(2 * congruent["hacc_std"] ** 2 / n)
+    shifted = _selection("adaptive", [v + shift_in_se * max(se0, 1e-3) for v in base])
+    check = next(c for c in acceptance_checks([congruent, shifted]) if c["check"] == "adaptive matches congruent")
+    diff = shifted["hacc_mean"] - congruent["hacc_mean"]
+    se = math.sqrt(shifted["hacc_std"] ** 2 / n + congruent["hacc_std"] ** 2 / n)
+    margin = max(3 * se, 0.05 * congruent["hacc_mean"])
+    if abs(abs(diff) - margin) > 1e-6:  # away from the boundary, where float rounding decides
+        assert check["passed"] == (abs(diff) <= margin), check
+
+
+def test_research_questions_are_findings_never_checks():
+    from pushtorch.experiments.transfer_report import transfer_findings, transfer_section
+
+    group = ("friction:low", "friction:low")
+    records = [dict(summarise("transfer", "hybrid", m, _accuracy(v), "shapes" if m != "pushtorch" else "two",
+                              group[0], metric="displacement", nll=torch.tensor([1.0, 2.0])), task="transfer")
+               for m, v in (("pushtorch_shapes", [0.9, 1.0]), ("pushtorch", [0.1, 0.12]))]
+    info = {"transfer_objects": ["hybrid"], "held_out": []}
+    findings = transfer_findings(records, info)
+    assert [(f["question"], f["held"]) for f in findings][0] == ("pushtorch_shapes within 2 SE of pushtorch or "
+                                                                 "better", False)
+    assert acceptance_checks(records) == []  # a "not yet" never turns a run red
+    assert "### Research questions" in transfer_section(records, info, set())
+
+
+def test_the_summary_names_the_strongest_non_oracle_peer():
+    from pushtorch.experiments.summary import summary_table
+
+    group = ("friction:low", "friction:low")
+    records = [summarise("prediction", "cube", m, _accuracy(v), *group, metric="displacement")
+               for m, v in (("pushtorch", [0.1, 0.1]), ("no_motion", [2.0, 2.0]), ("mean_motion", [0.3, 0.3]),
+                            ("oracle_physics", [0.01, 0.01]))]
+    table = summary_table(records, acceptance_checks(records))
+    header, row = table.splitlines()[:2]
+    assert header.split()[:3] == ["object", "pushtorch", "H_acc"]
+    assert row.split()[0] == "cube" and "mean_motion" in row and "oracle" not in table and row.endswith("1/1")
 
 
 def test_sampled_test_poses_are_seeded_upright_and_in_range():
@@ -194,6 +245,7 @@ TINY = [
     "experiment.parts.online_adaptation.test_conditions=2",
     "experiment.parts.online_adaptation.observed=[0,2]",
     "experiment.parts.online_adaptation.peer_grid=3",
+    "experiment.parts.shape_transfer.skip=false",
     "experiment.parts.shape_transfer.objects=[prism_thin]",
     "experiment.parts.shape_transfer.transfer_objects=[prism_thin]",
     "experiment.parts.shape_transfer.held_out=1",

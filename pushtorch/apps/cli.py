@@ -155,7 +155,11 @@ def run_stage(name: str, cfg: DictConfig, run: Callable[[DictConfig, Path], dict
         print(f"{name}: {where}{exc.strerror or exc}", file=sys.stderr)
         sys.exit(2)
     for key, value in summary.items():
-        print(f"{key}: {value}")
+        if key == "summary":  # a table of its own lines, before the paths
+            if value:
+                print(value)
+        else:
+            print(f"{key}: {value}")
     return summary
 
 

@@ -52,6 +52,9 @@ class Entry:
 EXPERIMENTS: dict[str, Entry] = {
     "quickstart": Entry("pushtorch.experiments.quickstart:run", "Experimental Results, all of it at small sizes",
                         "every part in experiment.parts into one run (make demo)"),
+    "quickstart_transfer": Entry("pushtorch.experiments.quickstart:run",
+                                 "§Conclusion's transfer by local contact models, at the quickstart's size",
+                                 "transfer from many shapes, left out of the main job for time"),
     "model_selection": Entry("pushtorch.experiments.model_selection:run",
                              "§Contact Model Selection, Fig. adaptive_results",
                              "congruent / incongruent / adaptive models on the cube and the cylinder"),

@@ -98,7 +98,7 @@ def write_outputs(out_dir: Path, experiment: str, config: Mapping[str, Any], wal
                             extras.get("model_bandwidths"), extras.get("online_separability") or ())
     figures = make_figures(out_dir, primary(records), extras)
     figure_data = write_figure_data(out_dir, extras)  # what tools/redraw_figures.py redraws them from
-    checks = acceptance_checks(primary(records), extras.get("thrown") or (), extras.get("transfer"))
+    checks = acceptance_checks(primary(records), extras.get("thrown") or ())
     report = write_report(out_dir, experiment, wall_s, records, extras, figures, checks,
                           config.get("test_placement"), engines(config))
     return {"results": results, "report": report, "figures": figures, "figure_data": figure_data,

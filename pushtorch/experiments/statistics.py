@@ -15,6 +15,9 @@ import numpy as np
 from pushtorch.experiments.tables import select
 
 __all__ = [
+    "EQUIVALENCE_SE",
+    "EQUIVALENCE_SHARE",
+    "equivalence_margin",
     "BOOTSTRAP_RESAMPLES",
     "LOG_AXIS_RATIO",
     "SAMPLE_KEYS",
@@ -40,6 +43,19 @@ BOOTSTRAP_RESAMPLES = 2000
 
 #: The record keys that name a group's per-sample values (:func:`sample_entry`, :func:`record_key`).
 SAMPLE_KEYS = ("task", "object", "method", "model", "condition")
+#: "X matches Y" holds when their difference in H_acc is within max(EQUIVALENCE_SE × its standard error,
+#: EQUIVALENCE_SHARE × Y's H_acc) (docs/experiments.md, "Claims and findings"): three standard errors keep a
+#: true claim from failing on noise (two-sided 0.27 % per check, where two SE failed 5 % of true checks and a
+#: main job of 20 checks then failed one in three runs); 5 % of the reference's H_acc is the practical margin,
+#: far below the 30-100 % gaps that tell a wrong model from the right one (the incongruent and general models).
+EQUIVALENCE_SE = 3.0
+EQUIVALENCE_SHARE = 0.05
+
+
+def equivalence_margin(se: float, reference_hacc: float) -> float:
+    """How far "X matches Y" lets X's H_acc differ from Y's: ``max(3 SE, 5 % of Y's H_acc)``
+    (:data:`EQUIVALENCE_SE`, :data:`EQUIVALENCE_SHARE`), plus float slack."""
+    return max(EQUIVALENCE_SE * float(se), EQUIVALENCE_SHARE * float(reference_hacc)) + 1e-9
 
 
 def pool(records: Iterable[Mapping[str, Any]]) -> dict[str, float]:

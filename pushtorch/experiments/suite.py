@@ -22,6 +22,7 @@ from typing import Any
 
 from pushtorch.experiments.common import ExperimentContext, context_from_config, entity_label, plain
 from pushtorch.experiments.registry import part_runner
+from pushtorch.experiments.summary import summary_table
 
 __all__ = ["run_suite"]
 
@@ -75,8 +76,9 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]],
         overrides: the command line's overrides, recorded in results.json (the app passes them).
 
     Returns:
-        The summary the CLI prints: where results.json, report.md and recording.rrd are, the wall time,
-        the number of records and the acceptance checks passed.
+        The summary the CLI prints: a table per object (:func:`~pushtorch.experiments.summary.summary_table`),
+        where results.json, report.md and recording.rrd are, the wall time, the number of records, the
+        acceptance checks passed and the command that opens the recording.
 
     Raises:
         InvalidParameterError: an unknown part kind (:func:`pushtorch.experiments.registry.part_runner`);
@@ -117,6 +119,7 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]],
     outputs = write_outputs(out_dir, name, plain(cfg), wall, records, extras, overrides=list(overrides))
     passed = sum(c["passed"] for c in outputs["checks"])
     return {
+        "summary": summary_table(records, outputs["checks"]),
         "report": str(outputs["report"]),
         "recording": str(recording_path),
         "results": str(outputs["results"]),
@@ -124,4 +127,5 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]],
         "records": len(records),
         "wall_s": round(wall, 1),
         "checks": f"{passed}/{len(outputs['checks'])} passed",
+        "view": f"rerun {recording_path}",
     }

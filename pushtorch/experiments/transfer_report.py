@@ -1,6 +1,8 @@
-"""The shape-transfer experiment's part of the outputs: its acceptance checks, its report section and the
-calibration figure (predicted against observed coverage) (paper, §Test Set and §Prediction Accuracy on Novel
-Contexts for the protocol; §Conclusion's transfer by local contact models for the thesis tested).
+"""The shape-transfer experiment's part of the outputs: its research questions answered as findings (never
+acceptance checks: "does the pooled model beat the two-object one" is a question, not a promise of the
+software), its report section and the calibration figure (predicted against observed coverage) (paper, §Test
+Set and §Prediction Accuracy on Novel Contexts for the protocol; §Conclusion's transfer by local contact models
+for the thesis tested).
 :mod:`pushtorch.experiments.shape_transfer` makes the records (``task: "transfer"``); this module only reads them.
 """
 
@@ -13,7 +15,7 @@ from typing import Any
 from pushtorch.experiments.statistics import pool
 from pushtorch.experiments.tables import method_label, ordered, primary, select, table
 
-__all__ = ["TRANSFER_ORDER", "coverage_figure", "transfer_checks", "transfer_section"]
+__all__ = ["TRANSFER_ORDER", "coverage_figure", "transfer_findings", "transfer_section"]
 
 #: The methods' order in tables and figures.
 TRANSFER_ORDER = ("pushtorch_shapes", "pushtorch_library", "pushtorch", "mean_motion", "nearest_push",
@@ -31,8 +33,10 @@ def _pooled(records: Iterable[Mapping[str, Any]], **keys: Any) -> dict[str, floa
     return pool(select(records, **keys))
 
 
-def transfer_checks(records: Sequence[Mapping[str, Any]], info: Mapping[str, Any] | None) -> list[dict[str, Any]]:
-    """The experiment's acceptance checks, pooled over test conditions:
+def transfer_findings(records: Sequence[Mapping[str, Any]], info: Mapping[str, Any] | None) -> list[dict[str, Any]]:
+    """The experiment's research questions and their measured answers, pooled over test conditions (each
+    ``{"question", "object", "held", "detail"}``; report.md's "Research questions" table, results.json's
+    ``findings``):
 
     * on every transfer object, ``pushtorch_shapes``'s H_acc ≤ ``pushtorch``'s + 2 standard errors of their
       difference;
@@ -43,7 +47,7 @@ def transfer_checks(records: Sequence[Mapping[str, Any]], info: Mapping[str, Any
     transfer = _transfer(records)
     if not transfer or info is None:
         return []
-    checks = []
+    findings = []
     held_out = set(info.get("held_out") or [])
     objects = ordered(r["object"] for r in transfer)
     for obj in [o for o in objects if o in set(info.get("transfer_objects") or [])]:
@@ -53,31 +57,31 @@ def transfer_checks(records: Sequence[Mapping[str, Any]], info: Mapping[str, Any
             continue
         se = math.sqrt(ours["hacc_std"] ** 2 / ours["n"] + paper["hacc_std"] ** 2 / paper["n"])
         diff = ours["hacc_mean"] - paper["hacc_mean"]
-        checks.append({"check": "pushtorch_shapes within 2 SE of pushtorch or better", "object": obj,
-                       "passed": diff <= 2 * se + 1e-9,
-                       "detail": f"H_acc {ours['hacc_mean']:.3f} vs {paper['hacc_mean']:.3f} (difference "
-                                 f"{diff:+.3f}, 2 SE {2 * se:.3f})"})
+        findings.append({"question": "pushtorch_shapes within 2 SE of pushtorch or better", "object": obj,
+                         "held": diff <= 2 * se + 1e-9,
+                         "detail": f"H_acc {ours['hacc_mean']:.3f} vs {paper['hacc_mean']:.3f} (difference "
+                                   f"{diff:+.3f}, 2 SE {2 * se:.3f})"})
     low, high = (info.get("coverage_band") or [0.80, 0.97])[:2]
     for obj in [o for o in objects if o not in held_out]:
         ours = _pooled(transfer, object=obj, method="pushtorch_shapes")
         mean = _pooled(transfer, object=obj, method="mean_motion", model="shapes")
         if ours["n"] and mean["n"]:
-            checks.append({"check": "pushtorch_shapes nll below its mean_motion's", "object": obj,
-                           "passed": ours["nll_mean"] < mean["nll_mean"],
-                           "detail": f"nll {ours['nll_mean']:.1f} vs {mean['nll_mean']:.1f}"})
+            findings.append({"question": "pushtorch_shapes nll below its mean_motion's", "object": obj,
+                             "held": ours["nll_mean"] < mean["nll_mean"],
+                             "detail": f"nll {ours['nll_mean']:.1f} vs {mean['nll_mean']:.1f}"})
         if ours["n"] and not math.isnan(ours["coverage_90"]):
-            checks.append({"check": f"pushtorch_shapes 90 % coverage in [{low:.2f}, {high:.2f}]", "object": obj,
-                           "passed": low <= ours["coverage_90"] <= high,
-                           "detail": f"coverage_90 {ours['coverage_90']:.2f}, coverage_50 "
-                                     f"{ours['coverage_50']:.2f} (n {ours['n']})"})
+            findings.append({"question": f"pushtorch_shapes 90 % coverage in [{low:.2f}, {high:.2f}]",
+                             "object": obj, "held": low <= ours["coverage_90"] <= high,
+                             "detail": f"coverage_90 {ours['coverage_90']:.2f}, coverage_50 "
+                                       f"{ours['coverage_50']:.2f} (n {ours['n']})"})
     shapes = [o for o in objects if o in held_out]
     if shapes:
         wins = sum(_pooled(transfer, object=o, method="pushtorch_shapes")["hacc_mean"]
                    < _pooled(transfer, object=o, method="mean_motion", model="shapes")["hacc_mean"] for o in shapes)
-        checks.append({"check": "pushtorch_shapes beats its mean_motion on >= 75 % of held-out shapes",
-                       "object": f"{len(shapes)} held-out shapes", "passed": wins >= 0.75 * len(shapes),
-                       "detail": f"{wins} / {len(shapes)}"})
-    return checks
+        findings.append({"question": "pushtorch_shapes beats its mean_motion on >= 75 % of held-out shapes",
+                         "object": f"{len(shapes)} held-out shapes", "held": wins >= 0.75 * len(shapes),
+                         "detail": f"{wins} / {len(shapes)}"})
+    return findings
 
 
 def _number(value: float, digits: int) -> str:
@@ -131,6 +135,13 @@ def transfer_section(records: Sequence[Mapping[str, Any]], info: Mapping[str, An
         lines += table(["object", "mean_motion", "nearest_push"], rows)
     if "coverage.png" in figure_names:
         lines += ["![predicted against observed coverage](figures/coverage.png)", ""]
+    findings = transfer_findings(records, info)
+    if findings:
+        lines += ["### Research questions", "",
+                  "What this run measured of the open questions about transfer from many shapes: findings with "
+                  "their answers, not checks of the software (a question not held is a result, not a failure).", ""]
+        lines += table(["question", "object", "held", "measured"],
+                       [(f["question"], f["object"], "yes" if f["held"] else "no", f["detail"]) for f in findings])
     return lines
 
 
