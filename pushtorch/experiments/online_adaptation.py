@@ -248,7 +248,7 @@ def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int,
         for j in range(a_count):
             fixed = {m: group.predicted(models[lv], i, j, f"{lv}|{i}|{j}")
                      for m, lv in (("general", "general"), ("congruent", level), ("incongruent", wrong))}
-            fixed["physics_from_cloud"] = group.cloud_physics(i, j, means[0], means[1], f"pfc|{i}|{j}")
+            fixed["physics_from_cloud"] = group.cloud_physics(i, j, means[0], means[1], f"pfc|{i}")
             if k == 0:
                 fixed["debiased"] = group.predicted(debiased, i, j, f"debiased|{i}|{j}")
                 online = online_general = fixed["general"]
@@ -257,7 +257,7 @@ def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int,
                 online = group.predicted(conditioned, i, j, f"online|{condition}|{i}|{k}|{j}")
                 online_general = group.predicted(conditioned.models[0], i, j, f"online_general|{condition}|{i}|{k}|{j}")
                 best = grid[errors[:k].pow(2).sum(0).argmin()]
-                peer = group.cloud_physics(i, j, float(best[0]), float(best[1]), f"pfco|{condition}|{i}|{k}|{j}")
+                peer = group.cloud_physics(i, j, float(best[0]), float(best[1]), f"pfco|{condition}|{i}|{k}")
             final = se3.Pose.unchecked(truth.p[j].float(), truth.q[j].float())
             for predictor, prediction in {**fixed, "online": online, "online_general": online_general,
                                           "physics_from_cloud_online": peer}.items():

@@ -7,12 +7,15 @@ new cloud, the one whose manipulator contact model has the lowest feature-distan
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from pushtorch.errors import InvalidParameterError
 from pushtorch.features import SurfaceFeatures
-from pushtorch.models.conditioning import kernel_physics, summarise
+from pushtorch.models.conditioning import Observation, kernel_physics, summarise
 from pushtorch.models.model import PushModel
+from pushtorch.models.push_condition import features_for
 from pushtorch.models.query import feature_distance_heuristic, heuristic_descriptors
 from pushtorch.models.settings import as_generator
 
@@ -46,7 +49,19 @@ class ModelLibrary:
     def condition_on(self, observations, seed: int | None = None) -> ConditionedLibrary:
         """Every model conditioned on the observed pushes (:meth:`PushModel.condition_on`), and the library's
         posterior over its models by their evidence (:class:`ConditionedLibrary`)."""
-        return ConditionedLibrary([m.condition_on(observations, seed) for m in self.models])
+        shared = self._with_features(observations)
+        return ConditionedLibrary([m.condition_on(shared, seed) for m in self.models])
+
+    def _with_features(self, observations):
+        """``observations`` with each cloud's surface features computed once for every model, where the models
+        share the feature radius, dtype and device (else as given: each model computes its own)."""
+        first = self.models[0]
+        same = all(m.settings.feature_radius == first.settings.feature_radius and m.dtype == first.dtype
+                   and m.device == first.device for m in self.models)
+        listed = [observations] if isinstance(observations, Observation) else observations
+        if not same or not isinstance(listed, list | tuple) or not all(isinstance(o, Observation) for o in listed):
+            return observations  # condition_on refuses what is malformed, with its own message
+        return [dataclasses.replace(o, cloud=features_for(o.cloud, first.settings, first.position)) for o in listed]
 
 
 class ConditionedLibrary(ModelLibrary):

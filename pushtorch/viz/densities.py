@@ -126,7 +126,8 @@ def log_density(
     try:
         with torch.no_grad():
             draws = density.sample((n,), generator)  # (n, *B, 7)
-            log_p = density.log_prob(draws).reshape(-1).double()
+            # colours and the region need only the order of the draws: no normaliser is estimated for them
+            log_p = density.unnormalised_log_prob(draws).reshape(-1).double()
     except ModelError as exc:
         log.warning("%s: no draws from the prediction's density logged: %s", root, exc)
         return False
