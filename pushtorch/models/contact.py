@@ -15,6 +15,7 @@ contact_frame_probability and the best is kept (:func:`place_environment_contact
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,14 +35,17 @@ Tensor = torch.Tensor
 __all__ = [
     "ManipulatorContactModel",
     "bumper_contact_patch",
+    "bumper_contact_patch_terms",
     "bumper_contacts",
     "closest_points_on_mesh",
     "environment_feature_weights",
     "feature_frames",
     "fit_manipulator_contact_model",
     "floor_relations",
+    "patch_from_terms",
     "place_environment_contacts",
     "sample_environment_contacts",
+    "sample_environment_contacts_in_blocks",
 ]
 
 
@@ -160,6 +164,12 @@ def bumper_contact_patch(points_robot: Tensor, depth: float = 0.01) -> Tensor:
     one contact feature per push; the patch says where the object is along the 0.4 m plate, how wide it meets
     it and how square, which decide how a turning push slides it along the plate.
     """
+    return patch_from_terms(*bumper_contact_patch_terms(points_robot, depth))
+
+
+def bumper_contact_patch_terms(points_robot: Tensor, depth: float = 0.01) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`bumper_contact_patch` before its ``atan2``: ``(y_min, y_max, Σ dx·dy, Σ dy²)``, each ``(...,)``
+    (:func:`patch_from_terms` makes the patch of them)."""
     from pushtorch.robot import bumper_geometry
 
     geometry = bumper_geometry()
@@ -179,9 +189,17 @@ def bumper_contact_patch(points_robot: Tensor, depth: float = 0.01) -> Tensor:
     mean_x = (weight * x).sum(-1, keepdim=True) / count
     mean_y = (weight * y).sum(-1, keepdim=True) / count
     dx, dy = (x - mean_x) * weight, (y - mean_y) * weight
+    y_min, y_max = torch.where(patch, y, inf).amin(-1), torch.where(patch, y, -inf).amax(-1)
+    return y_min, y_max, (dx * dy).sum(-1), (dy * dy).sum(-1)
+
+
+def patch_from_terms(y_min: Tensor, y_max: Tensor, sxy: Tensor, syy: Tensor) -> Tensor:
+    """The contact patch ``(..., 3)`` from :func:`bumper_contact_patch_terms`' reductions: its heading is their
+    ``atan2``. Kept apart so blocks of pushes can gather the terms and take the ``atan2`` once over all of them
+    (:func:`pushtorch.models.motion.fit_motion_model`): torch's vectorised and scalar ``atan2`` differ in the last
+    bit, so where an element falls in the tensor decides its value."""
     # a patch of one point (or a line along x) has no heading: atan2(0, 0) = 0, square
-    heading = torch.atan2((dx * dy).sum(-1), (dy * dy).sum(-1))
-    return torch.stack([torch.where(patch, y, inf).amin(-1), torch.where(patch, y, -inf).amax(-1), heading], -1)
+    return torch.stack([y_min, y_max, torch.atan2(sxy, syy)], -1)
 
 
 def floor_relations(v: se3.Pose) -> se3.Pose:
@@ -226,19 +244,38 @@ def sample_environment_contacts(
     Batched over leading dims (e.g. one row per training push); the loop runs over the ``count``
     contact slots only.
     """
-    if count < 1:
-        raise InvalidParameterError(f"number of environment contacts must be >= 1, got {count}")
     batch = points.shape[:-2]
     flat = points.reshape(-1, *points.shape[-2:])
-    chosen_idx = torch.empty(flat.shape[0], 0, dtype=torch.long, device=points.device)
-    for _ in range(count):
-        chosen = torch.gather(flat, 1, chosen_idx.unsqueeze(-1).expand(-1, -1, 3))
-        weight = environment_feature_weights(flat, chosen)
-        # a degenerate cloud (all weight zero) falls back to a uniform draw rather than failing
-        weight = torch.where(weight.sum(-1, keepdim=True) > 0, weight, torch.ones_like(weight))
-        pick = se3.multinomial(weight, 1, generator)
-        chosen_idx = torch.cat([chosen_idx, pick], -1)
+    rows = flat.shape[0]
+    chosen_idx = sample_environment_contacts_in_blocks(lambda block: flat[block], rows, count, [slice(0, rows)],
+                                                       generator, points.device)
     return chosen_idx.reshape(*batch, count)
+
+
+def sample_environment_contacts_in_blocks(points_of: Callable[[slice], Tensor], rows: int, count: int,
+                                          blocks: list[slice], generator: torch.Generator | None = None,
+                                          device=None) -> Tensor:
+    """:func:`sample_environment_contacts` of ``rows`` clouds whose points ``(B, N, 3)`` ``points_of(block)``
+    makes for each of the consecutive ``blocks`` (slices covering ``range(rows)``): only one block's points
+    and weights are held at a time. Indices ``(rows, count)``.
+
+    Each of the ``count`` slots draws every row before the next slot, block after block: the rows of a
+    ``torch.multinomial`` call draw one after another from the generator, so the draws, and the generator after
+    them, are those of one call over all rows (and the same for any blocks)."""
+    if count < 1:
+        raise InvalidParameterError(f"number of environment contacts must be >= 1, got {count}")
+    chosen_idx = torch.empty(rows, 0, dtype=torch.long, device=device)
+    for _ in range(count):
+        picks = []
+        for block in blocks:
+            flat = points_of(block)
+            chosen = torch.gather(flat, 1, chosen_idx[block].unsqueeze(-1).expand(-1, -1, 3))
+            weight = environment_feature_weights(flat, chosen)
+            # a degenerate cloud (all weight zero) falls back to a uniform draw rather than failing
+            weight = torch.where(weight.sum(-1, keepdim=True) > 0, weight, torch.ones_like(weight))
+            picks.append(se3.multinomial(weight, 1, generator))
+        chosen_idx = torch.cat([chosen_idx, torch.cat(picks)], -1)
+    return chosen_idx
 
 
 def place_environment_contacts(

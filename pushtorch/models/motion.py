@@ -57,11 +57,12 @@ from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.features import SurfaceFeatures
 from pushtorch.kde import KernelBandwidth, PoseKDE
 from pushtorch.models.contact import (
-    bumper_contact_patch,
+    bumper_contact_patch_terms,
     bumper_contacts,
     floor_relations,
+    patch_from_terms,
     place_environment_contacts,
-    sample_environment_contacts,
+    sample_environment_contacts_in_blocks,
 )
 from pushtorch.models.frames import ContactFrames, embed_descriptors
 from pushtorch.models.settings import ModelSettings
@@ -79,6 +80,8 @@ __all__ = [
     "local_motions",
     "nearest_in_contact",
     "motion_frames",
+    "TRAINING_BLOCK_PAIRS",
+    "training_blocks",
 ]
 
 
@@ -207,6 +210,62 @@ def motion_frames(points: Tensor, robot_start: se3.Pose) -> se3.Pose:
     return se3.Pose.unchecked(robot_start.p.expand(*shape, 3), robot_start.q.expand(*shape, 4))
 
 
+#: Feature-push pairs :func:`fit_motion_model` places at a time (a block of pushes × the cloud's features): its
+#: points, normals, contact weights and draws, some 100 bytes a pair, instead of all pushes' at once.
+TRAINING_BLOCK_PAIRS = 1 << 20
+
+
+def training_blocks(n_push: int, n_features: int, block_pushes: int | None = None) -> list[slice]:
+    """Consecutive slices covering ``range(n_push)``, each of ``block_pushes`` to ``2 block_pushes - 1`` pushes
+    (all of them in one when there are fewer than ``2 block_pushes``); ``block_pushes`` None: as many as make
+    :data:`TRAINING_BLOCK_PAIRS` pairs with ``n_features`` features (at least 2)."""
+    if block_pushes is None:
+        block_pushes = max(2, TRAINING_BLOCK_PAIRS // max(n_features, 1))
+    if block_pushes < 1:
+        raise InvalidParameterError(f"block_pushes must be >= 1, got {block_pushes}")
+    count = max(1, n_push // block_pushes)
+    edges = [k * n_push // count for k in range(count + 1)]
+    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+
+
+def _manipulator_picks(features: SurfaceFeatures, object_in_robot: se3.Pose, bumper: trimesh.Trimesh,
+                       blocks: list[slice], per_push: int, cutoff: float, drop_off: float,
+                       generator: torch.Generator | None) -> tuple[Tensor, Tensor, Tensor, tuple[Tensor, ...]]:
+    """The manipulator frames of :func:`fit_motion_model`, block by block of pushes: the touching pushes' rows
+    and picked features ``(K,)``, the picked features' positions in the robot's start frame ``(K, 3)`` and every
+    push's :func:`~pushtorch.models.contact.bumper_contact_patch_terms` ``(P,)`` each.
+
+    Weights beyond the cut-off are exactly 0, so only the features within ``cutoff`` (and a float margin) of
+    the bumper's bounding box are measured against its mesh; the others keep weight 0. Every touching push
+    draws its picks from its full row of ``N`` weights, one ``torch.multinomial`` call per block: rows draw one
+    after another, so the picks, and the generator after them, are those of one call over all pushes."""
+    lo, hi = torch.tensor(bumper.bounds, dtype=features.p.dtype, device=features.p.device)
+    margin = cutoff + 1e-3  # the distances are measured in float32
+    rows, picks, points, terms = [], [], [], []
+    for block in blocks:
+        pose = object_in_robot.take(block)
+        points_robot = se3.apply(pose.unsqueeze(-1), features.p)  # (B, N, 3)
+        terms.append(bumper_contact_patch_terms(points_robot, cutoff))
+        near = ((points_robot >= lo - margin) & (points_robot <= hi + margin)).all(-1)  # (B, N)
+        weight = torch.zeros(points_robot.shape[:-1], dtype=points_robot.dtype, device=points_robot.device)
+        if near.any():
+            normals = se3.apply(se3.Pose.unchecked(torch.zeros_like(pose.p), pose.q).unsqueeze(-1), features.normal)
+            dist, touching = bumper_contacts(bumper, points_robot[near], normals[near], cutoff)
+            weight[near] = torch.exp(-drop_off * dist**2) * touching
+        touched = (weight.sum(-1) > 0).nonzero().squeeze(-1)
+        if len(touched) == 0:
+            continue
+        pick = torch.multinomial(weight[touched], per_push, replacement=True, generator=generator)
+        touched = touched.unsqueeze(-1).expand_as(pick).reshape(-1)
+        pick = pick.reshape(-1)
+        rows.append(touched + block.start)
+        picks.append(pick)
+        points.append(points_robot[touched, pick])
+    empty = torch.empty(0, dtype=torch.long, device=features.p.device)
+    return (torch.cat(rows) if rows else empty, torch.cat(picks) if picks else empty,
+            torch.cat(points) if points else features.p[:0], tuple(torch.cat(t) for t in zip(*terms, strict=True)))
+
+
 def fit_motion_model(
     features_object: SurfaceFeatures,
     initial: se3.Pose,
@@ -221,6 +280,7 @@ def fit_motion_model(
     generator: torch.Generator | None = None,
     physics: Tensor | None = None,
     robot_motion: Tensor | None = None,
+    block_pushes: int | None = None,
 ) -> MotionModel:
     """Motion kernels of one action from its push records (paper, Motion Model; Environment Contact Model).
 
@@ -235,6 +295,9 @@ def fit_motion_model(
         physics: ``(P, 2)`` each push's ground friction and mass (kg): every kernel keeps its push's
             (:attr:`MotionKernels.physics`), or None.
         robot_motion: ``(P, 3)`` where the robot ended in each push, in its start frame (x, y, yaw), or None.
+        block_pushes: pushes placed at a time (:func:`training_blocks`; None: as many as make
+            :data:`TRAINING_BLOCK_PAIRS` feature-push pairs). The model is the same, bit for bit, for every
+            value; memory grows with it, not with the number of pushes.
     Raises:
         ModelError: no push has a feature within ``contact_cutoff`` of the bumper.
     """
@@ -243,28 +306,18 @@ def fit_motion_model(
         raise InvalidParameterError("a motion model needs at least one push record")
     x = se3.Pose.unchecked(features_object.p, features_object.q)  # (N,)
     world_motion = se3.compose(final, se3.inverse(initial))  # W = B1 ∘ B0^-1, (P,)
+    blocks = training_blocks(n_push, len(x.p), block_pushes)
 
     # Manipulator frames: features within the cut-off of the bumper at each push's start pose.
     robot_in_object = se3.relative(initial, robot_start)  # (P,)
-    points_robot = se3.apply(se3.inverse(robot_in_object).unsqueeze(-1), x.p)  # (P, N, 3)
-    normals_robot = se3.apply(
-        se3.Pose.unchecked(torch.zeros_like(robot_in_object.p), se3.inverse(robot_in_object).q).unsqueeze(-1),
-        features_object.normal,
-    )
-    dist, touching = bumper_contacts(bumper_mesh_robot, points_robot.reshape(-1, 3), normals_robot.reshape(-1, 3),
-                                     contact_cutoff)
-    dist, touching = dist.reshape(n_push, -1), touching.reshape(n_push, -1)
-    weight = torch.exp(-contact_drop_off * dist**2) * touching
-    touched = weight.sum(-1) > 0
-    if not touched.any():
+    rows, pick, points, terms = _manipulator_picks(features_object, se3.inverse(robot_in_object), bumper_mesh_robot,
+                                                   blocks, manipulator_kernels_per_push, contact_cutoff,
+                                                   contact_drop_off, generator)
+    if len(rows) == 0:
         raise ModelError(
             f"no push record has a training feature within {contact_cutoff} m of the bumper at its start pose"
         )
-    patches = bumper_contact_patch(points_robot, contact_cutoff)  # (P, 3)
-    rows = touched.nonzero().squeeze(-1)
-    pick = torch.multinomial(weight[rows], manipulator_kernels_per_push, replacement=True, generator=generator)
-    rows = rows.unsqueeze(-1).expand_as(pick).reshape(-1)
-    pick = pick.reshape(-1)
+    patches = patch_from_terms(*terms)  # (P, 3)
     xm = se3.Pose.unchecked(x.p[pick], x.q[pick])
     manipulator = MotionKernels(
         features_object.r[pick],
@@ -272,7 +325,7 @@ def fit_motion_model(
         local_motions(
             motion_frames(se3.apply(initial.take(rows), xm.p), robot_start.take(rows)), world_motion.take(rows)
         ),
-        points_robot[rows, pick],
+        points,
         patches[rows],
         rows,
         None if physics is None else physics[rows].to(x.p.dtype),
@@ -280,8 +333,10 @@ def fit_motion_model(
     )
 
     # Environment frames: drawn per push at the push's initial pose (z above the floor matters).
-    world_points = se3.apply(initial.unsqueeze(-1), x.p)  # (P, N, 3)
-    env_idx = sample_environment_contacts(world_points, environment_contacts, generator).reshape(-1)
+    env_idx = sample_environment_contacts_in_blocks(
+        lambda block: se3.apply(initial.take(block).unsqueeze(-1), x.p),  # (B, N, 3)
+        n_push, environment_contacts, blocks, generator, x.p.device,
+    ).reshape(-1)
     env_rows = torch.arange(n_push, device=env_idx.device).repeat_interleave(environment_contacts)
     xe = se3.Pose.unchecked(x.p[env_idx], x.q[env_idx])
     v_world = se3.compose(initial.take(env_rows), xe)
