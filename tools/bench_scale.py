@@ -1,18 +1,24 @@
-"""Scale-out benchmark: the same plan with the local process pool and with Ray, at 1 and 2 CPUs; training memory.
+"""Scale-out benchmark: the same plan with the local pool and with Ray, at 1 and 2 CPUs; training memory and time.
 
 Paper, Experimental Setup (the simulated pushes; the paper protocol simulates 189,000). For each executor the
 same cube plan (the paper's training pushes) is simulated into a fresh folder with 1 and with 2 CPUs (local:
 ``workers``; Ray: a local instance's ``num_cpus``, started once without its dashboard before any timing, and
 warmed up). Each timed run simulates ``--pushes`` pushes (sized so a run lasts about a minute here). The
-records of all four runs are compared bit for bit. Then the peak memory (max RSS) of training the default model
-on 100,000 pushes is measured in a fresh process: the records are one 3,000-push run's arrays tiled 34 times
-(each copy's push indices shifted, every value otherwise repeated), loaded as training loads them
-(``trajectories=False``).
+records of all four runs are compared bit for bit. Then the default model is trained on 10,000 and on 100,000
+pushes, each in a fresh process that reports its peak memory (max RSS) and the seconds ``train_push_model``
+took, and both when its bandwidth search began (one line per size): the records are one 3,000-push run's
+arrays tiled (each copy's push indices shifted, every value otherwise repeated), loaded as training loads them
+(``trajectories=False``). Training places its pushes block by block
+(``pushtorch.models.motion.training_blocks``), so its memory should not grow with the pushes and its time
+should grow about linearly (targets: ``train_peak_mb_100k <= 2000``, ``train_s_100k <= 12 train_s_10k``).
 
-    .venv/bin/python tools/bench_scale.py [--pushes 3000] [--train-pushes 100000] [--skip-train]
+    .venv/bin/python tools/bench_scale.py [--pushes 3000] [--train-pushes 10000 100000] [--skip-train]
+        [--skip-scale]
 
 The last line is ``local_pps=<..> ray_pps=<..> local_scaling=<..> ray_scaling=<..> identical=<0|1>
-train_peak_mb_100k=<..>`` (pushes/s at 2 CPUs; scaling = 2-CPU over 1-CPU throughput).
+train_peak_mb_100k=<..> train_s_10k=<..> train_s_100k=<..>`` (pushes/s at 2 CPUs; scaling = 2-CPU over
+1-CPU throughput; the training values are those of the smaller and the larger of ``--train-pushes``;
+``nan`` where a part was skipped).
 """
 
 from __future__ import annotations
@@ -48,11 +54,14 @@ def _timed(kind: str, cpus: int, pushes: int, folder: Path) -> float:
     return len(plan) / (time.perf_counter() - started)
 
 
-def _train_peak(pushes: int, base: Path) -> float:
-    """Max RSS (MB) of a fresh process that loads ``pushes`` tiled records and trains the default model."""
+def _train(pushes: int, base: Path) -> dict[str, float]:
+    """A fresh process loads ``pushes`` tiled records and trains the default model: its max RSS (MB) and the
+    seconds ``train_push_model`` took (``peak_mb``, ``seconds``), and both when the bandwidth search began, after
+    the contact, position and motion models (``parts_peak_mb``, ``parts_seconds``)."""
     script = f"""
-import resource, torch
+import resource, time, torch
 from dataclasses import replace
+import pushtorch.models.bandwidth as bandwidth
 from pushtorch.objects import load_object
 from pushtorch.sim import load_records
 from pushtorch.sim.records import PushRecords
@@ -61,56 +70,75 @@ one = load_records({str(base)!r}, trajectories=False)
 copies = -(-{pushes} // len(one))
 records = PushRecords.cat([replace(one, index=one.index + k * len(one)) for k in range(copies)])
 records = records.take(torch.arange({pushes}))
-train_push_model(load_object("cube"), records, generator=0)
-print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+cube = load_object("cube")
+peak = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+parts = [float("nan"), float("nan")]
+search = bandwidth.select_bandwidths
+def select_bandwidths(*args, **kwargs):
+    parts[:] = [peak(), time.perf_counter() - started]
+    return search(*args, **kwargs)
+bandwidth.select_bandwidths = select_bandwidths
+started = time.perf_counter()
+train_push_model(cube, records, generator=0)
+seconds = time.perf_counter() - started
+print(peak(), seconds, *parts)
 """
-    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=1800)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=6 * 3600)
     if result.returncode != 0:
         raise SystemExit(f"training on {pushes} pushes failed: {result.stderr[-2000:]}")
-    return float(result.stdout.strip().splitlines()[-1])
+    values = [float(v) for v in result.stdout.strip().splitlines()[-1].split()]
+    return dict(zip(("peak_mb", "seconds", "parts_peak_mb", "parts_seconds"), values, strict=True))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pushes", type=int, default=3000, help="pushes per timed run (default 3000)")
-    parser.add_argument("--train-pushes", type=int, default=100_000)
-    parser.add_argument("--skip-train", action="store_true", help="leave out the training-memory measurement")
+    parser.add_argument("--train-pushes", type=int, nargs=2, default=[10_000, 100_000], metavar=("SMALL", "LARGE"),
+                        help="the two training sizes (default 10000 100000)")
+    parser.add_argument("--skip-train", action="store_true", help="leave out the training measurements")
+    parser.add_argument("--skip-scale", action="store_true", help="leave out the executors' throughput")
     args = parser.parse_args()
-    import ray
 
     print(f"CPU: {cpu_name()} ({os.cpu_count()} logical CPUs); {args.pushes} pushes per timed run")
-    rate: dict[tuple[str, int], float] = {}
+    nan = float("nan")
+    rate: dict[tuple[str, int], float] = {(kind, cpus): nan for kind in ("local", "ray") for cpus in (1, 2)}
+    identical = nan
+    trained = {n: {"peak_mb": nan, "seconds": nan} for n in args.train_pushes}
     with tempfile.TemporaryDirectory(prefix="pushtorch-scale-") as tmp:
         root = Path(tmp)
-        for cpus in (1, 2):
-            rate[("local", cpus)] = _timed("local", cpus, args.pushes, root / f"local{cpus}")
-            print(f"local, {cpus} CPU: {rate[('local', cpus)]:.1f} pushes/s", flush=True)
-        for cpus in (1, 2):
-            ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False)
-            _timed("ray", cpus, 30, root / f"warm{cpus}")  # workers started and their worlds built
-            rate[("ray", cpus)] = _timed("ray", cpus, args.pushes, root / f"ray{cpus}")
-            ray.shutdown()
-            print(f"ray, {cpus} CPU: {rate[('ray', cpus)]:.1f} pushes/s", flush=True)
-        reference = load_records(root / "local1")
-        identical = all(
-            torch.equal(load_records(root / name).object_final.p, reference.object_final.p)
-            and torch.equal(load_records(root / name).object_trajectory.q, reference.object_trajectory.q)
-            for name in ("local2", "ray1", "ray2"))
-        peak = float("nan")
+        if not args.skip_scale:
+            import ray
+
+            for cpus in (1, 2):
+                rate[("local", cpus)] = _timed("local", cpus, args.pushes, root / f"local{cpus}")
+                print(f"local, {cpus} CPU: {rate[('local', cpus)]:.1f} pushes/s", flush=True)
+            for cpus in (1, 2):
+                ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False)
+                _timed("ray", cpus, 30, root / f"warm{cpus}")  # workers started and their worlds built
+                rate[("ray", cpus)] = _timed("ray", cpus, args.pushes, root / f"ray{cpus}")
+                ray.shutdown()
+                print(f"ray, {cpus} CPU: {rate[('ray', cpus)]:.1f} pushes/s", flush=True)
+            reference = load_records(root / "local1")
+            identical = int(all(
+                torch.equal(load_records(root / name).object_final.p, reference.object_final.p)
+                and torch.equal(load_records(root / name).object_trajectory.q, reference.object_trajectory.q)
+                for name in ("local2", "ray1", "ray2")))
         if not args.skip_train:
             cube, plan = _plan(3000, seed=1)
             run_plan(object_spec(cube), plan, root / "base", progress=False)
-            started = time.perf_counter()
-            peak = _train_peak(args.train_pushes, root / "base")
-            print(f"training the default model on {args.train_pushes} pushes: peak {peak:.0f} MB,"
-                  f" {time.perf_counter() - started:.0f} s", flush=True)
+            for pushes in sorted(args.train_pushes):
+                t = trained[pushes] = _train(pushes, root / "base")
+                print(f"training the default model on {pushes} pushes: {t['seconds']:.1f} s, peak {t['peak_mb']:.0f} MB"
+                      f" (contact, position and motion models: {t['parts_seconds']:.1f} s, peak"
+                      f" {t['parts_peak_mb']:.0f} MB; then the bandwidth search)", flush=True)
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(f"this process's peak: {own:.0f} MB")
-    local_scaling = rate[("local", 2)] / rate[("local", 1)]
-    ray_scaling = rate[("ray", 2)] / rate[("ray", 1)]
-    print(f"local_pps={rate[('local', 2)]:.1f} ray_pps={rate[('ray', 2)]:.1f} local_scaling={local_scaling:.2f} "
-          f"ray_scaling={ray_scaling:.2f} identical={int(identical)} train_peak_mb_100k={peak:.0f}")
-
+    small, large = min(args.train_pushes), max(args.train_pushes)
+    print(f"local_pps={rate[('local', 2)]:.1f} ray_pps={rate[('ray', 2)]:.1f} "
+          f"local_scaling={rate[('local', 2)] / rate[('local', 1)]:.2f} "
+          f"ray_scaling={rate[('ray', 2)] / rate[('ray', 1)]:.2f} identical={identical} "
+          f"train_peak_mb_100k={trained[large]['peak_mb']:.0f} train_s_10k={trained[small]['seconds']:.1f} "
+          f"train_s_100k={trained[large]['seconds']:.1f}")
 
 if __name__ == "__main__":
     main()
