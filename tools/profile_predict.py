@@ -33,11 +33,11 @@ from pushtorch.prediction import predict, predict_many
 STAGES = (
     ("query densities: kernel draws (robot, pose)", os.path.join("models", "query.py"), "build_query_density"),
     ("query annealing: steps, polish (robot, pose)", os.path.join("models", "query.py"), "optimise_query_densities"),
-    ("pose verification", "predict.py", "_verified_pose"),
-    ("environment contact frames", "predict.py", "_environment_frames"),
-    ("robot start clearance", "predict.py", "clear_robot_start"),
-    ("motion density: contact weights, experts", "predict.py", "_motion_density"),
-    ("motion annealing: steps, polish", os.path.join("models", "motion.py"), "anneal_motion_densities"),
+    ("pose verification", os.path.join("models", "push_condition.py"), "_verified_pose"),
+    ("environment contact frames", os.path.join("models", "motion.py"), "environment_frames"),
+    ("robot start clearance", os.path.join("models", "clearance.py"), "clear_robot_start"),
+    ("motion density: contact weights, experts", os.path.join("prediction", "forward.py"), "_motion_density"),
+    ("motion annealing: steps, polish", os.path.join("models", "experts.py"), "anneal_motion_densities"),
 )
 #: Parts of the two annealing stages, listed under them (callees included; they overlap the stages).
 ANNEALING_PARTS = (
