@@ -123,8 +123,10 @@ class FinalPoseDistribution(Distribution):
         if centres is not None:
             counts = {c.p.shape[0] for c in centres}
             centres = se3.Pose.stack(centres) if len(counts) == 1 else None  # ragged: default centres
-        dist = FinalPoseDistribution(stacked.means, stacked.log_weights, stacked.bandwidth, stacked.trial_rounds,
-                                     stacked.exponent, mode, method, centres, validate_args)
+        dist = FinalPoseDistribution(stacked.means, stacked.log_weights, stacked.density_bandwidth,
+                                     stacked.trial_rounds, stacked.exponent, mode, method, centres, validate_args)
+        if stacked.density_bandwidth != stacked.bandwidth:
+            dist = dist._widened_to_mode(stacked.bandwidth)
         return dist[0] if single else dist
 
     @staticmethod
@@ -136,6 +138,21 @@ class FinalPoseDistribution(Distribution):
         return FinalPoseDistribution.from_motion_densities(
             [p.motion_density for p in predictions], se3.Pose.stack([p.final_pose for p in predictions]),
             [p.candidates for p in predictions], method or predictions[0].density.method, validate_args)
+
+    def _widened_to_mode(self, annealed: KernelBandwidth) -> FinalPoseDistribution:
+        """This distribution with trial rounds added where its annealed mode lies beyond the cut-offs: the mode
+        was annealed under the wider ``annealed`` kernels at the same rounds, so as many rounds as make these
+        kernels that wide put it back inside (docs/method.md, "Two widths: the mode and the density")."""
+        ratio = max(annealed.p_std / self.bandwidth.p_std, annealed.rot_std / self.bandwidth.rot_std, 1.0)
+        dist = self
+        for _ in range(math.ceil(math.log(ratio) / math.log(self.bandwidth.alpha_t)) + 1):
+            outside = ~torch.isfinite(dist.unnormalised_log_prob(dist._mode))  # (*B,)
+            if not bool(outside.any()):
+                break
+            rounds = dist.trial_rounds.clone()
+            rounds[..., :2] += outside.unsqueeze(-1).to(rounds.dtype)
+            dist = dist._replace(trial_rounds=rounds)
+        return dist
 
     def __getitem__(self, index: int) -> FinalPoseDistribution:
         """The distribution of one prediction of a batch (``batch_shape (B,)`` → ``()``)."""

@@ -167,6 +167,53 @@ def test_bandwidths_are_chosen_by_held_out_likelihood_and_kept_in_the_model_file
     assert loaded.settings == cube_model.settings and loaded.meta["bandwidths"] == search
 
 
+def test_the_density_takes_its_own_calibrated_width_and_the_mode_keeps_the_floored_one(cube_model):
+    """Two widths: the density's motion stds are chosen below the mode's floor by held-out likelihood; the
+    returned density uses them, the annealed mode is the one the mode's stds give."""
+    settings, search = cube_model.settings, cube_model.meta["bandwidths"]
+    assert 0 < settings.density_p_std <= settings.motion_p_std
+    assert 0 < settings.density_rot_std <= settings.motion_rot_std
+    assert settings.density_p_std < settings.motion_p_std or settings.density_rot_std < settings.motion_rot_std
+    assert search["score_density"] >= search["score_chosen"]  # the held-out score it was chosen by, no worse
+    cube = load_object("cube")
+    start = cube.resting_pose(yaw=0.2)
+    cloud = capture_partial_cloud(cube, start)
+    g = torch.Generator().manual_seed(4)
+    prediction = predict(cube_model, cloud, cube_model.actions[1], g)
+    assert prediction.density.bandwidth.p_std == pytest.approx(settings.density_p_std)
+    assert prediction.density.bandwidth.rot_std == pytest.approx(settings.density_rot_std)
+    # a model whose density stds are its motion stds (a model file from before them): the same mode, wider
+    wide = replace(cube_model, settings=replace(settings, density_p_std=0.0, density_rot_std=0.0))
+    same = predict(wide, cloud, cube_model.actions[1], torch.Generator().manual_seed(4))
+    torch.testing.assert_close(same.final_pose.vector(), prediction.final_pose.vector(), rtol=0, atol=0)
+    assert same.density.bandwidth.p_std == pytest.approx(settings.motion_p_std)
+    mode = prediction.final_pose.vector()
+    assert torch.isfinite(prediction.density.log_prob(mode))  # the mode lies inside the narrower cut-offs
+    assert prediction.density.log_prob(mode) > same.density.log_prob(mode)  # narrower: more mass at the mode
+
+
+def test_observations_are_weighed_by_the_density_width_not_the_mode_width(cube_model):
+    from pushtorch.models.conditioning import Observation
+
+    cube = load_object("cube")
+    start = cube.resting_pose(yaw=0.1)
+    cloud = capture_partial_cloud(cube, start)
+    robot = place_robot_against(cube.mesh, start, 0.1, 0.0, 0.002)
+    final = simulate_pushes(cube, robot, start, cube_model.actions[1].double(), mass=0.5,
+                            ground_friction=0.3).object_final.take(0)
+    seen = Observation(cloud, cube_model.actions[1], start, final.to(torch.float32), robot)
+
+    def posterior_loglik(settings):
+        model = replace(cube_model, settings=settings)
+        return model.condition_on([seen], seed=0).physics_posterior.log_likelihood
+
+    base = posterior_loglik(cube_model.settings)
+    mode_only = posterior_loglik(replace(cube_model.settings, motion_p_std=2 * cube_model.settings.motion_p_std))
+    density = posterior_loglik(replace(cube_model.settings, density_p_std=2 * cube_model.settings.density_p_std))
+    torch.testing.assert_close(mode_only, base)  # the mode's width does not enter the evidence
+    assert not torch.allclose(density, base)
+
+
 def test_model_settings_reject_bad_values():
     with pytest.raises(InvalidParameterError, match="query_kernels"):
         ModelSettings(query_kernels=0)

@@ -136,10 +136,11 @@ def product_density(means: se3.Pose, log_weights: Tensor, p_std: float, rot_std:
 def motion_product_density(density, generator: torch.Generator | None = None,
                            candidates: se3.Pose | None = None) -> FinalPoseDistribution:
     """The normalised, uncut form of a prediction's product of experts
-    (:class:`pushtorch.models.motion.MotionDensity`), with its bandwidth and trial rounds; ``candidates``:
-    the prediction's annealed candidates (``Prediction.candidates``), where the product's modes are."""
+    (:class:`pushtorch.models.motion.MotionDensity`), with the density's bandwidth (the calibrated one,
+    ``MotionDensity.density_bandwidth``) and the annealing's trial rounds; ``candidates``: the prediction's
+    annealed candidates (``Prediction.candidates``), where the product's modes are."""
     means, log_weights = density.shared_kernels()
-    bandwidth = density.experts.bandwidth
+    bandwidth = density.density_bandwidth
     rounds = density.experts.trial_rounds[0]
     return product_density(means, log_weights, bandwidth.p_std, bandwidth.rot_std, rounds, bandwidth.alpha_t,
                            generator, candidates, exponent=density.expert_exponent)

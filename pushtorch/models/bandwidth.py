@@ -23,8 +23,13 @@ Procedure (:func:`select_bandwidths`, docs/method.md "Bandwidths from data"):
   configured ones turn into a single training push. For the same reason contact stds that leave the
   manipulator expert fewer than ``MIN_EFFECTIVE_PUSHES`` effective training pushes are not considered.
 
+* **The density's stds.** Then ``density_p_std`` / ``density_rot_std`` (``DENSITY``): the same score over the
+  motion stds alone, from the chosen ones *down* with no floor, until a sweep gains nothing. They are the kernels
+  of the density a prediction returns and observations are weighed by; the mode is still annealed with the
+  floored motion stds (docs/method.md, "Two widths: the mode and the density").
+
 The chosen values replace the configured ones in the model's settings (so they are in the model file), and
-the search's record (held-out score before and after, per action) is kept in ``PushModel.meta``.
+the search's record (held-out score before and after, and at the density's stds) is kept in ``PushModel.meta``.
 """
 
 from __future__ import annotations
@@ -42,11 +47,13 @@ from pushtorch.models.motion import MotionKernels, expert_exponents
 
 Tensor = torch.Tensor
 
-__all__ = ["BandwidthSearch", "SELECTED", "select_bandwidths"]
+__all__ = ["DENSITY", "BandwidthSearch", "SELECTED", "select_bandwidths"]
 
 #: The settings chosen from data, in the order coordinate ascent visits them.
 SELECTED = ("motion_p_std", "motion_rot_std", "contact_p_std", "contact_rot_std", "contact_robot_std",
             "contact_patch_std", "contact_patch_yaw_std")
+#: The density's motion stds, chosen after ``SELECTED`` from the chosen motion stds down.
+DENSITY = ("density_p_std", "density_rot_std")
 #: Factors tried around the current value of a setting.
 LADDER = (0.25, 0.5, 1.0, 2.0, 4.0)
 #: Bounds of each setting (m or rad): below the simulator's resolution, above the object's size. The contact
@@ -68,6 +75,8 @@ WIDEN_ONLY = ("motion_p_std", "motion_rot_std")
 #: against the mean motion's 0.04), although held-out likelihood preferred it.
 MIN_EFFECTIVE_PUSHES = 5.0
 _INADMISSIBLE = -1e9  # the score of stds below MIN_EFFECTIVE_PUSHES, plus their effective count
+#: Sweeps of the density stds' search at most (it stops when a sweep gains nothing).
+DENSITY_SWEEPS = 4
 #: Held-out pushes scored per action and environment kernels kept as experts' kernels (memory bound).
 MAX_HELD_OUT = 200
 MAX_ENVIRONMENT_KERNELS = 2000
@@ -83,13 +92,15 @@ class BandwidthSearch:
     score_chosen: float | None
     folds: int
     held_out: int
+    score_density: float | None = None  # at the density's stds (``chosen``'s density_p_std, density_rot_std)
 
     def as_meta(self) -> dict:
         def rounded(score: float | None) -> float | None:
             return None if score is None else round(score, 3)
 
         return {"chosen": self.chosen, "start": self.start, "score_start": rounded(self.score_start),
-                "score_chosen": rounded(self.score_chosen), "folds": self.folds, "held_out": self.held_out}
+                "score_chosen": rounded(self.score_chosen), "score_density": rounded(self.score_density),
+                "folds": self.folds, "held_out": self.held_out}
 
 
 @dataclass
@@ -161,23 +172,35 @@ def _effective_pushes(log_w: Tensor) -> Tensor:
     return 1.0 / (w * w).sum(-1)
 
 
-def _score(terms: _Terms, values: dict[str, float], exponent: Tensor) -> float:
-    """Mean over held-out pushes of ``Σ_e γ_e log p_e(m_i)`` at the bandwidths ``values``; when the median
-    held-out push's manipulator expert rests on fewer than :data:`MIN_EFFECTIVE_PUSHES` pushes, a score below
-    every admissible one that still grows with that count (so the search moves towards admissible stds)."""
-    p_std, rot_std = values["motion_p_std"], values["motion_rot_std"]
-    sigma_q = rot_std**2 / 4
-    log_norm = 1.5 * math.log(2 * math.pi * p_std**2) + float(log_rotation_normaliser(torch.tensor(1 / sigma_q)))
-    log_k = -terms.motion_p / (2 * p_std**2) - terms.motion_q / sigma_q  # (Q, K)
+#: The settings the contact weights depend on (the rest, the motion stds, only the kernels' values).
+_CONTACT = ("contact_p_std", "contact_rot_std", "contact_robot_std", "contact_patch_std", "contact_patch_yaw_std")
+
+
+def _contact_log_weights(terms: _Terms, values: dict[str, float]) -> tuple[Tensor, float]:
+    """``(Q, E, K)`` the held-out pushes' contact log weights of every kernel at ``values`` (other folds and other
+    experts' kernels excluded), and the median held-out push's effective count of manipulator pushes."""
     log_w = -(terms.u_p / (2 * values["contact_p_std"] ** 2) + terms.u_q / (values["contact_rot_std"] ** 2 / 4)
               + terms.r + terms.g / (2 * values["contact_robot_std"] ** 2)
               + terms.patch / (2 * values["contact_patch_std"] ** 2)
               + terms.patch_yaw / (2 * values["contact_patch_yaw_std"] ** 2))  # (Q, E, K)
     excluded = terms.same_fold.unsqueeze(1) | ~terms.member.unsqueeze(0)
     log_w = log_w.masked_fill(excluded, -math.inf)
-    effective = float(_effective_pushes(log_w).median())
+    return log_w, float(_effective_pushes(log_w).median())
+
+
+def _score(terms: _Terms, values: dict[str, float], exponent: Tensor,
+           weights: tuple[Tensor, float] | None = None) -> float:
+    """Mean over held-out pushes of ``Σ_e γ_e log p_e(m_i)`` at the bandwidths ``values``; when the median
+    held-out push's manipulator expert rests on fewer than :data:`MIN_EFFECTIVE_PUSHES` pushes, a score below
+    every admissible one that still grows with that count (so the search moves towards admissible stds).
+    ``weights``: :func:`_contact_log_weights` at ``values``, if known."""
+    log_w, effective = weights if weights is not None else _contact_log_weights(terms, values)
     if effective < MIN_EFFECTIVE_PUSHES:
         return _INADMISSIBLE + effective
+    p_std, rot_std = values["motion_p_std"], values["motion_rot_std"]
+    sigma_q = rot_std**2 / 4
+    log_norm = 1.5 * math.log(2 * math.pi * p_std**2) + float(log_rotation_normaliser(torch.tensor(1 / sigma_q)))
+    log_k = -terms.motion_p / (2 * p_std**2) - terms.motion_q / sigma_q  # (Q, K)
     log_p = torch.logsumexp(log_w + log_k.unsqueeze(1), -1) - torch.logsumexp(log_w, -1) - log_norm  # (Q, E)
     return float((log_p * exponent).sum(-1).mean())
 
@@ -220,30 +243,54 @@ def select_bandwidths(settings, motions: list, folds: int = 5,
         terms.append(t)
         exponents.append(expert_exponents(len(motion.manipulator), len(motion.environment), n_experts - 1,
                                           settings.pool_sharpness, torch.float32))
-    start = {name: float(getattr(settings, name)) for name in SELECTED}
+    start = {name: float(getattr(settings, name)) for name in (*SELECTED, *DENSITY)}
     if not terms:  # too few pushes to hold any out: keep the configured values
-        return settings, BandwidthSearch(start, start, None, None, folds, 0)
+        return settings, BandwidthSearch(start, start, None, None, folds, 0, None)
+
+    cached: dict[tuple, list] = {}  # the contact weights of the last contact stds: a motion std's step reuses them
 
     def total(values: dict[str, float]) -> float:
-        return sum(_score(t, values, g) * t.u_p.shape[0] for t, g in zip(terms, exponents, strict=True)) / sum(
-            t.u_p.shape[0] for t in terms)
+        key = tuple(values[name] for name in _CONTACT)
+        if key not in cached:
+            cached.clear()
+            cached[key] = [_contact_log_weights(t, values) for t in terms]
+        return sum(_score(t, values, g, w) * t.u_p.shape[0]
+                   for t, g, w in zip(terms, exponents, cached[key], strict=True)) / sum(t.u_p.shape[0] for t in terms)
 
     values, best = dict(start), total(start)
     score_start = best
     for _ in range(2):
         for name in SELECTED:
-            low, high = BOUNDS[name]
-            if name in WIDEN_ONLY:
-                low = max(low, start[name])
-            centre = values[name]
-            for factor in LADDER:
-                trial = dict(values, **{name: min(max(centre * factor, low), high)})
-                score = total(trial)
-                if score > best + 1e-6:
-                    values, best = trial, score
+            values, best = _ladder_step(total, values, best, name, start[name] if name in WIDEN_ONLY else None)
+    # the density's motion stds: the same score from the mode's stds down, with no floor (docs/method.md)
+    density = dict(values)
+    density_best = best
+    for _ in range(DENSITY_SWEEPS):
+        before = density_best
+        for name in WIDEN_ONLY:
+            density, density_best = _ladder_step(total, density, density_best, name, None)
+        if density_best <= before + 1e-6:
+            break
+    chosen = dict(values, density_p_std=density["motion_p_std"], density_rot_std=density["motion_rot_std"])
 
     def reported(score: float) -> float | None:  # an inadmissible set has no likelihood to report
         return None if score < _INADMISSIBLE / 2 else score
 
-    return replace(settings, **values), BandwidthSearch(values, start, reported(score_start), reported(best), folds,
-                                                       sum(t.u_p.shape[0] for t in terms))
+    return replace(settings, **chosen), BandwidthSearch(chosen, start, reported(score_start), reported(best), folds,
+                                                       sum(t.u_p.shape[0] for t in terms), reported(density_best))
+
+
+def _ladder_step(total, values: dict[str, float], best: float, name: str,
+                 floor: float | None) -> tuple[dict[str, float], float]:
+    """One coordinate of the ascent: ``name`` tried at every :data:`LADDER` factor of its value, within its
+    :data:`BOUNDS` (and above ``floor``); returns the best values and score."""
+    low, high = BOUNDS[name]
+    if floor is not None:
+        low = max(low, floor)
+    centre = values[name]
+    for factor in LADDER:
+        trial = dict(values, **{name: min(max(centre * factor, low), high)})
+        score = total(trial)
+        if score > best + 1e-6:
+            values, best = trial, score
+    return values, best

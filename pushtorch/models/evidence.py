@@ -121,7 +121,7 @@ def observation_evidence(model: PushModel, observation: Observation, posterior: 
     y = observed_outcome(observation, reference)
     motion = model.motions[a]
     to_final = se3.relative(start, reference)
-    full = dataclasses.replace(settings.motion_bandwidth, cutoff_std=NO_CUTOFF)
+    full = dataclasses.replace(settings.density_bandwidth, cutoff_std=NO_CUTOFF)  # the calibrated kernels
     memberships, weights, log_kernels, explained = [], [], [], False
     for frame, kernels in ((manipulator_frame, motion.manipulator), (environment_frames, motion.environment)):
         kernels = dataclasses.replace(kernels, log_weight=None)  # the trained kernels: the posterior is the prior

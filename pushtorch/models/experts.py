@@ -75,6 +75,9 @@ class MotionDensity:
             anything is evaluated (default; the fast path). False keeps every kernel, with weight 0: the
             same density, evaluated the straightforward way (the dense reference, :attr:`Evaluation.DENSE`).
         pool_sharpness: ``Σ_e γ_e`` of the experts' exponents (:func:`expert_exponents`).
+        density_bandwidth: the motion kernels of the density the prediction returns (the calibrated width,
+            :attr:`~pushtorch.models.settings.ModelSettings.density_bandwidth`); None: ``motion_bandwidth``.
+            Annealing and :meth:`log_prob` use ``motion_bandwidth``.
     """
 
     def __init__(
@@ -89,6 +92,7 @@ class MotionDensity:
         motion_bandwidth: KernelBandwidth,
         drop_cut_kernels: bool = True,
         pool_sharpness: float = 1.0,
+        density_bandwidth: KernelBandwidth | None = None,
     ) -> None:
         if contact_bandwidth.descriptor_dim != CONTACT_DESCRIPTOR_DIM:
             raise InvalidParameterError(
@@ -123,6 +127,7 @@ class MotionDensity:
         self.expert_exponent = expert_exponents(len(model.manipulator), len(model.environment), len(experts) - 1,
                                                 pool_sharpness, object_pose.p.dtype)
         self.object_pose = object_pose
+        self.density_bandwidth = motion_bandwidth if density_bandwidth is None else density_bandwidth
 
     @property
     def num_experts(self) -> int:
@@ -229,6 +234,7 @@ class StackedProducts:
     exponent: Tensor  # (E, B) the experts' exponents (0: a padding expert)
     trial_rounds: Tensor  # (B, 3)
     bandwidth: KernelBandwidth
+    density_bandwidth: KernelBandwidth  # the density's (MotionDensity.density_bandwidth)
 
 
 def stack_products(densities: list[MotionDensity]) -> StackedProducts:
@@ -254,7 +260,8 @@ def stack_products(densities: list[MotionDensity]) -> StackedProducts:
     exponent = torch.zeros(n_experts, len(densities), dtype=dtype, device=device)
     for b, (density, (means, weights)) in enumerate(zip(densities, layouts, strict=True)):
         experts = density.experts
-        if experts.bandwidth != first.bandwidth or experts.dtype != dtype:
+        if experts.bandwidth != first.bandwidth or experts.dtype != dtype \
+                or density.density_bandwidth != densities[0].density_bandwidth:
             raise InvalidParameterError("products stacked together need one motion bandwidth and dtype")
         e, n = weights.shape
         p[b, :n], q[b, :n] = means.p, means.q
@@ -262,7 +269,8 @@ def stack_products(densities: list[MotionDensity]) -> StackedProducts:
         log_w[e:, b, :n] = weights[0]
         rounds[b] = density.shared_product().rounds
         exponent[:e, b] = density.expert_exponent.to(dtype)
-    return StackedProducts(se3.Pose.unchecked(p, q), log_w, exponent, rounds, first.bandwidth)
+    return StackedProducts(se3.Pose.unchecked(p, q), log_w, exponent, rounds, first.bandwidth,
+                           densities[0].density_bandwidth)
 
 
 def anneal_motion_densities(

@@ -72,6 +72,11 @@ class ModelSettings:
     contact_patch_yaw_std: float = 0.05  # rad, ... and its heading (motion model)
     motion_p_std: float = 0.01
     motion_rot_std: float = 0.05
+    # the motion kernels of the density a prediction returns (nll, coverage, the evidence of observed pushes):
+    # chosen by held-out likelihood without the motion stds' floor (pushtorch.models.bandwidth); 0: the
+    # motion stds above (docs/method.md, "Two widths: the mode and the density")
+    density_p_std: float = 0.0
+    density_rot_std: float = 0.0
     # Σ of the experts' exponents (w^P normalised; 1: a logarithmic opinion pool, docs/method.md)
     pool_sharpness: float = 1.0
     # k of the k-fold search that chooses the motion and contact bandwidths from the training pushes
@@ -90,7 +95,8 @@ class ModelSettings:
         for f in fields(self):
             value = getattr(self, f.name)
             numeric = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
-            zero_ok = f.name in ("polish_steps", "bandwidth_folds", "transfer_widening")
+            zero_ok = f.name in ("polish_steps", "bandwidth_folds", "transfer_widening", "density_p_std",
+                                 "density_rot_std")
             if not (numeric and (value >= 0 if zero_ok else value > 0)):
                 kind = "a number >= 0" if zero_ok else "a positive number"
                 raise InvalidParameterError(f"model setting {f.name} must be {kind}, got {value!r}")
@@ -152,6 +158,15 @@ class ModelSettings:
         """The motion kernels' bandwidth (final poses)."""
         c = self.cutoff_std
         return KernelBandwidth(self.motion_p_std, self.motion_rot_std, cutoff_std=(c, c, c), alpha_t=self.alpha_t)
+
+    @cached_property
+    def density_bandwidth(self) -> KernelBandwidth:
+        """The motion kernels of the density a prediction returns and observations are weighed by: the
+        calibrated stds (``density_p_std``, ``density_rot_std``; 0 falls back to the motion stds). The annealed
+        mode is found with :attr:`motion_bandwidth`."""
+        c = self.cutoff_std
+        return KernelBandwidth(self.density_p_std or self.motion_p_std, self.density_rot_std or self.motion_rot_std,
+                               cutoff_std=(c, c, c), alpha_t=self.alpha_t)
 
     @staticmethod
     def from_mapping(mapping) -> ModelSettings:

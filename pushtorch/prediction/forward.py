@@ -171,6 +171,7 @@ def _motion_density(model: PushModel, condition: PushCondition, a: int, method: 
         transfer_bandwidth(model, condition, a),
         drop_cut_kernels=method is Evaluation.FAST,
         pool_sharpness=settings.pool_sharpness,
+        density_bandwidth=transfer_bandwidth(model, condition, a, density=True),
     )
 
 
@@ -183,12 +184,13 @@ def transfer_distance(model: PushModel, condition: PushCondition, a: int) -> tor
                              model.settings.contact_bandwidth, condition.contact_patch).amin()
 
 
-def transfer_bandwidth(model: PushModel, condition: PushCondition, a: int) -> KernelBandwidth:
+def transfer_bandwidth(model: PushModel, condition: PushCondition, a: int, density: bool = False) -> KernelBandwidth:
     """The motion kernels' bandwidth of this prediction: the model's, times
     ``sqrt(transfer_scale² + transfer_widening · d²)`` with ``d²`` :func:`transfer_distance` (docs/method.md,
-    "Transfer uncertainty"; 1 for a model that does not widen)."""
+    "Transfer uncertainty"; 1 for a model that does not widen). ``density``: the bandwidth of the density the
+    prediction returns (:attr:`~pushtorch.models.settings.ModelSettings.density_bandwidth`), not the annealing's."""
     settings = model.settings
-    base = settings.motion_bandwidth
+    base = settings.density_bandwidth if density else settings.motion_bandwidth
     if settings.transfer_scale == 1.0 and settings.transfer_widening == 0.0:
         return base
     d2 = float(transfer_distance(model, condition, a)) if settings.transfer_widening > 0 else 0.0
