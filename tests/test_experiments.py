@@ -271,7 +271,8 @@ def test_tiny_quickstart_writes_tidy_results(tiny_run):
     results = json.loads((out / "results.json").read_text())
     assert set(results) == {"experiment", "world", "physics", "config", "overrides", "wall_s", "records",
                             "model_bandwidths", "separability"}
-    assert results["world"] == {"engine": "pybullet"} and results["physics"] == {"engine": "pybullet"}
+    # the default world: the truth in MuJoCo, the physics peers in pybullet (no peer has the truth's physics)
+    assert results["world"] == {"engine": "mujoco"} and results["physics"] == {"engine": "pybullet"}
     # every trained model chose its bandwidths from its training pushes, and the run says which
     assert results["model_bandwidths"] and all(set(b["chosen"]) == set(b["start"])
                                                for b in results["model_bandwidths"].values())
@@ -445,32 +446,33 @@ def test_the_placement_spread_test_set_runs_beside_the_default_one_in_one_folder
             if p.name in default_predictions} == default_predictions  # the default set untouched
     records = [r for r in json.loads((run / "results.json").read_text())["records"]
                if r["task"] == "prediction" and r["method"] == "pushtorch"]
-    assert records and all(math.isfinite(r["hacc_mean"]) for r in records)
-    assert "placement_spread" in (run / "report.md").read_text()
-
-
-def test_the_mujoco_world_runs_beside_the_pybullet_one_in_one_folder(tiny_run, tmp_path):
-    """world=mujoco: training pushes and truth in MuJoCo (cached apart, named _mujoco), the peers in pybullet;
-    results.json and the report name both engines; the pybullet caches are left as they were."""
+    assert records and all(math.isdef test_the_pybullet_world_runs_beside_the_mujoco_one_in_one_folder(tiny_run, tmp_path):
+    """world=pybullet: training pushes and truth in pybullet (cached apart from the default MuJoCo world's, which
+    are named _mujoco), the peers in MuJoCo; results.json and the report name both engines; the MuJoCo caches are
+    left as they were."""
     import shutil
 
     cfg, out, _ = tiny_run
     run = tmp_path / "run"
     shutil.copytree(out, run)
     before = {p.name: p.stat().st_mtime_ns for p in (run / "models").iterdir()}
-    mujoco_cfg = _compose([*TINY, "world=mujoco", "~experiment.parts.model_selection",
-                           "~experiment.parts.pose_estimation", "~experiment.parts.mass_biasing",
-                           "~experiment.parts.online_adaptation"])
-    quickstart.run(mujoco_cfg, run)
+    assert before and all(name.endswith("_mujoco.npz") for name in before)
+    pybullet_cfg = _compose([*TINY, "world=pybullet", "~experiment.parts.model_selection",
+                             "~experiment.parts.pose_estimation", "~experiment.parts.mass_biasing",
+                             "~experiment.parts.online_adaptation"])
+    quickstart.run(pybullet_cfg, run)
     results = json.loads((run / "results.json").read_text())
-    assert results["world"] == {"engine": "mujoco"} and results["physics"] == {"engine": "pybullet"}
+    assert results["world"] == {"engine": "pybullet"} and results["physics"] == {"engine": "mujoco"}
     assert {p.name: p.stat().st_mtime_ns for p in (run / "models").iterdir() if p.name in before} == before
-    mujoco_models = sorted(p.name for p in (run / "models").iterdir() if p.name not in before)
-    assert mujoco_models and all(name.endswith("_mujoco.npz") for name in mujoco_models)
-    manifests = [json.loads(p.read_text()) for p in (run / "data").glob("*_mujoco/manifest.json")]
-    assert manifests and all(m["settings"]["engine"] == "mujoco" for m in manifests)
-    truths = [json.loads(p.read_text()) for p in (run / "truth").glob("*_mujoco/manifest.json")]
-    assert truths and all(m["settings"]["engine"] == "mujoco" for m in truths)
+    pybullet_models = sorted(p.name for p in (run / "models").iterdir() if p.name not in before)
+    assert pybullet_models and not any(name.endswith("_mujoco.npz") for name in pybullet_models)
+    manifests = [json.loads((p / "manifest.json").read_text()) for p in (run / "data").iterdir()
+                 if not p.name.endswith("_mujoco")]
+    assert manifests and all(m["settings"].get("engine", "pybullet") == "pybullet" for m in manifests)
+    assert "**World: pybullet. Physics peers: mujoco.**" in (run / "report.md").read_text()
+
+
+ m in truths)
     assert "**World: mujoco. Physics peers: pybullet.**" in (run / "report.md").read_text()
 
 

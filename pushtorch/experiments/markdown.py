@@ -75,7 +75,8 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
     physics = (engines or {}).get("physics", {}).get("engine", "pybullet")
     lines += [f"**World: {world}. Physics peers: {physics}.** The training pushes and the ground truth ran in "
               f"{world}; `physics_from_cloud` and `oracle_physics` rolled out in {physics}"
-              + (" (the same engine as the truth)." if world == physics else
+              + (" (the same engine as the truth: the inverse crime, peers that know the truth's own contact "
+                 "model, which no robot has)." if world == physics else
                  ", across the gap between the two engines (docs/method.md \"Two engines\")."), ""]
     if test_placement and test_placement.get("spread"):
         yaw, lateral = test_placement["yaw_jitter_deg"], test_placement["lateral_jitter"]
