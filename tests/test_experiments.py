@@ -203,6 +203,37 @@ def test_the_summary_names_the_strongest_non_oracle_peer():
     assert row.split()[0] == "cube" and "mean_motion" in row and "oracle" not in table and row.endswith("1/1")
 
 
+def test_the_summary_counts_invalid_conditions_per_method():
+    from pushtorch.experiments.summary import summary_table
+
+    group = ("friction:low", "friction:low")
+    records = [summarise("prediction", "cube", m, _accuracy(v), *group, metric="displacement")
+               for m, v in (("pushtorch", [0.1, 0.1]), ("no_motion", [2.0, 2.0]))]
+    thrown = [{"object": "cube", "method": "incongruent", "model": None, "thrown": 0, "pushes": 6,
+               "invalid_starts": 4, "starts": 9},
+              {"object": "cylinder", "method": "incongruent", "model": None, "thrown": 0, "pushes": 6,
+               "invalid_starts": 1, "starts": 9},
+              {"object": "cube", "method": "congruent", "model": None, "thrown": 0, "pushes": 6,
+               "invalid_starts": 0, "starts": 9}]
+    last = summary_table(records, acceptance_checks(records), thrown).splitlines()[-1]
+    assert last.startswith("invalid conditions") and "incongruent 5/18" in last and "congruent 0/18" in last
+    assert "invalid" not in summary_table(records, acceptance_checks(records), thrown[2:])
+
+
+def test_an_experiment_logs_the_warnings_it_expects_below_warning_and_a_library_call_still_warns(caplog):
+    import logging
+
+    from pushtorch.experiments.suite import EXPECTED_WARNINGS, expected_warnings_quiet
+
+    caplog.set_level(logging.DEBUG)
+    for name in EXPECTED_WARNINGS:
+        with expected_warnings_quiet():
+            logging.getLogger(name).warning("an invalid condition, counted in the summary")
+        logging.getLogger(name).warning("a library user's call")
+    levels = [(r.name, r.levelno) for r in caplog.records]
+    assert levels == [x for name in EXPECTED_WARNINGS for x in ((name, logging.DEBUG), (name, logging.WARNING))]
+
+
 def test_sampled_test_poses_are_seeded_upright_and_in_range():
     cube = load_object("cube")
     a = sample_test_poses(cube, 20, (-45.0, 45.0), seed=3)

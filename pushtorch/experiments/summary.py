@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from pushtorch.experiments.results import thrown_counts
 from pushtorch.experiments.statistics import pool
 from pushtorch.experiments.tables import ORACLES, ordered, primary, select
 
@@ -20,9 +21,11 @@ __all__ = ["summary_table"]
 OURS = frozenset({"pushtorch", "pushtorch_shapes", "pushtorch_library"})
 
 
-def summary_table(records: Sequence[Mapping[str, Any]], checks: Sequence[Mapping[str, Any]]) -> str:
-    """A compact text table (one row per object that has prediction records) and a line for the other claims;
-    empty without prediction records."""
+def summary_table(records: Sequence[Mapping[str, Any]], checks: Sequence[Mapping[str, Any]],
+                  thrown: Sequence[Mapping[str, Any]] = ()) -> str:
+    """A compact text table (one row per object that has prediction records), a line for the other claims and
+    one counting the invalid conditions (predicted starts backed off too far) per method, as report.md does
+    (``thrown``: results.json's entries); empty without prediction records."""
     predictions = select(primary(records), task="prediction")
     rows = []
     for obj in ordered(r["object"] for r in predictions):
@@ -45,4 +48,13 @@ def summary_table(records: Sequence[Mapping[str, Any]], checks: Sequence[Mapping
     if others:
         lines.append(f"other claims held: {sum(c['passed'] for c in others)}/{len(others)} "
                      f"({', '.join(sorted({c['check'] for c in others}))})")
+    invalid: dict[str, list[int]] = {}
+    for (_, method), c in thrown_counts(thrown).items():
+        if c["starts"]:
+            counts = invalid.setdefault(method, [0, 0])
+            counts[0] += c["invalid_starts"]
+            counts[1] += c["starts"]
+    if any(n for n, _ in invalid.values()):
+        lines.append("invalid conditions (start backed off too far; scored all the same): "
+                     + ", ".join(f"{m} {n}/{total}" for m, (n, total) in sorted(invalid.items())))
     return "\n".join(lines)
