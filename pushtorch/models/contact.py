@@ -222,17 +222,28 @@ def environment_feature_weights(points: Tensor, chosen: Tensor | None = None) ->
     Returns:
         ``(..., N)`` non-negative weights.
     """
+    weight = _height_and_spread_weights(points)
+    if chosen is not None and chosen.shape[-2] > 0:
+        weight = weight * _apart_ratios(points, chosen).prod(-1)
+    return weight
+
+
+def _height_and_spread_weights(points: Tensor) -> Tensor:
+    """``w_Z · w_CD`` ``(..., N)``: low and far from the centroid."""
     z = points[..., 2]
     w_z = torch.exp(-z / z.amax(-1, keepdim=True).clamp_min(1e-9))
     centroid = points.mean(-2, keepdim=True)
     d2 = ((points - centroid) ** 2).sum(-1)
     w_cd = d2 / d2.amax(-1, keepdim=True).clamp_min(1e-12)
-    weight = w_z * w_cd
-    if chosen is not None and chosen.shape[-2] > 0:
-        d2c = ((points.unsqueeze(-2) - chosen.unsqueeze(-3)) ** 2).sum(-1)  # (..., N, C)
-        w_ag = (d2c / d2c.amax(-2, keepdim=True).clamp_min(1e-12)).prod(-1)
-        weight = weight * w_ag
-    return weight
+    return w_z * w_cd
+
+
+def _apart_ratios(points: Tensor, chosen: Tensor) -> Tensor:
+    """``(..., N, C)`` each feature's squared distance to each chosen contact over the farthest feature's: their
+    product over ``C`` is ``w_AG``. A column depends on its own contact only, so columns computed one contact
+    at a time are the same numbers."""
+    d2c = ((points.unsqueeze(-2) - chosen.unsqueeze(-3)) ** 2).sum(-1)  # (..., N, C)
+    return d2c / d2c.amax(-2, keepdim=True).clamp_min(1e-12)
 
 
 def sample_environment_contacts(
@@ -265,15 +276,26 @@ def sample_environment_contacts_in_blocks(points_of: Callable[[slice], Tensor], 
     if count < 1:
         raise InvalidParameterError(f"number of environment contacts must be >= 1, got {count}")
     chosen_idx = torch.empty(rows, 0, dtype=torch.long, device=device)
+    # one block (the usual case): its points, w_Z·w_CD and the w_AG columns of the contacts chosen so far are
+    # kept between slots, each slot adding its new contact's column (the same numbers as computing them anew)
+    held = None
     for _ in range(count):
         picks = []
         for block in blocks:
-            flat = points_of(block)
+            if held is None:
+                flat = points_of(block)
+                base, ratios = _height_and_spread_weights(flat), flat.new_empty(*flat.shape[:-1], 0)
+            else:
+                flat, base, ratios = held
             chosen = torch.gather(flat, 1, chosen_idx[block].unsqueeze(-1).expand(-1, -1, 3))
-            weight = environment_feature_weights(flat, chosen)
+            if chosen.shape[-2] > ratios.shape[-1]:  # the columns of the contacts not yet in ratios
+                ratios = torch.cat([ratios, _apart_ratios(flat, chosen[:, ratios.shape[-1]:])], -1)
+            weight = base * ratios.prod(-1) if ratios.shape[-1] else base
             # a degenerate cloud (all weight zero) falls back to a uniform draw rather than failing
             weight = torch.where(weight.sum(-1, keepdim=True) > 0, weight, torch.ones_like(weight))
             picks.append(se3.multinomial(weight, 1, generator))
+            if len(blocks) == 1:
+                held = (flat, base, ratios)
         chosen_idx = torch.cat([chosen_idx, torch.cat(picks)], -1)
     return chosen_idx
 
