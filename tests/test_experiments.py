@@ -232,6 +232,19 @@ def test_an_experiment_logs_the_warnings_it_expects_below_warning_and_a_library_
         logging.getLogger(name).warning("a library user's call")
     levels = [(r.name, r.levelno) for r in caplog.records]
     assert levels == [x for name in EXPECTED_WARNINGS for x in ((name, logging.DEBUG), (name, logging.WARNING))]
+    # at INFO (a run's default) a handler without a level of its own, as Hydra's console, prints nothing of it
+    caplog.set_level(logging.INFO)
+    seen: list[logging.LogRecord] = []
+    handler = logging.Handler()
+    handler.emit = seen.append
+    logging.getLogger().addHandler(handler)
+    try:
+        with expected_warnings_quiet():
+            logging.getLogger(EXPECTED_WARNINGS[0]).warning("an invalid condition")
+            logging.getLogger("pushtorch.experiments").warning("anything else still warns")
+    finally:
+        logging.getLogger().removeHandler(handler)
+    assert [r.getMessage() for r in seen] == ["anything else still warns"]
 
 
 def test_sampled_test_poses_are_seeded_upright_and_in_range():

@@ -37,12 +37,14 @@ EXPECTED_WARNINGS = ("pushtorch.models.push_condition", "pushtorch.models.eviden
 
 
 class _Expected(logging.Filter):
-    """Logs an expected warning at DEBUG (the record is demoted, not dropped: a DEBUG handler still sees it)."""
+    """Logs an expected warning at DEBUG: the record is demoted, and passed on only where its logger has DEBUG
+    enabled (a handler without a level of its own, as Hydra's console, would print it otherwise)."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if record.levelno == logging.WARNING:
-            record.levelno, record.levelname = logging.DEBUG, logging.getLevelName(logging.DEBUG)
-        return True
+        if record.levelno != logging.WARNING:
+            return True
+        record.levelno, record.levelname = logging.DEBUG, logging.getLevelName(logging.DEBUG)
+        return logging.getLogger(record.name).isEnabledFor(logging.DEBUG)
 
 
 @contextlib.contextmanager
