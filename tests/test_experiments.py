@@ -401,6 +401,13 @@ def test_tiny_quickstart_writes_tidy_results(tiny_run):
         if r["method"] in ("online", "online_general"):
             assert 0 < r["mu_mean"] < 1 and r["mu_std"] >= 0 and math.isfinite(r["log_mass_mean"])
             assert r["mass_true"] == (5.0 if r["condition"] == "mass:high" else 0.5)
+        if r["method"] == "online" and r["observed"] > 0:  # the evidence itself, per library model and case
+            for key in ("log_evidence", "log_weights"):
+                assert set(r[key]) == {"general", "low", "medium", "high"}
+                assert all(len(v) == 2 and all(math.isfinite(x) for x in v) for v in r[key].values())
+            for case in range(2):  # the library's posterior over its models is normalised
+                assert math.isclose(sum(math.exp(r["log_weights"][m][case]) for m in r["log_weights"]), 1.0,
+                                    rel_tol=1e-6)
     by = {(r["condition"], r["method"], r["observed"]): r for r in online}
     # without observations, the conditioned predictors are the general model's own predictions
     assert by[("friction:low", "online_general", 0)]["hacc_mean"] == by[("friction:low", "general", 0)]["hacc_mean"]
@@ -490,7 +497,11 @@ def test_the_placement_spread_test_set_runs_beside_the_default_one_in_one_folder
             if p.name in default_predictions} == default_predictions  # the default set untouched
     records = [r for r in json.loads((run / "results.json").read_text())["records"]
                if r["task"] == "prediction" and r["method"] == "pushtorch"]
-    assert records and all(math.isdef test_the_pybullet_world_runs_beside_the_mujoco_one_in_one_folder(tiny_run, tmp_path):
+    assert records and all(math.isfinite(r["hacc_mean"]) for r in records)
+    assert "placement_spread" in (run / "report.md").read_text()
+
+
+def test_the_pybullet_world_runs_beside_the_mujoco_one_in_one_folder(tiny_run, tmp_path):
     """world=pybullet: training pushes and truth in pybullet (cached apart from the default MuJoCo world's, which
     are named _mujoco), the peers in MuJoCo; results.json and the report name both engines; the MuJoCo caches are
     left as they were."""
@@ -516,8 +527,25 @@ def test_the_placement_spread_test_set_runs_beside_the_default_one_in_one_folder
     assert "**World: pybullet. Physics peers: mujoco.**" in (run / "report.md").read_text()
 
 
- m in truths)
-    assert "**World: mujoco. Physics peers: pybullet.**" in (run / "report.md").read_text()
+def test_the_parts_steps_in_worker_processes_give_the_records_of_a_serial_run(tiny_run, tmp_path):
+    """The default run fills a part's caches in forked task workers first; experiment.workers=1 does every step in
+    this process, in the loop's order. The records are the same."""
+    _, out, _ = tiny_run
+    parts = ("friction_biasing", "online_adaptation")
+    serial_cfg = _compose([*TINY, "experiment.workers=1", "~experiment.parts.model_selection",
+                           "~experiment.parts.pose_estimation", "~experiment.parts.mass_biasing",
+                           "~experiment.parts.shape_transfer"])
+    quickstart.run(serial_cfg, tmp_path / "serial")
+
+    def records(run):
+        every = json.loads((run / "results.json").read_text())["records"]
+        return sorted((json.dumps(r, sort_keys=True) for r in every
+                       if r["task"] == "online" or (r["task"] == "prediction" and r["model"] and
+                                                     r["model"].startswith("friction"))))
+
+    spread, serial = records(out), records(tmp_path / "serial")
+    assert spread and len(spread) == len(serial)
+    assert spread == serial, f"{sum(a != b for a, b in zip(spread, serial))} of {len(spread)} records differ ({parts})"
 
 
 def test_the_friction_biasing_part_on_ray_writes_the_same_records(tiny_run, tmp_path):

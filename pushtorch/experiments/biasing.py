@@ -55,6 +55,7 @@ from pushtorch.experiments.common import (
 )
 from pushtorch.experiments.statistics import sample_entry
 from pushtorch.experiments.suite import run_suite
+from pushtorch.experiments.tasks import prefetch
 from pushtorch.objects import load_object
 
 __all__ = ["prior_label", "run", "run_part"]
@@ -107,8 +108,10 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     needed = {training_of[o.name] for o in objects if o.name in training_of}
     if any(o.name not in training_of for o in objects):
         needed |= set(training)
-    models = {(t, f, m): train_model(ctx, load_object(t), f, m)
-              for t in sorted(needed) for f, m in model_priors}
+    trained = [(t, f, m) for t in sorted(needed) for f, m in model_priors]
+    prefetch(ctx, lambda task_ctx, tfm: train_model(task_ctx, load_object(tfm[0]), *tfm[1:]), trained,
+             what="models trained")
+    models = {(t, f, m): train_model(ctx, load_object(t), f, m) for t, f, m in trained}
     scatter: dict[str, dict[str, list]] = {}
     scatter_actions: dict[str, dict[str, list]] = {}  # the figures draw one row of panels per action
     for t in sorted(needed):
@@ -120,50 +123,64 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     records: list[dict] = []
     thrown: list[dict] = []
     hacc_samples: list[dict] = []
-    total = len(objects) * len(model_priors) * int(part["test_conditions"]) * int(ctx.actions.shape[0])
-    bar = progress_bar(ctx, total, f"{name}: predictions")
+    per_group = int(part["test_conditions"]) * int(ctx.actions.shape[0])
+    bar = progress_bar(ctx, len(objects) * len(model_priors) * per_group, f"{name}: predictions")
+    groups = []
     for obj in objects:
         poses = sample_test_poses(obj, int(part["test_conditions"]), part["yaw_range_deg"],
                                   stable_seed(ctx.seed, "poses", obj.name))
         for k, (f, m) in enumerate(model_priors):
-            model_name = prior_label(bias, f, m)
             if obj.name in training_of:
                 candidates, adaptive = [models[(training_of[obj.name], f, m)]], False
             else:
                 candidates, adaptive = [models[(t, f, m)] for t in training], True
-            key = f"{name}_{obj.name}_{f}_{m}"
-            physics = (ctx.prior("mass", m).mean, ctx.prior("friction", f).mean)
-            truth_key = truth_fingerprint(ctx, conditions, samples, f"{name}_{obj.name}")
-            predictions, examples = predict_set(
-                ctx, key, obj, candidates, poses, truth=truth_key, adaptive=adaptive, physics=physics,
-                seed_key=f"{name}_{obj.name}", bar=bar, examples=ctx.log_examples if k == 0 else None,
-            )
-            truth, broken = simulate_truth(ctx, key, obj, predictions, conditions, samples,
-                                           seed_key=f"{name}_{obj.name}")
-            nll = likelihood_scores(ctx, key, obj, predictions, truth, truth_key)
-            for c, (cf, cm) in enumerate(conditions):
-                condition = prior_label(bias, cf, cm)
-                thrown.append({"object": obj.name, "method": "pushtorch", "model": model_name,
-                               "condition": condition, "thrown": int(broken[c].sum()),
-                               "pushes": broken[c].numel(),
-                               # the starts are the conditions': counted once, not once per truth condition
-                               "invalid_starts": predictions.invalid_starts if c == 0 else 0,
-                               "starts": predictions.backoff.numel() if c == 0 else 0})
-                # every method predicts the displacement from its own start pose: the estimate, the
-                # reconstructed body (physics from the cloud) or the true pose (the oracle)
-                for method, (start, final) in predictions.methods().items():
-                    acc = compare_displacement(start, final, predictions.truth_initial, truth.take(c), obj)
-                    inside = nll.get(f"coverage:{method}")
-                    records.append(summarise("prediction", obj.name, method, acc, model_name, condition,
-                                             metric="displacement", nll=nll[method][c],
-                                             coverage=None if inside is None else inside[c]))
-                    hacc_samples.append(sample_entry(records[-1], acc.hacc.reshape(-1, samples)))
-                    records.append(summarise("prediction", obj.name, method, compare(final, truth.take(c), obj),
-                                             model_name, condition, metric="frame"))
-            if examples:
-                label = entity_label(name, obj.name, model_name)
-                log_examples(ctx, label, obj, examples, predictions, truth.take(0),
-                             nll=nll["pushtorch"][0])
+            groups.append((obj, poses, k, f, m, candidates, adaptive))
+
+    def scored(group_ctx: ExperimentContext, group: tuple, group_bar=None, log: bool = False):
+        """One object and model prior: predictions (with the peers), ground truth and scores, each cached."""
+        obj, poses, k, f, m, candidates, adaptive = group
+        key = f"{name}_{obj.name}_{f}_{m}"
+        physics = (group_ctx.prior("mass", m).mean, group_ctx.prior("friction", f).mean)
+        truth_key = truth_fingerprint(group_ctx, conditions, samples, f"{name}_{obj.name}")
+        predictions, examples = predict_set(
+            group_ctx, key, obj, candidates, poses, truth=truth_key, adaptive=adaptive, physics=physics,
+            seed_key=f"{name}_{obj.name}", bar=group_bar, examples=group_ctx.log_examples if log and k == 0 else None,
+        )
+        truth, broken = simulate_truth(group_ctx, key, obj, predictions, conditions, samples,
+                                       seed_key=f"{name}_{obj.name}")
+        return predictions, examples, truth, broken, likelihood_scores(group_ctx, key, obj, predictions, truth,
+                                                                       truth_key)
+
+    # every group in worker processes first, where there are cores to spare: the loop below then reads caches
+    ahead = prefetch(ctx, scored, groups, on_done=lambda _: bar.update(per_group),
+                     warm=next(iter(models.values())), what="groups predicted, pushed and scored")
+    for group in groups:
+        obj, _, _, f, m, _, _ = group
+        model_name = prior_label(bias, f, m)
+        predictions, examples, truth, broken, nll = scored(ctx, group, None if ahead else bar, log=True)
+        for c, (cf, cm) in enumerate(conditions):
+            condition = prior_label(bias, cf, cm)
+            thrown.append({"object": obj.name, "method": "pushtorch", "model": model_name,
+                           "condition": condition, "thrown": int(broken[c].sum()),
+                           "pushes": broken[c].numel(),
+                           # the starts are the conditions': counted once, not once per truth condition
+                           "invalid_starts": predictions.invalid_starts if c == 0 else 0,
+                           "starts": predictions.backoff.numel() if c == 0 else 0})
+            # every method predicts the displacement from its own start pose: the estimate, the
+            # reconstructed body (physics from the cloud) or the true pose (the oracle)
+            for method, (start, final) in predictions.methods().items():
+                acc = compare_displacement(start, final, predictions.truth_initial, truth.take(c), obj)
+                inside = nll.get(f"coverage:{method}")
+                records.append(summarise("prediction", obj.name, method, acc, model_name, condition,
+                                         metric="displacement", nll=nll[method][c],
+                                         coverage=None if inside is None else inside[c]))
+                hacc_samples.append(sample_entry(records[-1], acc.hacc.reshape(-1, samples)))
+                records.append(summarise("prediction", obj.name, method, compare(final, truth.take(c), obj),
+                                         model_name, condition, metric="frame"))
+        if examples:
+            label = entity_label(name, obj.name, model_name)
+            log_examples(ctx, label, obj, examples, predictions, truth.take(0),
+                         nll=nll["pushtorch"][0])
     bar.close()
     return records, {"training_scatter": {name: scatter}, "training_actions": {name: scatter_actions},
                      "thrown": thrown, "hacc_samples": hacc_samples}

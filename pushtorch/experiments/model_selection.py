@@ -43,6 +43,7 @@ from pushtorch.experiments.common import (
 )
 from pushtorch.experiments.statistics import sample_entry
 from pushtorch.experiments.suite import run_suite
+from pushtorch.experiments.tasks import prefetch
 from pushtorch.objects import load_object
 
 __all__ = ["METHODS", "run", "run_part"]
@@ -88,34 +89,48 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     if len(training) < 2 and "incongruent" in methods:
         raise InvalidParameterError("the incongruent method needs at least two training objects")
     friction, mass = _single(model_cfg, "friction"), _single(model_cfg, "mass")
+    prefetch(ctx, lambda task_ctx, t: train_model(task_ctx, load_object(t), friction, mass), training,
+             what="models trained")
     models = [train_model(ctx, load_object(t), friction, mass) for t in training]
     condition = (str(part["condition"]["friction"]), str(part["condition"]["mass"]))
     samples = int(part["truth_samples"])
     records: list[dict] = []
     thrown: list[dict] = []
     hacc_samples: list[dict] = []  # per-comparison H_acc of each record, for the figures' intervals
-    total = len(objects) * len(methods) * int(part["test_conditions"]) * int(ctx.actions.shape[0])
-    bar = progress_bar(ctx, total, f"{name}: predictions")
-    for obj_name in objects:
+    per_object = len(methods) * int(part["test_conditions"]) * int(ctx.actions.shape[0])
+    bar = progress_bar(ctx, len(objects) * per_object, f"{name}: predictions")
+
+    def scored(obj_ctx: ExperimentContext, obj_name: str, obj_bar=None, log: bool = False):
+        """Every method's predictions of one object, ground truth and scores (each cached)."""
         obj = load_object(obj_name)
         poses = sample_test_poses(obj, int(part["test_conditions"]), part["yaw_range_deg"],
-                                  stable_seed(ctx.seed, "poses", obj.name))
+                                  stable_seed(obj_ctx.seed, "poses", obj.name))
         congruent = training.index(obj_name)
         others = [k for k in range(len(models)) if k != congruent]
         choices = {"congruent": lambda i, c=congruent: c,
                    "incongruent": lambda i, o=tuple(others): o[i % len(o)], "adaptive": None}
         memo: dict = {}  # every method predicts a condition with the same seeds: a model's answer is shared
+        out = []
         for method in methods:
             key = f"{name}_{obj_name}_{method}"
-            truth_key = truth_fingerprint(ctx, [condition], samples, f"{name}_{obj_name}")
+            truth_key = truth_fingerprint(obj_ctx, [condition], samples, f"{name}_{obj_name}")
             predictions, examples = predict_set(
-                ctx, key, obj, models, poses, truth=truth_key, adaptive=method == "adaptive",
-                choose=choices[method], seed_key=f"{name}_{obj_name}", memo=memo, bar=bar,
-                examples=ctx.log_examples if method == "adaptive" else None,
+                obj_ctx, key, obj, models, poses, truth=truth_key, adaptive=method == "adaptive",
+                choose=choices[method], seed_key=f"{name}_{obj_name}", memo=memo, bar=obj_bar,
+                examples=obj_ctx.log_examples if log and method == "adaptive" else None,
             )
-            truth, broken = simulate_truth(ctx, key, obj, predictions, [condition], samples,
+            truth, broken = simulate_truth(obj_ctx, key, obj, predictions, [condition], samples,
                                            seed_key=f"{name}_{obj_name}")
-            scores = likelihood_scores(ctx, key, obj, predictions, truth, truth_key)
+            out.append((method, predictions, examples, truth, broken,
+                        likelihood_scores(obj_ctx, key, obj, predictions, truth, truth_key)))
+        return obj, congruent, out
+
+    # every object in worker processes first, where there are cores to spare: the loop below then reads caches
+    ahead = prefetch(ctx, scored, objects, on_done=lambda _: bar.update(per_object), warm=models[0],
+                     what="objects predicted, pushed and scored")
+    for obj_name in objects:
+        obj, congruent, per_method = scored(ctx, obj_name, None if ahead else bar, log=True)
+        for method, predictions, examples, truth, broken, scores in per_method:
             nll = scores["pushtorch"]
             rate = float((predictions.selected == congruent).double().mean())
             acc = compare_displacement(predictions.estimate, predictions.final, predictions.truth_initial,

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -55,6 +55,7 @@ from pushtorch.experiments.common import (
 )
 from pushtorch.experiments.prediction_sets import observe
 from pushtorch.experiments.suite import run_suite
+from pushtorch.experiments.tasks import prefetch
 from pushtorch.io import atomic_write_bytes
 from pushtorch.models.conditioning import Observation
 from pushtorch.models.library import ModelLibrary
@@ -71,7 +72,7 @@ LEVELS = ("low", "medium", "high")
 #: Part keys that do not change a condition's scores (left out of its cache's fingerprint).
 RUN_CONTROL = ("objects", "name", "progress", "workers", "shard_size", "log_examples", "kind")
 #: Bump when a condition's cached scores (``<run_dir>/online/*.json``) would come out differently.
-ONLINE_VERSION = 2
+ONLINE_VERSION = 3
 
 
 def _start(obj, pose: se3.Pose, seed: int) -> se3.Pose:
@@ -182,6 +183,8 @@ class _Scores:
 
     pushes: dict = field(default_factory=dict)
     posteriors: dict = field(default_factory=dict)
+    #: per k, per case: each library model's log evidence and the library's log posterior weights
+    evidence: dict = field(default_factory=dict)
     #: one case's scores by (prediction, action): a prediction every k shares is scored once
     scored: dict = field(default_factory=dict)
 
@@ -203,13 +206,10 @@ class _Scores:
         self.pushes.setdefault((predictor, k), []).append(self.scored[key][1])
 
 
-def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int, observed: list[int],
-          scores: _Scores, logged: bool) -> torch.Tensor:
-    """Score every predictor on case ``i`` of one condition; returns the case's true outcomes ``(A, 2)`` (the
-    object's final position in each push's robot start frame) for the separability."""
-    from pushtorch.evaluation.baselines import fit_cloud_physics, physics_grid
-    from pushtorch.sim.runner import simulate_pushes
-
+def _observed(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int, observed: list[int]):
+    """Case ``i`` of one condition up to its conditioning: its physics ``(μ, m)``, its observations and the chain
+    of conditioned libraries (``chain[k]`` has seen ``k`` of them; one observation at a time, the same posterior
+    as all at once). Everything is seeded by the case, so the recording's re-run of a case is that case."""
     ctx, obj, name, models = group.ctx, group.obj, group.name, group.models
     condition, other = f"{bias}:{level}", ("mass" if bias == "friction" else "friction")
     default = str(part.get(f"default_{other}", "paper_default"))
@@ -217,27 +217,42 @@ def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int,
     priors = {bias: ctx.prior(bias, level), other: ctx.prior(other, default)}
     mu = float(priors["friction"].sample((1,), gen)[0])
     mass = float(priors["mass"].sample((1,), gen)[0])
+    obs = _observations(group, condition, i, observed[-1], part["yaw_range_deg"], mass, mu,
+                        bool(part.get("odometry", True)))
+    seed = stable_seed(ctx.seed, name, obj.name, condition, i, "condition")
+    library = ModelLibrary([models[lv] for lv in ("general", *LEVELS)])
+    chain = [library.condition_on([], seed=seed)]  # selects by H_r, as the library does
+    for o in obs:
+        chain.append(chain[-1].condition_on([o], seed=seed))
+    return mu, mass, obs, chain
+
+
+def _log_case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int, observed: list[int]) -> None:
+    """Case ``i``'s posterior timeline in the recording (its observations and conditioned libraries)."""
+    from pushtorch.viz.core import WORLD, entity_name
+    from pushtorch.viz.online import log_online_adaptation
+
+    _, _, obs, chain = _observed(group, part, bias, level, i, observed)
+    log_online_adaptation(group.ctx.recording, f"{WORLD}/experiments/{group.name}/{entity_name(group.obj.name)}/"
+                          f"{entity_name(f'{bias}:{level}')}/case{i}", chain, obs)
+
+
+def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int, observed: list[int],
+          scores: _Scores) -> torch.Tensor:
+    """Score every predictor on case ``i`` of one condition; returns the case's true outcomes ``(A, 2)`` (the
+    object's final position in each push's robot start frame) for the separability."""
+    from pushtorch.evaluation.baselines import fit_cloud_physics, physics_grid
+    from pushtorch.sim.runner import simulate_pushes
+
+    ctx, obj, models, condition = group.ctx, group.obj, group.models, f"{bias}:{level}"
+    mu, mass, obs, chain = _observed(group, part, bias, level, i, observed)
     a_count = int(ctx.actions.shape[0])
     starts = se3.Pose.stack(group.starts[i])
     initial = se3.Pose.stack([group.poses.take(i)] * a_count)
     truth = simulate_pushes(obj, starts, initial, ctx.actions.double(), mass, mu,
                             settings=ctx.sim).object_final  # the scored pushes
-    obs = _observations(group, condition, i, observed[-1], part["yaw_range_deg"], mass, mu,
-                        bool(part.get("odometry", True)))
     grid = physics_grid(*group.general_prior, int(part.get("peer_grid", 8)))
     errors = fit_cloud_physics(obs, grid, ctx.physics)
-    # one observation at a time (the same posterior as all at once): chain[k] has seen k of them
-    seed = stable_seed(ctx.seed, name, obj.name, condition, i, "condition")
-    library = ModelLibrary([models[level] for level in ("general", *LEVELS)])
-    chain = [library.condition_on([], seed=seed)]  # selects by H_r, as the library does
-    for o in obs:
-        chain.append(chain[-1].condition_on([o], seed=seed))
-    if logged and ctx.recording is not None:
-        from pushtorch.viz.core import WORLD, entity_name
-        from pushtorch.viz.online import log_online_adaptation
-
-        log_online_adaptation(ctx.recording, f"{WORLD}/experiments/{name}/{entity_name(obj.name)}/"
-                              f"{entity_name(condition)}/case{i}", chain, obs)
     wrong = _incongruent(ctx, bias, level)
     means = (group.general_prior[0].mean, group.general_prior[1].mean)
     debiased = group.memo.setdefault("debiased model", models["general"].condition_on([], prior=group.general_prior))
@@ -263,6 +278,13 @@ def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int,
                                           "physics_from_cloud_online": peer}.items():
                 scores.add(predictor, k, prediction, truth_initial, final, obj, j)
         summaries = (conditioned.posterior(0).as_record(), conditioned.models[0].posterior(0).as_record())
+        if k > 0:
+            levels = ("general", *LEVELS)  # the library's models, in order
+            weights = conditioned.model_log_posterior().tolist()
+            scores.evidence.setdefault(k, []).append(
+                {"log_evidence": {lv: float(m.physics_posterior.log_evidence())
+                                  for lv, m in zip(levels, conditioned.models, strict=True)},
+                 "log_weights": dict(zip(levels, weights, strict=True))})
         scores.posteriors.setdefault(("online", k), []).append(summaries[0])
         scores.posteriors.setdefault(("online_general", k), []).append(summaries[1])
     return torch.stack([se3.relative(group.starts[i][j], se3.Pose.unchecked(truth.p[j], truth.q[j])).p[:2]
@@ -281,6 +303,12 @@ def _condition_records(obj: str, condition: str, scores: _Scores, priors: Mappin
             record.update({key: float(sum(s[key] for s in summaries) / len(summaries))
                            for key in ("mu_mean", "mu_std", "log_mass_mean", "log_mass_std")})
             record.update({"mu_true": priors["friction"].mean, "mass_true": priors["mass"].mean})
+        if predictor == "online" and k in scores.evidence:
+            # the evidence itself: each library model's log evidence and the library's log posterior weight of
+            # it after k observed pushes, per case (nats)
+            cases = scores.evidence[k]
+            record.update({key: {lv: [c[key][lv] for c in cases] for lv in cases[0][key]}
+                           for key in ("log_evidence", "log_weights")})
         if predictor == "online":
             diff = t[:, 0] - torch.tensor([v[0] for v in scores.pushes[("congruent", k)]], dtype=torch.float64)
             record["vs_congruent"] = {"difference": float(diff.mean()),
@@ -309,19 +337,17 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
         unknown = [level for level in as_names(part["conditions"][bias]) if level not in LEVELS]
         if unknown:
             raise InvalidParameterError(f"online_adaptation's {bias} conditions are {LEVELS}, got {unknown}")
-    a_count = int(ctx.actions.shape[0])
     records: list[dict] = []
     separability: list[dict] = []
-    total = sum(len(as_names(part["conditions"][b])) for b in biases) * len(objects) * n_cases
     # the cases whose posterior timeline the recording shows (the first ones; worst/best choices need the truth)
-    logged = set(ctx.log_examples.known_before_truth(n_cases)) or {0}
-    bar = progress_bar(ctx, total, f"{name}: cases")
+    logged = sorted(set(ctx.log_examples.known_before_truth(n_cases)) or {0})
+    groups, tasks = {}, []
     for obj in objects:
         trained_on = load_object(training_of.get(obj.name, obj.name))
         poses = sample_test_poses(obj, n_cases, part["yaw_range_deg"], stable_seed(ctx.seed, name, "poses", obj.name))
         clouds = [observe(obj, poses.take(i), ctx.settings) for i in range(n_cases)]
         starts = [[_start(obj, poses.take(i), stable_seed(ctx.seed, name, obj.name, i, j, "start"))
-                   for j in range(a_count)] for i in range(n_cases)]
+                   for j in range(int(ctx.actions.shape[0]))] for i in range(n_cases)]
         for bias in biases:
             other = "mass" if bias == "friction" else "friction"
             default = str(part.get(f"default_{other}", "paper_default"))
@@ -330,7 +356,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             models = {level: train_model(ctx, trained_on, *fm) for level, fm in pairs.items()}
             general_prior = (ctx.prior("friction", pairs["general"][0]), ctx.prior("mass", pairs["general"][1]))
             group = _Group(ctx, name, obj, poses, clouds, starts, models, general_prior)
-            outcomes = {}
+            files = {}
             for level in as_names(part["conditions"][bias]):
                 path = contained_path(ctx.run_dir, "online", f"{name}_{obj.name}_{bias}_{level}.json",
                                       what="experiment or object name")
@@ -341,23 +367,61 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
                                         priors=[repr(ctx.prior(k, n)) for k in ("friction", "mass")
                                                 for n in (*LEVELS, "general", default)],
                                         sim=asdict(ctx.sim), physics=ctx.physics.engine, duration=ctx.duration)
-                cached = json.loads(path.read_text()) if path.is_file() else None
-                if cached is not None and cached.get("made_from") == made_from:
-                    bar.update(n_cases)
-                else:
-                    scores, cases = _Scores(), []
-                    for i in range(n_cases):
-                        cases.append(_case(group, part, bias, level, i, observed, scores, i in logged))
-                        bar.update(1)
-                    priors = {bias: ctx.prior(bias, level), other: ctx.prior(other, default)}
-                    cached = {"made_from": made_from, "outcomes": torch.stack(cases).tolist(),
-                              "records": _condition_records(obj.name, f"{bias}:{level}", scores, priors)}
-                    atomic_write_bytes(path, json.dumps(cached).encode())  # a killed run resumes from here
-                outcomes[level] = torch.tensor(cached["outcomes"], dtype=torch.float64)
-                records += cached["records"]
-            separability.extend(_separability(obj.name, bias, outcomes))
+                files[level] = (path, made_from)
+            groups[(obj.name, bias)] = (group, files, bias)
+            pending = [lv for lv, (path, made_from) in files.items() if _cached(path, made_from) is None]
+            if pending:
+                tasks.append((obj.name, bias, tuple(pending)))
+    # every group's uncached conditions, in worker processes where there are cores to spare (they inherit the
+    # trained models and clouds); each condition's scores are written as soon as they are done (a killed run
+    # resumes), and the recording's cases are logged here
+    bar = progress_bar(ctx, sum(n_cases * len(levels) for *_, levels in tasks), f"{name}: cases")
+
+    def step(_, key: tuple) -> None:
+        _run_conditions(groups[key[:2]], part, observed, n_cases, key[2])
+
+    warm = next(iter(groups.values()))[0].models["general"] if groups else None
+    if not prefetch(ctx, step, tasks, on_done=lambda key: bar.update(n_cases * len(key[2])), warm=warm,
+                    what="groups of conditions scored"):
+        for key in tasks:
+            step(ctx, key)
+            bar.update(n_cases * len(key[2]))
     bar.close()
+    for (obj_name, bias), (group, files, _) in groups.items():
+        outcomes = {}
+        for level, (path, made_from) in files.items():
+            cached = _cached(path, made_from)
+            outcomes[level] = torch.tensor(cached["outcomes"], dtype=torch.float64)
+            records += cached["records"]
+            if ctx.recording is not None:
+                for i in logged:
+                    _log_case(group, part, bias, level, i, observed)
+        separability.extend(_separability(obj_name, bias, outcomes))
     return records, {"online_separability": separability}
+
+
+def _cached(path, made_from) -> dict | None:
+    """A condition's scores written earlier, if they were made from ``made_from``."""
+    cached = json.loads(path.read_text()) if path.is_file() else None
+    return cached if cached is not None and cached.get("made_from") == made_from else None
+
+
+def _run_conditions(grouped: tuple, part: Mapping[str, Any], observed: list[int], n_cases: int,
+                    levels: Sequence[str]) -> None:
+    """Score the conditions ``levels`` of one object and bias: every case, then the condition's file, written
+    atomically. The group's predictions that do not depend on the condition are made once for all of its
+    conditions (its memo)."""
+    group, files, bias = grouped
+    other = "mass" if bias == "friction" else "friction"
+    default = str(part.get(f"default_{other}", "paper_default"))
+    for level in levels:
+        path, made_from = files[level]
+        scores = _Scores()
+        cases = [_case(group, part, bias, level, i, observed, scores) for i in range(n_cases)]
+        priors = {bias: group.ctx.prior(bias, level), other: group.ctx.prior(other, default)}
+        written = {"made_from": made_from, "outcomes": torch.stack(cases).tolist(),
+                   "records": _condition_records(group.obj.name, f"{bias}:{level}", scores, priors)}
+        atomic_write_bytes(path, json.dumps(written).encode())
 
 
 def _record(obj: str, predictor: str, k: int, condition: str, hacc: torch.Tensor, nll: torch.Tensor,
