@@ -212,6 +212,18 @@ def test_observations_are_weighed_by_the_density_width_not_the_mode_width(cube_m
     density = posterior_loglik(replace(cube_model.settings, density_p_std=2 * cube_model.settings.density_p_std))
     torch.testing.assert_close(mode_only, base)  # the mode's width does not enter the evidence
     assert not torch.allclose(density, base)
+    # a library weighs every model's observations at its models' widest density width, so a model does not win
+    # by narrower kernels alone
+    from pushtorch.models.evidence import common_density_bandwidth
+
+    own = cube_model.settings
+    wider = replace(cube_model, name="wider", settings=replace(own, density_rot_std=3 * own.density_rot_std))
+    common = common_density_bandwidth([cube_model, wider])
+    assert (common.p_std, common.rot_std) == (own.density_p_std, 3 * own.density_rot_std)
+    conditioned = ModelLibrary([cube_model, wider]).condition_on([seen], seed=0)
+    alone = cube_model.condition_on([seen], seed=0, bandwidth=common).physics_posterior.log_likelihood
+    torch.testing.assert_close(conditioned.models[0].physics_posterior.log_likelihood, alone)
+    torch.testing.assert_close(conditioned.models[1].physics_posterior.log_likelihood, alone)  # same kernels
 
 
 def test_model_settings_reject_bad_values():

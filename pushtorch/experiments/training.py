@@ -42,7 +42,7 @@ def placement_tag(placement: Placement) -> str:
 
 
 def engine_tag(ctx: ExperimentContext) -> str:
-    """'' in the default pybullet world, else ``_<engine>`` (``_mujoco``): a run's cached pushes, models,
+    """'' in the pybullet world, else ``_<engine>`` (``_mujoco``): a run's cached pushes, models,
     predictions, truth and scores of one engine never stand in for another's, and a run directory may hold both."""
     return "" if ctx.sim.engine == "pybullet" else f"_{ctx.sim.engine}"
 

@@ -28,7 +28,7 @@ import torch
 
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError
-from pushtorch.kde import PoseKDE
+from pushtorch.kde import KernelBandwidth, PoseKDE
 from pushtorch.kde.normaliser import NO_CUTOFF, log_kernel_normaliser
 from pushtorch.models.conditioning import (
     OUTLIER_ANGLE,
@@ -51,6 +51,7 @@ if TYPE_CHECKING:
     from pushtorch.models.model import PushModel
 
 __all__ = [
+    "common_density_bandwidth",
     "condition_model",
     "observation_evidence",
     "observed_outcome",
@@ -103,7 +104,8 @@ def _contacts(model: PushModel, features, a: int, start: se3.Pose | None, genera
 
 
 def observation_evidence(model: PushModel, observation: Observation, posterior: PhysicsPosterior,
-                         generator: torch.Generator | None = None) -> torch.Tensor | None:
+                         generator: torch.Generator | None = None,
+                         bandwidth: KernelBandwidth | None = None) -> torch.Tensor | None:
     """``(G,)`` the cell log-likelihood of one observed push under ``model`` (its trained kernels), or None
     when no kernel its contacts reach explains the outcome (:data:`~pushtorch.models.conditioning.OUTLIER_DISTANCE`,
     :data:`~pushtorch.models.conditioning.OUTLIER_ANGLE`).
@@ -121,7 +123,8 @@ def observation_evidence(model: PushModel, observation: Observation, posterior: 
     y = observed_outcome(observation, reference)
     motion = model.motions[a]
     to_final = se3.relative(start, reference)
-    full = dataclasses.replace(settings.density_bandwidth, cutoff_std=NO_CUTOFF)  # the calibrated kernels
+    # the calibrated kernels (a library's common width, where one compares its models)
+    full = dataclasses.replace(bandwidth or settings.density_bandwidth, cutoff_std=NO_CUTOFF)
     memberships, weights, log_kernels, explained = [], [], [], False
     for frame, kernels in ((manipulator_frame, motion.manipulator), (environment_frames, motion.environment)):
         kernels = dataclasses.replace(kernels, log_weight=None)  # the trained kernels: the posterior is the prior
@@ -150,6 +153,16 @@ def observation_evidence(model: PushModel, observation: Observation, posterior: 
     return cells
 
 
+def common_density_bandwidth(models) -> KernelBandwidth:
+    """The density bandwidth a library weighs observations with for all of its models: the widest of their
+    density stds, position and rotation apart (docs/method.md, "Two widths: the mode and the density"). Each
+    model's own width was chosen on its own training pushes; compared at them, a model trained on a narrower
+    spread of outcomes would win by its narrower kernels alone on pushes it does not fit."""
+    first = models[0].settings.density_bandwidth
+    return dataclasses.replace(first, p_std=max(m.settings.density_bandwidth.p_std for m in models),
+                               rot_std=max(m.settings.density_bandwidth.rot_std for m in models))
+
+
 def robot_motion_of(robot_start: se3.Pose, robot_final: se3.Pose) -> torch.Tensor:
     """``(3,)`` float64 the robot's final pose in its start frame: x, y (m) and yaw (rad)."""
     start = se3.Pose.unchecked(robot_start.p.reshape(3).double(), robot_start.q.reshape(4).double())
@@ -158,8 +171,11 @@ def robot_motion_of(robot_start: se3.Pose, robot_final: se3.Pose) -> torch.Tenso
     return torch.stack([moved.p[0], moved.p[1], se3.yaw_of(moved.q)])
 
 
-def condition_model(model: PushModel, observations, seed: int | None = None, prior: tuple | None = None) -> PushModel:
-    """:meth:`PushModel.condition_on <pushtorch.models.model.PushModel.condition_on>`."""
+def condition_model(model: PushModel, observations, seed: int | None = None, prior: tuple | None = None,
+                    bandwidth: KernelBandwidth | None = None) -> PushModel:
+    """:meth:`PushModel.condition_on <pushtorch.models.model.PushModel.condition_on>`; ``bandwidth``: the motion
+    kernels the observations are scored under (default the model's density bandwidth; a library passes the
+    common width of its models, :func:`common_density_bandwidth`)."""
     observations = _as_list(observations)
     posterior = model.physics_posterior
     if posterior is None:
@@ -172,7 +188,7 @@ def condition_model(model: PushModel, observations, seed: int | None = None, pri
     for obs in observations:
         index = posterior.observed + posterior.rejected
         generator = torch.Generator().manual_seed(observation_seed(posterior.seed, index))
-        cells = observation_evidence(model, obs, posterior, generator)
+        cells = observation_evidence(model, obs, posterior, generator, bandwidth)
         if cells is None:
             log.warning("observation %d of model %s is explained by no kernel (farther than %.2f m or %.0f° from "
                         "every kernel its contacts reach: a thrown or misplaced object?): left out", index,

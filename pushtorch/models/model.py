@@ -109,7 +109,7 @@ class PushModel:
         return [k for m in self.motions for k in (m.manipulator, m.environment)]
 
     def condition_on(self, observations: Observation | list[Observation], seed: int | None = None,
-                     prior: tuple | None = None) -> PushModel:
+                     prior: tuple | None = None, bandwidth=None) -> PushModel:
         """This model conditioned on observed pushes of the object it will predict
         (:mod:`pushtorch.models.conditioning`): its kernels re-weighted by a posterior over the friction and
         mass their pushes were simulated with. ``predict``, ``predict_many`` and the density take it unchanged.
@@ -121,13 +121,15 @@ class PushModel:
             seed: the seed of the observations' push conditions (default: the posterior's, or 0).
             prior: ``(friction prior, mass prior)`` (:mod:`pushtorch.sim.priors`): de-bias the kernels towards
                 the training prior rather than where they crowd; only on a model not yet conditioned.
+            bandwidth: the motion kernels (a :class:`~pushtorch.kde.KernelBandwidth`) the observations are scored
+                under; default the model's density bandwidth (a library passes its models' common width).
 
         Raises:
             ModelError: kernels that do not know their physics (retrain), or an observation whose push
                 condition cannot be built (its robot start does not touch the cloud).
             InvalidParameterError: an observation of an action the model was not trained for, or a malformed one.
         """
-        return condition_model(self, observations, seed, prior)
+        return condition_model(self, observations, seed, prior, bandwidth)
 
     def posterior(self, n: int = 256, generator: torch.Generator | int | None = None) -> PosteriorSummary:
         """The posterior over ``(μ, m)`` this model holds (the kernels' own spread before any observation):
