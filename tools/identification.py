@@ -3,9 +3,9 @@
 For each run folder (a quickstart or an online-adaptation run): the world and physics engines, the seed, and per
 object and condition of the online part, the library's posterior mean of μ (friction conditions) or of log m
 (mass conditions) before any observed push (k = 0) and after the most (k = max), the truth's value, and whether
-the distance to the truth at least halved (``identified``). Then the separability of adjacent mass conditions
-(docs/experiments.md: the gap between two conditions' mean outcomes over their pooled spread) and the count of
-runs in which the cube's friction:low posterior was identified.
+the distance to the truth at least halved (``identified``). Then the separability of adjacent mass conditions among
+those run (docs/experiments.md: the gap between two conditions' mean outcomes over their pooled spread, from the
+run's cached outcomes) and the count of runs in which the cube's friction:low posterior was identified.
 
     .venv/bin/python tools/identification.py runs/qs_seed0 runs/qs_seed1 ...
 
@@ -18,6 +18,10 @@ import argparse
 import json
 import math
 from pathlib import Path
+
+import torch
+
+from pushtorch.experiments.online_adaptation import LEVELS, separability
 
 
 def _value(record: dict, bias: str) -> float:
@@ -53,10 +57,16 @@ def main() -> None:
                 if obj == "cube" and condition == "friction:low":
                     counted += 1
                     identified_low += int(ok)
-        for s in results.get("separability", []):
-            if s["parameter"] == "mass":
-                print(f"{run.name} seed={seed} {s['object']} mass {s['pair']}: separability {s['separability']:.2f} "
-                      f"(mean gap {s['mean_gap_cm']:.2f} cm)")
+        for obj in sorted({r["object"] for r in online}):  # from the scored outcomes the run cached
+            outcomes = {}
+            for level in LEVELS:
+                path = next(iter(sorted((run / "online").glob(f"*_{obj}_mass_{level}.json"))), None)
+                if path is not None:
+                    outcomes[level] = torch.tensor(json.loads(path.read_text())["outcomes"], dtype=torch.float64)
+            present = [level for level in LEVELS if level in outcomes]
+            for a, b in zip(present, present[1:], strict=False):
+                value, gap_cm = separability(outcomes[a], outcomes[b])
+                print(f"{run.name} seed={seed} {obj} mass {a}|{b}: separability {value:.2f} (mean gap {gap_cm:.2f} cm)")
     print(f"friction_low_identified={identified_low}/{counted}")
 
 

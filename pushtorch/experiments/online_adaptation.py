@@ -62,7 +62,7 @@ from pushtorch.models.library import ModelLibrary
 from pushtorch.objects import ObjectModel, load_object
 from pushtorch.paths import contained_path
 
-__all__ = ["run", "run_part"]
+__all__ = ["run", "run_part", "separability"]
 
 #: The robot starts of observed and scored pushes: heading within ± this of the object's x axis (deg) …
 HEADING_JITTER_DEG = 5.0
@@ -435,20 +435,25 @@ def _record(obj: str, predictor: str, k: int, condition: str, hacc: torch.Tensor
             "nll_mean": float(nll.mean()), "nll_median": float(nll.median())}
 
 
+def separability(x: torch.Tensor, y: torch.Tensor) -> tuple[float, float]:
+    """How far apart two conditions' outcomes are: their mean outcomes (``(N, A, 2)``, the object's final position
+    in each push's robot start frame) apart over their pooled spread, averaged over the actions; and the mean
+    gap (cm)."""
+    x, y = x.double(), y.double()
+    gap = (x.mean(0) - y.mean(0)).norm(dim=-1)  # (A,)
+    pooled = ((x.var(0, unbiased=True).sum(-1) + y.var(0, unbiased=True).sum(-1)) / 2).sqrt() if len(x) > 1 \
+        else torch.full_like(gap, math.nan)
+    return float((gap / pooled.clamp_min(1e-9)).mean()), float(gap.mean() * 100)
+
+
 def _separability(obj: str, bias: str, outcomes: Mapping[str, torch.Tensor]) -> list[dict]:
-    """Adjacent conditions' mean outcomes (the object's final position in the robot's start frame, per action)
-    apart over their pooled spread, averaged over the actions."""
+    """:func:`separability` of adjacent conditions among those run (low and high are adjacent without medium)."""
+    present = [level for level in LEVELS if level in outcomes]
     out = []
-    for a, b in (("low", "medium"), ("medium", "high")):
-        if a not in outcomes or b not in outcomes:
-            continue
-        x, y = outcomes[a].double(), outcomes[b].double()  # (N, A, 2)
-        gap = (x.mean(0) - y.mean(0)).norm(dim=-1)  # (A,)
-        pooled = ((x.var(0, unbiased=True).sum(-1) + y.var(0, unbiased=True).sum(-1)) / 2).sqrt() if len(x) > 1 \
-            else torch.full_like(gap, math.nan)
-        value = float((gap / pooled.clamp_min(1e-9)).mean())
+    for a, b in zip(present, present[1:], strict=False):
+        value, gap_cm = separability(outcomes[a], outcomes[b])
         out.append({"object": obj, "parameter": bias, "pair": f"{a}|{b}", "separability": value,
-                    "mean_gap_cm": float(gap.mean() * 100)})
+                    "mean_gap_cm": gap_cm})
     return out
 
 
