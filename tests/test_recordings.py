@@ -39,6 +39,8 @@ from pushtorch.viz.scores import GROUP_TIMELINE, hacc_root, part_summary_path
 from pushtorch.viz.sim import SIM_TIMELINE
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
+#: The suffix of the default world's caches (the truth in MuJoCo: pushtorch.experiments.training.engine_tag).
+WORLD = "_mujoco"
 TINY_SELECTION = [
     "experiment=model_selection",
     "experiment.progress=false",
@@ -129,7 +131,7 @@ def test_predictions_are_hierarchical_and_play_their_ground_truth_push(selection
     initial = np.asarray(_columns(out / "recording.rrd", f"{root}/initial_true")["Transform3D:translation"][0])
     np.testing.assert_allclose(translations[0], initial.reshape(3), atol=1e-6)
     # ... and the recorded trajectory is the one simulate_truth stored for condition 0, action 1, sample 0
-    truth = load_records(out / "truth" / "model_selection_cube_adaptive", dtype=torch.float64)
+    truth = load_records(out / "truth" / f"model_selection_cube_adaptive{WORLD}", dtype=torch.float64)
     samples = 2
     recorded = truth.object_trajectory.take(1 * samples).p.numpy()
     np.testing.assert_allclose(translations, recorded, atol=1e-6)  # float32 in the recording
@@ -187,7 +189,7 @@ def test_every_logged_prediction_shows_its_density_and_nll(selection_run):
     roots = _logged_roots(path)
     assert roots == [f"{PREDICTION}/model_selection/cube/adaptive/c0a{j}" for j in range(2)]
     paths = {str(chunk.entity_path) for chunk in _chunks(path)}
-    scores, _ = load_arrays(out / "scores" / "model_selection_cube_adaptive.npz")
+    scores, _ = load_arrays(out / "scores" / f"model_selection_cube_adaptive{WORLD}.npz")
     for j, root in enumerate(roots):
         shown = {p for p in paths if p.startswith(f"/{root}/") and "density" in p}
         assert {f"/{root}/{child}" for child in DENSITY} <= shown, root
@@ -218,7 +220,7 @@ def worst_run(selection_run, tmp_path_factory):
 
 def test_worst_logs_the_condition_of_highest_hacc_as_the_set_predicted_it(worst_run):
     out = worst_run
-    key = "model_selection_cube_adaptive"
+    key = f"model_selection_cube_adaptive{WORLD}"
     predictions = PredictionSet.load(out / "predictions" / f"{key}.npz")
     n, a_count = predictions.final.batch_shape
     assert (n, a_count) == (2, 2)
