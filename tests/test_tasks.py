@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+import textwrap
 
 import pytest
 import torch
@@ -61,3 +64,41 @@ def test_task_workers_are_bounded_by_tasks_and_checked():
     for bad in (-1, 1.5, True):
         with pytest.raises(ValueError, match="workers must be an integer"):
             task_workers(3, bad)
+
+
+_COMPILES_IN_A_WORKER = textwrap.dedent("""
+    import torch
+    from pushtorch.sim.tasks import run_tasks
+
+    def task(key):  # a function the parent never compiled: Inductor compiles it in the worker
+        f = torch.compile(lambda x: torch.cos(x) * (2 + key), dynamic=False)
+        return float(f(torch.ones(3)).sum())
+
+    if __name__ == "__main__":
+        g = torch.compile(lambda x: torch.sin(x) + 1)
+        g(torch.ones(3))  # the parent compiles first: Inductor's compile threads exist here, not in a fork
+        print(run_tasks(task, [0, 1], workers=2))
+""")
+
+
+@pytest.mark.skipif(available_cores() < 2, reason="needs two cores for a worker process")
+def test_a_worker_compiles_what_the_parent_did_not_without_hanging(tmp_path):
+    """torch.compile in a forked worker after the parent compiled: Inductor's compile threads are not forked, and
+    a worker waited for them forever until run_tasks set it to compile in its own thread."""
+    pytest.importorskip("torch._inductor")
+    import shutil
+
+    if shutil.which("g++") is None and shutil.which("c++") is None:
+        pytest.skip("Inductor needs a C++ compiler on CPU")
+    script = tmp_path / "compile_in_worker.py"
+    script.write_text(_COMPILES_IN_A_WORKER)
+    try:
+        done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300,
+                              env={**os.environ, "TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "inductor")})
+    except subprocess.TimeoutExpired:
+        pytest.fail("a worker compiling with torch.compile hung")
+    assert done.returncode == 0, done.stderr[-2000:]
+    import math
+
+    results = [float(v) for v in done.stdout.strip().splitlines()[-1].strip("[]").split(",")]
+    assert results == pytest.approx([6 * math.cos(1.0), 9 * math.cos(1.0)], rel=1e-6)

@@ -35,10 +35,21 @@ def task_workers(count: int, workers: int = 0) -> int:
     return max(1, min(int(count), workers or core_share()))
 
 
-def _one_thread() -> None:
+def _init_worker() -> None:
+    """One torch thread; and torch.compile able to compile here. Inductor compiles on a pool of threads that a
+    fork does not copy, and its after-fork hook clears only its process pool: a worker that compiled a function
+    the parent had not would wait for those threads forever (measured: the installed package's tiny quickstart
+    hung in ``CppCodeCache.load_async``). With one compile thread Inductor compiles in the calling thread, the
+    same code."""
     import torch
 
     torch.set_num_threads(1)
+    if "torch._inductor.async_compile" in sys.modules:
+        from torch._inductor import config
+        from torch._inductor.async_compile import AsyncCompile
+
+        config.compile_threads = 1
+        AsyncCompile.pool.cache_clear()
 
 
 def run_tasks(function: Callable[[Any], Any], keys: Sequence[Hashable], workers: int = 0,
@@ -67,7 +78,7 @@ def run_tasks(function: Callable[[Any], Any], keys: Sequence[Hashable], workers:
             if on_done is not None:
                 on_done(key, results[i])
         return results
-    with mp.get_context("fork").Pool(count, initializer=_one_thread) as pool:
+    with mp.get_context("fork").Pool(count, initializer=_init_worker) as pool:
         pending = {i: pool.apply_async(function, (key,)) for i, key in enumerate(keys)}
         try:
             for i, handle in pending.items():  # in order; each waits for its own task
