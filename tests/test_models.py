@@ -192,38 +192,74 @@ def test_the_density_takes_its_own_calibrated_width_and_the_mode_keeps_the_floor
     assert prediction.density.log_prob(mode) > same.density.log_prob(mode)  # narrower: more mass at the mode
 
 
-def test_observations_are_weighed_by_the_density_width_not_the_mode_width(cube_model):
+def _seen_push(cube_model, yaw: float = 0.1):
+    """One observed cube push (μ 0.3, 0.5 kg) of the model's second action."""
     from pushtorch.models.conditioning import Observation
 
     cube = load_object("cube")
-    start = cube.resting_pose(yaw=0.1)
+    start = cube.resting_pose(yaw=yaw)
     cloud = capture_partial_cloud(cube, start)
-    robot = place_robot_against(cube.mesh, start, 0.1, 0.0, 0.002)
+    robot = place_robot_against(cube.mesh, start, yaw, 0.0, 0.002)
     final = simulate_pushes(cube, robot, start, cube_model.actions[1].double(), mass=0.5,
                             ground_friction=0.3).object_final.take(0)
-    seen = Observation(cloud, cube_model.actions[1], start, final.to(torch.float32), robot)
+    return Observation(cloud, cube_model.actions[1], start, final.to(torch.float32), robot)
+
+
+def test_observations_are_weighed_by_the_density_width_not_the_mode_width(cube_model):
+    seen = _seen_push(cube_model)
 
     def posterior_loglik(settings):
         model = replace(cube_model, settings=settings)
         return model.condition_on([seen], seed=0).physics_posterior.log_likelihood
 
-    base = posterior_loglik(cube_model.settings)
-    mode_only = posterior_loglik(replace(cube_model.settings, motion_p_std=2 * cube_model.settings.motion_p_std))
-    density = posterior_loglik(replace(cube_model.settings, density_p_std=2 * cube_model.settings.density_p_std))
-    torch.testing.assert_close(mode_only, base)  # the mode's width does not enter the evidence
+    alone = replace(cube_model.settings, density_outlier=0.0)  # the density's kernels alone
+    base = posterior_loglik(alone)
+    mode_only = posterior_loglik(replace(alone, motion_p_std=2 * alone.motion_p_std))
+    density = posterior_loglik(replace(alone, density_p_std=2 * alone.density_p_std))
+    torch.testing.assert_close(mode_only, base)  # without an outlier share the mode's width does not enter
     assert not torch.allclose(density, base)
-    # a library weighs every model's observations at its models' widest density width, so a model does not win
-    # by narrower kernels alone
-    from pushtorch.models.evidence import common_density_bandwidth
+    # a library weighs every model's observations under its models' widest kernels and largest outlier share,
+    # so a model does not win by narrower kernels alone
+    from pushtorch.models.evidence import common_evidence_kernels
 
     own = cube_model.settings
-    wider = replace(cube_model, name="wider", settings=replace(own, density_rot_std=3 * own.density_rot_std))
-    common = common_density_bandwidth([cube_model, wider])
-    assert (common.p_std, common.rot_std) == (own.density_p_std, 3 * own.density_rot_std)
+    wider = replace(cube_model, name="wider", settings=replace(own, density_rot_std=3 * own.density_rot_std,
+                                                               density_outlier=0.3))
+    common = common_evidence_kernels([cube_model, wider])
+    assert (common.density.p_std, common.density.rot_std) == (own.density_p_std, 3 * own.density_rot_std)
+    assert (common.wide.p_std, common.outlier) == (own.motion_p_std, 0.3)
     conditioned = ModelLibrary([cube_model, wider]).condition_on([seen], seed=0)
     alone = cube_model.condition_on([seen], seed=0, bandwidth=common).physics_posterior.log_likelihood
     torch.testing.assert_close(conditioned.models[0].physics_posterior.log_likelihood, alone)
     torch.testing.assert_close(conditioned.models[1].physics_posterior.log_likelihood, alone)  # same kernels
+
+
+def test_the_evidence_outlier_share_is_chosen_by_held_out_likelihood_and_bounds_a_surprise(cube_model):
+    """Each evidence kernel is (1 − ε) K_density + ε K_mode: ε is chosen on the training pushes (a share the
+    held-out score prefers to none is kept only if it scores higher), and an observed push far from every kernel
+    costs the model far less than under the density's kernels alone."""
+    from pushtorch.models.bandwidth import OUTLIER_LADDER
+    from pushtorch.models.evidence import EvidenceKernels
+
+    settings, search = cube_model.settings, cube_model.meta["bandwidths"]
+    assert settings.density_outlier in OUTLIER_LADDER
+    if settings.density_outlier > 0:
+        assert search["score_outlier"] > search["score_density"]
+    else:
+        assert search["score_outlier"] == search["score_density"]
+    kernels = EvidenceKernels(settings.density_bandwidth, settings.motion_bandwidth, 0.1)
+    means = se3.Pose.unchecked(torch.zeros(1, 3), torch.tensor([[1.0, 0.0, 0.0, 0.0]]))
+    for miss in (0.0, 0.01, 0.05):  # m along x
+        y = se3.Pose.unchecked(torch.tensor([miss, 0.0, 0.0]), torch.tensor([1.0, 0.0, 0.0, 0.0]))
+        robust = float(kernels.log_kernels(means, y)[0])
+        narrow = float(EvidenceKernels.of(settings.density_bandwidth).log_kernels(means, y)[0])
+        wide = float(EvidenceKernels.of(settings.motion_bandwidth).log_kernels(means, y)[0])
+        # a mixture of two normalised densities: between its parts' log densities, and above each part's weighted
+        assert min(narrow, wide) - 1e-9 <= robust <= max(narrow, wide) + 1e-9
+        assert robust >= max(narrow + math.log(0.9), wide + math.log(0.1)) - 1e-9
+    assert narrow < robust - 10  # 5 cm off: tens of nats under the narrow kernels alone, not under the mixture
+    with pytest.raises(InvalidParameterError, match="density_outlier"):
+        ModelSettings(density_outlier=1.0)
 
 
 def test_model_settings_reject_bad_values():

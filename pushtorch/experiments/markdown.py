@@ -208,15 +208,16 @@ def write_report(out_dir: Path, experiment: str, wall_s: float, records: Sequenc
                   "training pushes, from the configured values (docs/method.md, \"Bandwidths from data\"). The "
                   "score is the held-out pool's log-likelihood in nats per push (higher is better). The density's "
                   "motion stds are chosen last, from the motion stds down: the density a prediction returns, "
-                  "while its mode is annealed with the motion stds (\"Two widths: the mode and the density\").", ""]
-        names = ("motion_p_std", "motion_rot_std", "density_p_std", "density_rot_std", "contact_p_std",
-                 "contact_rot_std", "contact_robot_std", "contact_patch_std", "contact_patch_yaw_std")
+                  "while its mode is annealed with the motion stds (\"Two widths: the mode and the density\"); "
+                  "then the evidence's outlier share ε (\"The evidence's outlier share\").", ""]
+        names = ("motion_p_std", "motion_rot_std", "density_p_std", "density_rot_std", "density_outlier",
+                 "contact_p_std", "contact_rot_std", "contact_robot_std", "contact_patch_std", "contact_patch_yaw_std")
         lines += table(["model", "motion p (m)", "motion rot (rad)", "density p (m)", "density rot (rad)",
-                         "u p (m)", "u rot (rad)", "g (m)", "patch (m)", "patch heading (rad)",
-                         "held-out score: configured → chosen → density"],
+                         "evidence ε", "u p (m)", "u rot (rad)", "g (m)", "patch (m)", "patch heading (rad)",
+                         "held-out score: configured → chosen → density → with ε"],
                         [(name, *(f"{b['chosen'].get(k, float('nan')):.3g}" for k in names),
                           f"{_score_text(b['score_start'])} → {_score_text(b['score_chosen'])} → "
-                          f"{_score_text(b.get('score_density'))}")
+                          f"{_score_text(b.get('score_density'))} → {_score_text(b.get('score_outlier'))}")
                          for name, b in sorted(bandwidths.items())])
         lines.append("")
 

@@ -27,6 +27,10 @@ Procedure (:func:`select_bandwidths`, docs/method.md "Bandwidths from data"):
   motion stds alone, from the chosen ones *down* with no floor, until a sweep gains nothing. They are the kernels
   of the density a prediction returns and observations are weighed by; the mode is still annealed with the
   floored motion stds (docs/method.md, "Two widths: the mode and the density").
+* **The evidence's outlier share.** Last ``density_outlier`` (``OUTLIER_LADDER``): each motion kernel of the
+  evidence becomes the scale mixture ``(1 − ε) K_density + ε K_mode`` (both normalised), scored the same way.
+  Observed pushes are weighed under it (:mod:`pushtorch.models.evidence`): a push that the calibrated kernels
+  miss by a few of their widths costs a few nats, not tens, so one surprising push does not decide a library.
 
 The chosen values replace the configured ones in the model's settings (so they are in the model file), and
 the search's record (held-out score before and after, and at the density's stds) is kept in ``PushModel.meta``.
@@ -77,6 +81,9 @@ MIN_EFFECTIVE_PUSHES = 5.0
 _INADMISSIBLE = -1e9  # the score of stds below MIN_EFFECTIVE_PUSHES, plus their effective count
 #: Sweeps of the density stds' search at most (it stops when a sweep gains nothing).
 DENSITY_SWEEPS = 4
+#: The evidence's outlier shares tried (``density_outlier``, the weight of the mode-width component of each
+#: kernel); the configured one is the starting point, so 0 is kept unless a share scores higher.
+OUTLIER_LADDER = (0.0, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
 #: Held-out pushes scored per action and environment kernels kept as experts' kernels (memory bound).
 MAX_HELD_OUT = 200
 MAX_ENVIRONMENT_KERNELS = 2000
@@ -93,6 +100,7 @@ class BandwidthSearch:
     folds: int
     held_out: int
     score_density: float | None = None  # at the density's stds (``chosen``'s density_p_std, density_rot_std)
+    score_outlier: float | None = None  # with the evidence's outlier share too (``chosen``'s density_outlier)
 
     def as_meta(self) -> dict:
         def rounded(score: float | None) -> float | None:
@@ -100,6 +108,7 @@ class BandwidthSearch:
 
         return {"chosen": self.chosen, "start": self.start, "score_start": rounded(self.score_start),
                 "score_chosen": rounded(self.score_chosen), "score_density": rounded(self.score_density),
+                "score_outlier": rounded(self.score_outlier),
                 "folds": self.folds, "held_out": self.held_out}
 
 
@@ -197,12 +206,20 @@ def _score(terms: _Terms, values: dict[str, float], exponent: Tensor,
     log_w, effective = weights if weights is not None else _contact_log_weights(terms, values)
     if effective < MIN_EFFECTIVE_PUSHES:
         return _INADMISSIBLE + effective
-    p_std, rot_std = values["motion_p_std"], values["motion_rot_std"]
+    log_k = _log_motion_kernels(terms, values["motion_p_std"], values["motion_rot_std"])  # (Q, K)
+    outlier = values.get("density_outlier", 0.0) if "mode_p_std" in values else 0.0  # the evidence's kernels
+    if outlier > 0:  # each kernel a scale mixture: the calibrated width and, with weight ε, the mode's
+        wide = _log_motion_kernels(terms, values["mode_p_std"], values["mode_rot_std"])
+        log_k = torch.logaddexp(log_k + math.log1p(-outlier), wide + math.log(outlier))
+    log_p = torch.logsumexp(log_w + log_k.unsqueeze(1), -1) - torch.logsumexp(log_w, -1)  # (Q, E)
+    return float((log_p * exponent).sum(-1).mean())
+
+
+def _log_motion_kernels(terms: _Terms, p_std: float, rot_std: float) -> Tensor:
+    """``(Q, K)`` each normalised motion kernel's log density at the held-out pushes' motions."""
     sigma_q = rot_std**2 / 4
     log_norm = 1.5 * math.log(2 * math.pi * p_std**2) + float(log_rotation_normaliser(torch.tensor(1 / sigma_q)))
-    log_k = -terms.motion_p / (2 * p_std**2) - terms.motion_q / sigma_q  # (Q, K)
-    log_p = torch.logsumexp(log_w + log_k.unsqueeze(1), -1) - torch.logsumexp(log_w, -1) - log_norm  # (Q, E)
-    return float((log_p * exponent).sum(-1).mean())
+    return -terms.motion_p / (2 * p_std**2) - terms.motion_q / sigma_q - log_norm
 
 
 def select_bandwidths(settings, motions: list, folds: int = 5,
@@ -243,7 +260,7 @@ def select_bandwidths(settings, motions: list, folds: int = 5,
         terms.append(t)
         exponents.append(expert_exponents(len(motion.manipulator), len(motion.environment), n_experts - 1,
                                           settings.pool_sharpness, torch.float32))
-    start = {name: float(getattr(settings, name)) for name in (*SELECTED, *DENSITY)}
+    start = {name: float(getattr(settings, name)) for name in (*SELECTED, *DENSITY, "density_outlier")}
     if not terms:  # too few pushes to hold any out: keep the configured values
         return settings, BandwidthSearch(start, start, None, None, folds, 0, None)
 
@@ -272,12 +289,22 @@ def select_bandwidths(settings, motions: list, folds: int = 5,
         if density_best <= before + 1e-6:
             break
     chosen = dict(values, density_p_std=density["motion_p_std"], density_rot_std=density["motion_rot_std"])
+    # the evidence's outlier share: each density kernel a scale mixture with the mode's (docs/method.md)
+    mixed = dict(density, mode_p_std=values["motion_p_std"], mode_rot_std=values["motion_rot_std"],
+                 density_outlier=start["density_outlier"])
+    outlier_best = total(mixed)
+    for share in OUTLIER_LADDER:
+        score = total(dict(mixed, density_outlier=share))
+        if score > outlier_best + 1e-6:
+            mixed, outlier_best = dict(mixed, density_outlier=share), score
+    chosen["density_outlier"] = mixed["density_outlier"]
 
     def reported(score: float) -> float | None:  # an inadmissible set has no likelihood to report
         return None if score < _INADMISSIBLE / 2 else score
 
     return replace(settings, **chosen), BandwidthSearch(chosen, start, reported(score_start), reported(best), folds,
-                                                       sum(t.u_p.shape[0] for t in terms), reported(density_best))
+                                                       sum(t.u_p.shape[0] for t in terms), reported(density_best),
+                                                       reported(outlier_best))
 
 
 def _ladder_step(total, values: dict[str, float], best: float, name: str,

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
@@ -51,7 +52,8 @@ if TYPE_CHECKING:
     from pushtorch.models.model import PushModel
 
 __all__ = [
-    "common_density_bandwidth",
+    "EvidenceKernels",
+    "common_evidence_kernels",
     "condition_model",
     "observation_evidence",
     "observed_outcome",
@@ -105,7 +107,7 @@ def _contacts(model: PushModel, features, a: int, start: se3.Pose | None, genera
 
 def observation_evidence(model: PushModel, observation: Observation, posterior: PhysicsPosterior,
                          generator: torch.Generator | None = None,
-                         bandwidth: KernelBandwidth | None = None) -> torch.Tensor | None:
+                         bandwidth: EvidenceKernels | KernelBandwidth | None = None) -> torch.Tensor | None:
     """``(G,)`` the cell log-likelihood of one observed push under ``model`` (its trained kernels), or None
     when no kernel its contacts reach explains the outcome (:data:`~pushtorch.models.conditioning.OUTLIER_DISTANCE`,
     :data:`~pushtorch.models.conditioning.OUTLIER_ANGLE`).
@@ -123,17 +125,14 @@ def observation_evidence(model: PushModel, observation: Observation, posterior: 
     y = observed_outcome(observation, reference)
     motion = model.motions[a]
     to_final = se3.relative(start, reference)
-    # the calibrated kernels (a library's common width, where one compares its models)
-    full = dataclasses.replace(bandwidth or settings.density_bandwidth, cutoff_std=NO_CUTOFF)
+    # the calibrated kernels with their outlier share (a library's common kernels, where one compares its models)
+    evidence_kernels = EvidenceKernels.of(bandwidth if bandwidth is not None else settings)
     memberships, weights, log_kernels, explained = [], [], [], False
     for frame, kernels in ((manipulator_frame, motion.manipulator), (environment_frames, motion.environment)):
         kernels = dataclasses.replace(kernels, log_weight=None)  # the trained kernels: the posterior is the prior
         log_w = contact_log_weights(frame, kernels, start, settings.contact_bandwidth, patch)  # (F, N)
         finals = se3.compose(se3.compose(start, kernels.m), to_final)  # (N,)
-        kde = PoseKDE(finals, full, validate_args=False)
-        # normalised kernels: models of different bandwidths are compared by their evidence
-        log_k = kde.log_kernels(se3.Pose.unchecked(y.p.reshape(1, 3), y.q.reshape(1, 4))).reshape(-1).double() \
-            - log_kernel_normaliser(kde).reshape(())
+        log_k = evidence_kernels.log_kernels(finals, y)
         reached = torch.isfinite(log_w).any(0)
         distance = (finals.p - y.p.reshape(1, 3)).norm(dim=-1)
         angle = se3.angle_between(finals.q, y.q.reshape(1, 4).expand_as(finals.q))
@@ -153,14 +152,62 @@ def observation_evidence(model: PushModel, observation: Observation, posterior: 
     return cells
 
 
-def common_density_bandwidth(models) -> KernelBandwidth:
-    """The density bandwidth a library weighs observations with for all of its models: the widest of their
-    density stds, position and rotation apart (docs/method.md, "Two widths: the mode and the density"). Each
-    model's own width was chosen on its own training pushes; compared at them, a model trained on a narrower
-    spread of outcomes would win by its narrower kernels alone on pushes it does not fit."""
-    first = models[0].settings.density_bandwidth
-    return dataclasses.replace(first, p_std=max(m.settings.density_bandwidth.p_std for m in models),
-                               rot_std=max(m.settings.density_bandwidth.rot_std for m in models))
+@dataclasses.dataclass(frozen=True)
+class EvidenceKernels:
+    """The motion kernels observed pushes are weighed under: each the scale mixture ``(1 − outlier) K_density +
+    outlier · K_wide`` of two normalised, uncut kernels (docs/method.md, "The evidence's outlier share").
+
+    Attributes:
+        density: the calibrated kernels (``ModelSettings.density_bandwidth``).
+        wide: the outlier component's kernels (the mode's, ``ModelSettings.motion_bandwidth``).
+        outlier: its share ``ε`` in ``[0, 1)`` (``ModelSettings.density_outlier``); 0: the density alone.
+    """
+
+    density: KernelBandwidth
+    wide: KernelBandwidth
+    outlier: float = 0.0
+
+    @staticmethod
+    def of(source) -> EvidenceKernels:
+        """The evidence kernels of model settings, or ``source`` itself: an :class:`EvidenceKernels`, or a
+        :class:`~pushtorch.kde.KernelBandwidth` (those kernels alone, no outlier share)."""
+        if isinstance(source, EvidenceKernels):
+            return source
+        if isinstance(source, KernelBandwidth):
+            return EvidenceKernels(source, source, 0.0)
+        if not hasattr(source, "density_outlier"):
+            raise InvalidParameterError(f"evidence kernels come from EvidenceKernels, a KernelBandwidth or model "
+                                        f"settings, got {type(source).__name__}")
+        return EvidenceKernels(source.density_bandwidth, source.motion_bandwidth, float(source.density_outlier))
+
+    def log_kernels(self, means: se3.Pose, y: se3.Pose) -> torch.Tensor:
+        """``(N,)`` float64: each kernel's normalised log density at the one pose ``y``."""
+        query = se3.Pose.unchecked(y.p.reshape(1, 3), y.q.reshape(1, 4))
+
+        def normalised(bandwidth: KernelBandwidth) -> torch.Tensor:
+            kde = PoseKDE(means, dataclasses.replace(bandwidth, cutoff_std=NO_CUTOFF), validate_args=False)
+            # normalised kernels: models of different bandwidths are compared by their evidence
+            return kde.log_kernels(query).reshape(-1).double() - log_kernel_normaliser(kde).reshape(())
+
+        log_k = normalised(self.density)
+        if self.outlier > 0:
+            log_k = torch.logaddexp(log_k + math.log1p(-self.outlier), normalised(self.wide) + math.log(self.outlier))
+        return log_k
+
+
+def common_evidence_kernels(models) -> EvidenceKernels:
+    """The kernels a library weighs observations with for all of its models: the widest of their density stds
+    and of their mode stds, position and rotation apart, and the largest outlier share (docs/method.md, "Two
+    widths: the mode and the density"). Each model's own width was chosen on its own training pushes; compared
+    at them, a model trained on a narrower spread of outcomes would win by its narrower kernels alone on pushes
+    it does not fit."""
+    def widest(name: str) -> KernelBandwidth:
+        first = getattr(models[0].settings, name)
+        return dataclasses.replace(first, p_std=max(getattr(m.settings, name).p_std for m in models),
+                                   rot_std=max(getattr(m.settings, name).rot_std for m in models))
+
+    return EvidenceKernels(widest("density_bandwidth"), widest("motion_bandwidth"),
+                           max(float(m.settings.density_outlier) for m in models))
 
 
 def robot_motion_of(robot_start: se3.Pose, robot_final: se3.Pose) -> torch.Tensor:
@@ -172,10 +219,10 @@ def robot_motion_of(robot_start: se3.Pose, robot_final: se3.Pose) -> torch.Tenso
 
 
 def condition_model(model: PushModel, observations, seed: int | None = None, prior: tuple | None = None,
-                    bandwidth: KernelBandwidth | None = None) -> PushModel:
+                    bandwidth: EvidenceKernels | KernelBandwidth | None = None) -> PushModel:
     """:meth:`PushModel.condition_on <pushtorch.models.model.PushModel.condition_on>`; ``bandwidth``: the motion
-    kernels the observations are scored under (default the model's density bandwidth; a library passes the
-    common width of its models, :func:`common_density_bandwidth`)."""
+    kernels the observations are scored under (default the model's :class:`EvidenceKernels`; a library passes
+    the common kernels of its models, :func:`common_evidence_kernels`)."""
     observations = _as_list(observations)
     posterior = model.physics_posterior
     if posterior is None:

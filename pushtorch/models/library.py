@@ -14,7 +14,7 @@ import torch
 from pushtorch.errors import InvalidParameterError
 from pushtorch.features import SurfaceFeatures
 from pushtorch.models.conditioning import Observation, kernel_physics, summarise
-from pushtorch.models.evidence import common_density_bandwidth
+from pushtorch.models.evidence import common_evidence_kernels
 from pushtorch.models.model import PushModel
 from pushtorch.models.push_condition import features_for
 from pushtorch.models.query import feature_distance_heuristic, heuristic_descriptors
@@ -48,12 +48,12 @@ class ModelLibrary:
         return self.models[int(h.argmin())], h
 
     def condition_on(self, observations, seed: int | None = None) -> ConditionedLibrary:
-        """Every model conditioned on the observed pushes (:meth:`PushModel.condition_on`), scored under one motion
-        width for all (the widest of the models' density widths, :func:`~pushtorch.models.evidence.
-        common_density_bandwidth`), and the library's posterior over its models by their evidence
-        (:class:`ConditionedLibrary`)."""
+        """Every model conditioned on the observed pushes (:meth:`PushModel.condition_on`), scored under the same
+        kernels for all (the widest of the models' widths and their largest outlier share,
+        :func:`~pushtorch.models.evidence.common_evidence_kernels`), and the library's posterior over its models
+        by their evidence (:class:`ConditionedLibrary`)."""
         shared = self._with_features(observations)
-        common = common_density_bandwidth(self.models)  # the models are compared at one width
+        common = common_evidence_kernels(self.models)  # the models are compared under one set of kernels
         return ConditionedLibrary([m.condition_on(shared, seed, bandwidth=common) for m in self.models])
 
     def _with_features(self, observations):

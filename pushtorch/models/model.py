@@ -121,8 +121,10 @@ class PushModel:
             seed: the seed of the observations' push conditions (default: the posterior's, or 0).
             prior: ``(friction prior, mass prior)`` (:mod:`pushtorch.sim.priors`): de-bias the kernels towards
                 the training prior rather than where they crowd; only on a model not yet conditioned.
-            bandwidth: the motion kernels (a :class:`~pushtorch.kde.KernelBandwidth`) the observations are scored
-                under; default the model's density bandwidth (a library passes its models' common width).
+            bandwidth: the motion kernels the observations are scored under: an
+                :class:`~pushtorch.models.evidence.EvidenceKernels` (the density's width with its outlier share)
+                or a :class:`~pushtorch.kde.KernelBandwidth` (those kernels alone); default the model's own
+                (a library passes its models' common kernels).
 
         Raises:
             ModelError: kernels that do not know their physics (retrain), or an observation whose push

@@ -77,6 +77,10 @@ class ModelSettings:
     # motion stds above (docs/method.md, "Two widths: the mode and the density")
     density_p_std: float = 0.0
     density_rot_std: float = 0.0
+    # the evidence's outlier share ε: observed pushes are weighed under kernels (1 − ε) K_density + ε K_motion,
+    # so a push the calibrated kernels miss costs nats in proportion, not tens (chosen with the density stds;
+    # 0: the density kernels alone; docs/method.md "The evidence's outlier share")
+    density_outlier: float = 0.0
     # Σ of the experts' exponents (w^P normalised; 1: a logarithmic opinion pool, docs/method.md)
     pool_sharpness: float = 1.0
     # k of the k-fold search that chooses the motion and contact bandwidths from the training pushes
@@ -96,7 +100,7 @@ class ModelSettings:
             value = getattr(self, f.name)
             numeric = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
             zero_ok = f.name in ("polish_steps", "bandwidth_folds", "transfer_widening", "density_p_std",
-                                 "density_rot_std")
+                                 "density_rot_std", "density_outlier")
             if not (numeric and (value >= 0 if zero_ok else value > 0)):
                 kind = "a number >= 0" if zero_ok else "a positive number"
                 raise InvalidParameterError(f"model setting {f.name} must be {kind}, got {value!r}")
@@ -110,6 +114,8 @@ class ModelSettings:
             raise InvalidParameterError(f"fast_anneal_fraction must be in (0, 1], got {self.fast_anneal_fraction}")
         if self.alpha_t <= 1:
             raise InvalidParameterError(f"alpha_t must be > 1, got {self.alpha_t}")
+        if self.density_outlier >= 1:
+            raise InvalidParameterError(f"density_outlier must be in [0, 1), got {self.density_outlier}")
 
     @property
     def fast_anneal_steps(self) -> int:
