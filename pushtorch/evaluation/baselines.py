@@ -30,15 +30,14 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
-import trimesh
 
 from pushtorch import se3
 from pushtorch.errors import ModelError
 from pushtorch.models.motion import MotionModel, contact_log_weights
 from pushtorch.models.position import centroid_pose
-from pushtorch.objects import ObjectModel, Symmetry
+from pushtorch.objects import ObjectModel
+from pushtorch.sim.bodies import cloud_body, rollout_ensemble
 
 __all__ = [
     "centroid_pose",
@@ -95,39 +94,6 @@ def nearest_push_prediction(motion: MotionModel, manipulator_frame, robot_start:
                          initial_estimate)
 
 
-def cloud_body(points: torch.Tensor, initial_estimate: se3.Pose,
-               name: str = "cloud_hull") -> tuple[ObjectModel, se3.Pose]:
-    """A rigid body reconstructed from an observed cloud, and its pose: the convex hull of the points and of
-    their projections onto the ground (z = 0), i.e. the visible surface swept down to the floor.
-
-    The body frame sits at the hull's centre of mass with the estimate's heading (the frame only names the
-    body: the displacement a push gives does not depend on it). Hidden parts the camera could not see and
-    concavities are filled or missing exactly as the sweep makes them.
-
-    Raises:
-        ModelError: the cloud spans no volume (fewer than 4 points off one plane).
-    """
-    world = points.detach().double().cpu().numpy().reshape(-1, 3)
-    ground = world.copy()
-    ground[:, 2] = 0.0
-    try:
-        hull = trimesh.convex.convex_hull(np.concatenate([world, ground]))
-    except Exception as exc:  # scipy's QhullError on flat or degenerate point sets
-        raise ModelError(f"the observed cloud ({len(world)} points) spans no volume to simulate") from exc
-    with np.errstate(invalid="ignore", divide="ignore"):  # trimesh divides by a flat hull's zero volume
-        volume = hull.volume
-    if not volume > 0:
-        raise ModelError(f"the observed cloud ({len(world)} points) spans no volume to simulate")
-    centre = np.asarray(hull.center_mass)
-    yaw = float(se3.yaw_of(initial_estimate.q.reshape(4)))
-    pose = se3.from_xy_yaw(float(centre[0]), float(centre[1]), yaw, z=float(centre[2])).to(torch.float64)
-    to_body = np.linalg.inv(se3.to_matrix(pose).numpy())
-    body = hull.copy()
-    body.apply_transform(to_body)
-    identity = Symmetry(torch.tensor([[1.0, 0.0, 0.0, 0.0]]))
-    return ObjectModel(name, body, identity), pose
-
-
 def _simulate_once(obj: ObjectModel, robot_start: se3.Pose, start: se3.Pose, action: torch.Tensor, mass: float,
                    ground_friction: float, settings=None) -> se3.Pose:
     from pushtorch.sim.runner import simulate_pushes
@@ -166,7 +132,6 @@ def physics_ensemble_prediction(points: torch.Tensor, initial_estimate: se3.Pose
         InvalidParameterError: ``count`` < 1. ModelError: a cloud that spans no volume.
     """
     from pushtorch.errors import InvalidParameterError
-    from pushtorch.sim.runner import simulate_pushes
 
     if isinstance(count, bool) or int(count) != count or count < 1:
         raise InvalidParameterError(f"a physics ensemble needs at least one rollout, got {count!r}")
@@ -174,12 +139,7 @@ def physics_ensemble_prediction(points: torch.Tensor, initial_estimate: se3.Pose
     body, start = cloud_body(points, initial_estimate)
     friction = torch.as_tensor(friction_prior.sample((n,), generator), dtype=torch.float64).reshape(n)
     mass = torch.as_tensor(mass_prior.sample((n,), generator), dtype=torch.float64).reshape(n)
-    robot = se3.Pose.unchecked(robot_start.p.double().reshape(1, 3).expand(n, 3),
-                               robot_start.q.double().reshape(1, 4).expand(n, 4))
-    initial = se3.Pose.unchecked(start.p.reshape(1, 3).expand(n, 3), start.q.reshape(1, 4).expand(n, 4))
-    act = torch.as_tensor(action, dtype=torch.float64).reshape(1, 2).expand(n, 2)
-    records = simulate_pushes(body, robot, initial, act, mass, friction, settings=settings)
-    final = records.object_final
+    final = rollout_ensemble(body, start, robot_start, action, friction, mass, settings).object_final
     return start.to(torch.float32), se3.Pose.unchecked(final.p.float(), final.q.float())
 
 
@@ -232,19 +192,14 @@ def fit_cloud_physics(observations, grid: torch.Tensor, settings=None) -> torch.
     Raises:
         ModelError: an observation without its robot start, or a cloud that spans no volume.
     """
-    from pushtorch.sim.runner import simulate_pushes
-
     rows = []
     for o in observations:
         if o.robot_start is None:
             raise ModelError("physics from the cloud needs each observed push's robot start")
         points = o.cloud.points if hasattr(o.cloud, "points") else o.cloud.p
         body, start = cloud_body(points, o.initial_pose)
-        g = grid.shape[0]
-        robot = se3.Pose.unchecked(o.robot_start.p.double().reshape(1, 3).expand(g, 3),
-                                   o.robot_start.q.double().reshape(1, 4).expand(g, 4))
-        initial = se3.Pose.unchecked(start.p.reshape(1, 3).expand(g, 3), start.q.reshape(1, 4).expand(g, 4))
-        action = torch.as_tensor(o.action, dtype=torch.float64).reshape(1, 2).expand(g, 2)
-        records = simulate_pushes(body, robot, initial, action, grid[:, 1], grid[:, 0], settings=settings)
+        records = rollout_ensemble(body, start, o.robot_start, o.action, grid[:, 0], grid[:, 1], settings)
+        initial = se3.Pose.unchecked(start.p.reshape(1, 3).expand(grid.shape[0], 3),
+                                     start.q.reshape(1, 4).expand(grid.shape[0], 4))
         rows.append(displacement_error(initial, records.object_final, o.displacement))
     return torch.stack(rows) if rows else torch.zeros(0, grid.shape[0], dtype=torch.float64)

@@ -18,6 +18,7 @@ Gazebo/ODE as the ground truth. The pieces, in the order data flows through them
     records         PushRecords, loading a run, its per-push table                      pushtorch.sim.records
     runner          worker processes, progress bar, resumable shards                    pushtorch.sim.runner
     executors       where the shards run: this machine, Ray or Slurm                    pushtorch.sim.executors
+    bodies          the body a cloud builds, and its pushes rolled out as an ensemble   pushtorch.sim.bodies
 
 Quick use::
 

@@ -1,0 +1,119 @@
+"""Predicting with the residual model (:mod:`pushtorch.models.residual`): the cloud's body rolled out for an
+ensemble of friction and mass, each rollout corrected by the training pushes' residuals weighed by local
+contact, as one normalised density over the final pose (beyond the paper; its §Conclusions and future work).
+
+The density is a mixture: ``Σ_i Σ_j (w_j / N) K(B1 | D_j · S_i)`` over the ``N`` rollouts ``S_i`` and the
+residual kernels ``D_j`` (:func:`pushtorch.models.residual.corrected`), ``w_j`` the normalised contact weight
+``K^c`` of kernel ``j``'s training contact against this push's manipulator contact (the paper's Eq.
+contact_frame_probability, as its motion kernels are weighed). Its mode is the mixture's highest kernel
+centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one expert with exponent 1, so
+``log_prob``, ``sample`` and the coverage work as for pushtorch's own prediction.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from pushtorch import se3
+from pushtorch.distribution import FinalPoseDistribution
+from pushtorch.errors import ModelError
+from pushtorch.kde import Evaluation
+from pushtorch.kde.normaliser import NO_CUTOFF
+from pushtorch.models.clearance import check_start
+from pushtorch.models.motion import contact_log_weights
+from pushtorch.models.push_condition import PushCondition, features_for, push_conditions
+from pushtorch.models.residual import ResidualModel, corrected
+from pushtorch.models.settings import as_generator
+from pushtorch.perception import PointCloud
+from pushtorch.sim.bodies import cloud_body, rollout_ensemble
+
+__all__ = ["ResidualPrediction", "predict_residual"]
+
+
+@dataclass
+class ResidualPrediction:
+    """A residual model's prediction.
+
+    Attributes:
+        start: ``()`` the cloud body's pose before the push (score the displacement from it).
+        final_pose: ``()`` the density's mode; density: the mixture (module docstring).
+        rollouts: ``(N,)`` each rollout's final pose of the body; physics: ``(N, 2)`` its ``(μ, m)``.
+        thrown: rollouts whose body tipped, left the ground or was never touched (kept in the density: the
+            flag says the simulator's outcome was not a push).
+    """
+
+    model_name: str
+    action: torch.Tensor
+    condition: PushCondition
+    start: se3.Pose
+    final_pose: se3.Pose
+    density: FinalPoseDistribution
+    rollouts: se3.Pose
+    physics: torch.Tensor
+    thrown: int
+    residual_weights: torch.Tensor = field(repr=False)  # (J,) the residual kernels' normalised log weights
+
+
+def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Generator | int | None = None,
+                     robot_start: se3.Pose | None = None) -> ResidualPrediction:
+    """Predict where the object in ``cloud`` ends up after ``action`` (module docstring).
+
+    Args:
+        residual: a trained :class:`~pushtorch.models.residual.ResidualModel`.
+        cloud: the single-shot cloud (world), or its surface features.
+        action: one of the model's actions.
+        generator: seeded generator or int seed (the push condition and the ensemble's physics draws).
+        robot_start: the robot's start pose, when the caller places it; default the model's push condition.
+
+    Raises:
+        ModelError: a cloud that spans no volume, or a rollout with a non-finite outcome.
+        InvalidParameterError, InvalidPoseError: as :func:`pushtorch.prediction.predict`.
+    """
+    model = residual.model
+    generator = as_generator(generator)
+    a = model.action_index(action)
+    features = features_for(cloud, model.settings, model.position)
+    start = None if robot_start is None else check_start(robot_start)
+    condition = push_conditions(model, [features], [a], generator, False, [start])[0]
+    points = cloud.points if isinstance(cloud, PointCloud) else features.p
+    body, body_start = cloud_body(points, condition.object_pose)
+    motion = model.motions[a]
+    physics = motion.manipulator.physics
+    if physics is None:
+        raise ModelError("this model's kernels do not know the friction and mass of their pushes: retrain it")
+    n = residual.ensemble
+    drawn = physics.detach().double().cpu()[torch.randint(len(physics), (n,), generator=generator)]
+    records = rollout_ensemble(body, body_start, condition.robot_start, motion.action, drawn[:, 0], drawn[:, 1],
+                               residual.sim)
+    finals = records.object_final
+    if not (torch.isfinite(finals.p).all() and torch.isfinite(finals.q).all()):
+        raise ModelError("a rollout of the cloud's body ended at a non-finite pose")
+    dtype = model.dtype
+    log_w = contact_log_weights(condition.manipulator_frame, motion.manipulator, condition.robot_start,
+                                model.settings.contact_bandwidth, condition.contact_patch)
+    log_w = torch.logsumexp(log_w.reshape(-1, len(motion.manipulator)), 0).double()
+    log_w = log_w - torch.logsumexp(log_w, 0)  # (J,) normalised
+    robot = condition.robot_start
+    robot = se3.Pose.unchecked(robot.p.double().reshape(1, 1, 3), robot.q.double().reshape(1, 1, 4))
+    kernels = residual.residuals[a]
+    means = corrected(robot, se3.Pose.unchecked(finals.p.unsqueeze(1), finals.q.unsqueeze(1)),
+                      se3.Pose.unchecked(kernels.p.double().unsqueeze(0), kernels.q.double().unsqueeze(0)))
+    means = se3.Pose.unchecked(means.p.reshape(-1, 3).to(dtype), se3.quat_normalize(means.q.reshape(-1, 4)).to(dtype))
+    log_weights = (log_w.unsqueeze(0) - math.log(n)).expand(n, -1).reshape(1, -1).to(dtype)
+    keep = torch.isfinite(log_weights[0])  # kernels no contact reaches weigh nothing
+    means = means.take(keep.nonzero().reshape(-1))
+    log_weights = log_weights[:, keep]
+    bandwidth = residual.bandwidth.__class__(residual.bandwidth.p_std, residual.bandwidth.rot_std,
+                                             cutoff_std=NO_CUTOFF, alpha_t=residual.bandwidth.alpha_t)
+    ones = torch.ones(1, dtype=dtype)
+    density = FinalPoseDistribution(means, log_weights, bandwidth, torch.zeros(3, dtype=torch.int64), ones, None,
+                                    Evaluation.DENSE, means, kernels="full")
+    best = int(density.unnormalised_log_prob(means.vector().unsqueeze(-2)).reshape(-1).argmax())
+    mode = means.take(best)
+    density = density._replace(mode=mode.vector())
+    thrown = int((~records.valid).sum())
+    return ResidualPrediction(residual.name, motion.action, condition, body_start.to(dtype), mode, density,
+                              se3.Pose.unchecked(finals.p.to(dtype), finals.q.to(dtype)), drawn, thrown, log_w)

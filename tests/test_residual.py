@@ -1,0 +1,116 @@
+"""The residual model (pushtorch.models.residual, pushtorch.prediction.residual) on real pybullet pushes: the
+residual of the simulator against itself is the identity, the density is normalised, the ensemble's batched
+rollouts are its single rollouts, and a cloud without a body is refused."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from pushtorch import se3
+from pushtorch.errors import PushtorchError
+from pushtorch.models.residual import corrected, residual_of, train_residual_model
+from pushtorch.models.settings import ModelSettings
+from pushtorch.models.training import train_push_model
+from pushtorch.objects import load_object
+from pushtorch.perception import PointCloud, capture_partial_cloud
+from pushtorch.prediction.residual import predict_residual
+from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_training_pushes, run_plan
+from pushtorch.sim.bodies import cloud_body, rollout_ensemble
+from pushtorch.sim.push import place_robot_against
+from pushtorch.sim.settings import SimSettings
+
+SETTINGS = ModelSettings(query_kernels=400, anneal_candidates=60, anneal_steps=15, position_frames=800,
+                         environment_kernels=300, manipulator_kernels=40)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """The cube, its pybullet pushes (6 per action) and a small model trained on them."""
+    cube = load_object("cube")
+    plan = plan_training_pushes(cube, make_actions(3), 6, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=1)
+    folder = tmp_path_factory.mktemp("residual_pushes")
+    run_plan(object_spec(cube), plan, folder, workers=1, progress=False)
+    records = load_records(folder)
+    model = train_push_model(cube, records, SETTINGS, generator=torch.Generator().manual_seed(0))
+    return cube, records, model
+
+
+def test_the_residual_of_the_simulator_against_itself_is_the_identity(trained):
+    """World = the model's simulator, body = the true mesh, physics = the push's own: nothing to correct."""
+    cube, records, model = trained
+    residual = train_residual_model(model, cube, records, SimSettings(), body_of=lambda obj, pose: (obj, pose))
+    for kernels in residual.residuals:
+        assert float(kernels.p.norm(dim=-1).max()) < 1e-4
+        assert float(se3.angle_between(kernels.q, torch.tensor([1.0, 0.0, 0.0, 0.0]).expand_as(kernels.q)).max()) \
+            < 1e-3
+    assert residual.meta["training_rollouts"] == int(records.valid.sum())
+
+
+def test_a_residual_carries_a_rollout_to_the_world_and_back():
+    g = torch.Generator().manual_seed(3)
+    robot = se3.from_xy_yaw(0.1, -0.2, 0.7).to(torch.float64)
+    sim = se3.from_xy_yaw(torch.rand(5, generator=g, dtype=torch.float64),
+                          torch.rand(5, generator=g, dtype=torch.float64),
+                          torch.rand(5, generator=g, dtype=torch.float64) * 6, z=0.05).to(torch.float64)
+    world = se3.from_xy_yaw(torch.rand(5, generator=g, dtype=torch.float64),
+                            torch.rand(5, generator=g, dtype=torch.float64),
+                            torch.rand(5, generator=g, dtype=torch.float64) * 6, z=0.05).to(torch.float64)
+    d = residual_of(robot, sim, world)
+    back = corrected(robot, sim, d)
+    torch.testing.assert_close(back.p, world.p)
+    assert float(se3.angle_between(back.q, world.q).max()) < 1e-6
+    # a pure extra slide along the robot's heading is a residual along x whatever the object's heading
+    slide = se3.compose(se3.from_xy_yaw(0.02 * math.cos(0.7), 0.02 * math.sin(0.7), 0.0).to(torch.float64), sim)
+    torch.testing.assert_close(residual_of(robot, sim, slide).p,
+                               torch.tensor([0.02, 0.0, 0.0], dtype=torch.float64).expand(5, 3), atol=1e-9, rtol=0)
+
+
+def test_the_residual_density_is_normalised_with_its_mode_inside(trained):
+    cube, records, model = trained
+    residual = train_residual_model(model, cube, records, SimSettings(), ensemble=4)
+    pose = cube.resting_pose(yaw=0.3)
+    cloud = capture_partial_cloud(cube, pose)
+    prediction = predict_residual(residual, cloud, model.actions[1], 0)
+    assert prediction.rollouts.p.shape == (4, 3)
+    density = prediction.density
+    assert abs(float(density.log_normaliser())) < 0.05  # a mixture of normalised kernels integrates to one
+    assert torch.isfinite(density.log_prob(prediction.final_pose.vector()))
+    draws = density.sample((64,), torch.Generator().manual_seed(0))
+    assert torch.isfinite(density.log_prob(draws)).all()
+    # the object moved as pushed: forward, in the robot's start frame
+    moved = se3.relative(prediction.condition.robot_start, prediction.final_pose).p[0] \
+        - se3.relative(prediction.condition.robot_start, prediction.start).p[0]
+    assert float(moved) > 0.05
+    # the same seed, the same prediction
+    again = predict_residual(residual, cloud, model.actions[1], 0)
+    torch.testing.assert_close(again.final_pose.vector(), prediction.final_pose.vector(), rtol=0, atol=0)
+
+
+def test_an_ensemble_rolled_out_in_one_call_is_its_single_rollouts():
+    cube = load_object("cube")
+    pose = cube.resting_pose(yaw=0.2).to(torch.float64)
+    body, start = cloud_body(capture_partial_cloud(cube, pose).points, pose)
+    robot = place_robot_against(cube.mesh, pose, 0.2, 0.0, 0.002)
+    action = make_actions(3)[2]
+    friction = torch.tensor([0.1, 0.4, 0.7], dtype=torch.float64)
+    mass = torch.tensor([0.2, 0.5, 2.0], dtype=torch.float64)
+    together = rollout_ensemble(body, start, robot, action, friction, mass).object_final
+    for i in range(3):
+        alone = rollout_ensemble(body, start, robot, action, friction[i:i + 1], mass[i:i + 1]).object_final
+        torch.testing.assert_close(alone.p[0], together.p[i], rtol=0, atol=0)
+        torch.testing.assert_close(alone.q[0], together.q[i], rtol=0, atol=0)
+
+
+def test_a_cloud_with_no_body_is_refused_with_a_clear_error(trained):
+    cube, records, model = trained
+    residual = train_residual_model(model, cube, records, SimSettings(), ensemble=2,
+                                    body_of=lambda obj, pose: (obj, pose))
+    g = torch.Generator().manual_seed(0)
+    flat = torch.rand(400, 3, generator=g) * torch.tensor([0.1, 0.1, 0.0])  # on the floor: no volume
+    with pytest.raises(PushtorchError):
+        predict_residual(residual, PointCloud(flat), model.actions[0], 0)
+    with pytest.raises(PushtorchError, match="volume"):
+        cloud_body(flat, se3.identity())
