@@ -114,3 +114,59 @@ def test_a_cloud_with_no_body_is_refused_with_a_clear_error(trained):
         predict_residual(residual, PointCloud(flat), model.actions[0], 0)
     with pytest.raises(PushtorchError, match="volume"):
         cloud_body(flat, se3.identity())
+
+
+def test_a_residual_model_file_round_trips_and_refuses_another_engine_version(trained, tmp_path):
+    import dataclasses
+
+    from pushtorch.errors import RecordFormatError
+    from pushtorch.models.model import load_model
+    from pushtorch.models.residual import load_residual_model
+
+    cube, records, model = trained
+    residual = train_residual_model(model, cube, records, SimSettings(), ensemble=3)
+    path = residual.save(tmp_path / "cube_residual.npz")
+    back = load_residual_model(path)
+    assert (back.ensemble, back.sim, back.engine_version) == (3, residual.sim, residual.engine_version)
+    for a, b in zip(back.residuals, residual.residuals, strict=True):
+        torch.testing.assert_close(a.p, b.p, rtol=0, atol=0)
+    cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=-0.2))
+    one = predict_residual(residual, cloud, model.actions[0], 5)
+    two = predict_residual(back, cloud, model.actions[0], 5)
+    torch.testing.assert_close(one.final_pose.vector(), two.final_pose.vector(), rtol=0, atol=0)
+    assert load_model(path).name == model.name  # the push model inside reads as one
+    with pytest.raises(RecordFormatError, match="without residuals"):
+        load_residual_model(model.save(tmp_path / "plain.npz"))
+    other = dataclasses.replace(residual, engine_version="pybullet 0.0.1")
+    other.save(tmp_path / "other.npz")
+    with pytest.raises(RecordFormatError, match="other_engine"):
+        load_residual_model(tmp_path / "other.npz")
+    assert load_residual_model(tmp_path / "other.npz", other_engine=True).engine_version == "pybullet 0.0.1"
+
+
+def test_conditioned_on_observed_pushes_the_ensemble_draws_from_the_posterior(trained):
+    """condition_on conditions the push model inside; the ensemble's friction and mass are drawn by the kernels'
+    posterior weights (here all weight on one kernel: every draw is its push's physics)."""
+    import dataclasses
+
+    from pushtorch.models.conditioning import Observation
+    from pushtorch.sim.runner import simulate_pushes
+
+    cube, records, model = trained
+    residual = train_residual_model(model, cube, records, SimSettings(), ensemble=6)
+    pose = cube.resting_pose(yaw=0.1)
+    robot = place_robot_against(cube.mesh, pose, 0.1, 0.0, 0.002)
+    final = simulate_pushes(cube, robot, pose, model.actions[1].double(), mass=0.6, ground_friction=0.2).object_final
+    seen = Observation(capture_partial_cloud(cube, pose), model.actions[1], pose, final.take(0).to(torch.float32),
+                       robot)
+    conditioned = residual.condition_on([seen], seed=0)
+    assert conditioned.model.physics_posterior.observed == 1 and residual.model.physics_posterior is None
+    motion = model.motions[1]
+    weights = torch.full((len(motion.manipulator),), -60.0)
+    weights[2] = 0.0
+    one = dataclasses.replace(motion, manipulator=dataclasses.replace(motion.manipulator, log_weight=weights))
+    focused = dataclasses.replace(residual, model=dataclasses.replace(model, motions=[model.motions[0], one,
+                                                                                      model.motions[2]]))
+    cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=0.0))
+    drawn = predict_residual(focused, cloud, model.actions[1], 0).physics
+    torch.testing.assert_close(drawn, motion.manipulator.physics[2].double().expand(6, 2))

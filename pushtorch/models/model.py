@@ -45,6 +45,9 @@ __all__ = [
     "PushModel",
     "VERSION",
     "load_model",
+    "model_from_parts",
+    "read_model_file",
+    "write_model_file",
 ]
 
 
@@ -197,7 +200,14 @@ class PushModel:
         Saves to one folder are serialised by a lock on the folder, under which the temporaries a
         killed save to ``path`` left behind are removed.
         """
-        arrays = {k: v.detach().cpu().numpy() for k, v in self.arrays().items()}
+        return write_model_file(path, *self.file_parts())
+
+    def file_parts(self, extra_arrays: dict[str, torch.Tensor] | None = None,
+                   extra_header: dict | None = None) -> tuple[dict, dict[str, np.ndarray]]:
+        """The header and arrays of this model's file, with ``extra_arrays`` and ``extra_header`` fields (a
+        model built on this one, as the residual model, keeps its own parts in the same sealed file)."""
+        tensors = {**self.arrays(), **(extra_arrays or {})}
+        arrays = {k: v.detach().cpu().numpy() for k, v in tensors.items()}
         header = {
             "format": FORMAT,
             "version": VERSION,
@@ -209,16 +219,22 @@ class PushModel:
             "meta": self.meta,
             "partial_data": self.partial_data,
             "posterior": None if self.physics_posterior is None else self.physics_posterior.header(),
+            **(extra_header or {}),
             "sha256": {k: _digest(v) for k, v in arrays.items()},
         }
-        data = _model_archive(header, arrays)
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with folder_lock(path.parent):  # no other save to this folder is mid-write now
-            for orphan in temporary_files(path.parent, path.name):
-                orphan.unlink(missing_ok=True)
-            atomic_write_bytes(path, data)
-        return path
+        return header, arrays
+
+
+def write_model_file(path: str | Path, header: dict, arrays: dict[str, np.ndarray]) -> Path:
+    """Write a model file's ``header`` and ``arrays`` atomically to ``path`` (:meth:`PushModel.save`)."""
+    data = _model_archive(header, arrays)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with folder_lock(path.parent):  # no other save to this folder is mid-write now
+        for orphan in temporary_files(path.parent, path.name):
+            orphan.unlink(missing_ok=True)
+        atomic_write_bytes(path, data)
+    return path
 
 
 def _model_archive(header: dict, arrays: dict[str, np.ndarray]) -> bytes:
@@ -244,6 +260,23 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32,
         RecordFormatError: missing, unreadable, of another format or version, a broken seal or array
             checksum (a corrupt or edited file), a malformed header, or settings that
             :class:`ModelSettings` refuses.
+    """
+    path = Path(path)
+    header, arrays = read_model_file(path)
+    try:
+        model = model_from_parts(header, arrays, dtype)
+        return model if map_location is None else model.to(device=map_location)
+    except InvalidParameterError as exc:
+        raise RecordFormatError(f"{path} holds settings this pushtorch refuses: {exc}") from exc
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError) as exc:
+        raise RecordFormatError(f"{path} has a malformed header or arrays ({type(exc).__name__}: {exc})") from exc
+
+
+def read_model_file(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
+    """The checked header and arrays of a model file (:func:`load_model`'s refusals, before any model is built).
+
+    Raises:
+        RecordFormatError: as :func:`load_model`.
     """
     path = Path(path)
     try:
@@ -281,13 +314,7 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32,
     for name, array in arrays.items():
         if _digest(array) != expected[name]:
             raise RecordFormatError(f"{path}: array {name!r} fails its checksum (corrupt or edited file)")
-    try:
-        model = _model_from(header, arrays, dtype)
-        return model if map_location is None else model.to(device=map_location)
-    except InvalidParameterError as exc:
-        raise RecordFormatError(f"{path} holds settings this pushtorch refuses: {exc}") from exc
-    except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError) as exc:
-        raise RecordFormatError(f"{path} has a malformed header or arrays ({type(exc).__name__}: {exc})") from exc
+    return header, arrays
 
 
 def _refuse_other_files(path: Path, data: bytes) -> None:
@@ -316,9 +343,10 @@ def _format_version(data: bytes) -> object:
         return None
 
 
-def _model_from(header: dict, arrays: dict[str, np.ndarray], dtype: torch.dtype) -> PushModel:
-    """Build the model of a checked file; every header field is type-checked here, so a malformed one
-    raises a KeyError/TypeError/ValueError that :func:`load_model` reports as a RecordFormatError."""
+def model_from_parts(header: dict, arrays: dict[str, np.ndarray], dtype: torch.dtype) -> PushModel:
+    """Build the model of a checked file's header and arrays (:func:`read_model_file`); every header field is
+    type-checked here, so a malformed one raises a KeyError/TypeError/ValueError that :func:`load_model` reports
+    as a RecordFormatError."""
 
     def typed(key: str, kind: type | tuple[type, ...]):
         value = header[key]

@@ -29,14 +29,15 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import torch
 
 from pushtorch import se3
-from pushtorch.errors import InvalidParameterError, ModelError
+from pushtorch.errors import InvalidParameterError, ModelError, RecordFormatError
 from pushtorch.kde import KernelBandwidth
 from pushtorch.kde.normaliser import log_rotation_normaliser
-from pushtorch.models.model import PushModel
+from pushtorch.models.model import PushModel, model_from_parts, read_model_file, write_model_file
 from pushtorch.objects import ObjectModel
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
@@ -44,8 +45,8 @@ from pushtorch.sim.settings import SimSettings
 
 Tensor = torch.Tensor
 
-__all__ = ["DEFAULT_ENSEMBLE", "RESIDUAL_LADDER", "ResidualModel", "corrected", "residual_of",
-           "train_residual_model"]
+__all__ = ["DEFAULT_ENSEMBLE", "RESIDUAL_LADDER", "ResidualModel", "corrected", "load_residual_model",
+           "residual_of", "train_residual_model"]
 
 #: Rollouts per prediction unless the model says otherwise.
 DEFAULT_ENSEMBLE = 16
@@ -111,6 +112,27 @@ class ResidualModel:
 
     def action_index(self, action) -> int:
         return self.model.action_index(action)
+
+    def condition_on(self, observations, seed: int | None = None, prior: tuple | None = None,
+                     bandwidth=None) -> ResidualModel:
+        """This model with its push model conditioned on observed pushes
+        (:meth:`PushModel.condition_on <pushtorch.models.model.PushModel.condition_on>`): the ensemble's
+        friction and mass are then drawn from the posterior, and each residual kernel weighs by it too."""
+        return dataclasses.replace(self, model=self.model.condition_on(observations, seed, prior, bandwidth))
+
+    def save(self, path) -> Path:
+        """Write the model atomically to ``path``: the push model's sealed file, with the residuals' arrays and a
+        ``residual`` header (the rollout engine, its version and settings, the ensemble and the kernels' stds).
+        :func:`~pushtorch.models.model.load_model` reads the push model back from it;
+        :func:`load_residual_model` the whole."""
+        arrays = {}
+        for a, r in enumerate(self.residuals):
+            arrays[f"residual{a}.p"], arrays[f"residual{a}.q"] = r.p, r.q
+        header = {"residual": {"engine": self.sim.engine, "engine_version": self.engine_version,
+                               "sim": dataclasses.asdict(self.sim), "ensemble": self.ensemble,
+                               "p_std": self.bandwidth.p_std, "rot_std": self.bandwidth.rot_std,
+                               "meta": self.meta}}
+        return write_model_file(path, *self.model.file_parts(arrays, header))
 
 
 def engine_version(engine: str) -> str:
@@ -227,3 +249,42 @@ def with_ensemble(model: ResidualModel, ensemble: int) -> ResidualModel:
     if isinstance(ensemble, bool) or int(ensemble) != ensemble or ensemble < 1:
         raise InvalidParameterError(f"the ensemble needs at least one rollout, got {ensemble!r}")
     return dataclasses.replace(model, ensemble=int(ensemble))
+
+
+def load_residual_model(path, dtype: torch.dtype = torch.float32, other_engine: bool = False) -> ResidualModel:
+    """Read a residual model file (:meth:`ResidualModel.save`).
+
+    Args:
+        other_engine: load it even where the installed rollout engine's version is not the one it was trained
+            against (its residuals correct that version's outcomes).
+
+    Raises:
+        RecordFormatError: as :func:`~pushtorch.models.model.load_model`; a push model's file without residuals;
+            a file of another engine version, unless ``other_engine``.
+    """
+    header, arrays = read_model_file(path)
+    spec = header.get("residual")
+    if not isinstance(spec, dict):
+        raise RecordFormatError(f"{path} is a push model without residuals: load it with load_model")
+    try:
+        sim = SimSettings(**spec["sim"])
+        installed = engine_version(sim.engine)
+        if installed != spec["engine_version"] and not other_engine:
+            raise RecordFormatError(f"{path} was trained against {spec['engine_version']}, this machine has "
+                                    f"{installed}: its residuals correct the other's outcomes (other_engine=True "
+                                    "loads it anyway)")
+        model = model_from_parts(header, {k: v for k, v in arrays.items() if not k.startswith("residual")}, dtype)
+        residuals = [se3.Pose.unchecked(torch.from_numpy(arrays[f"residual{a}.p"]).to(dtype),
+                                        torch.from_numpy(arrays[f"residual{a}.q"]).to(dtype))
+                     for a in range(len(model.motions))]
+        for r, m in zip(residuals, model.motions, strict=True):
+            if r.p.shape != (len(m.manipulator), 3) or r.q.shape != (len(m.manipulator), 4):
+                raise ValueError("the residuals do not match the manipulator kernels")
+        bandwidth = KernelBandwidth(float(spec["p_std"]), float(spec["rot_std"]),
+                                    cutoff_std=(math.inf, math.inf, math.inf), alpha_t=model.settings.alpha_t)
+        return ResidualModel(model, residuals, bandwidth, sim, str(spec["engine_version"]), int(spec["ensemble"]),
+                             dict(spec.get("meta") or {}))
+    except RecordFormatError:
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError, InvalidParameterError) as exc:
+        raise RecordFormatError(f"{path} has a malformed residual model ({type(exc).__name__}: {exc})") from exc

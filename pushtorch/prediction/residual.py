@@ -85,7 +85,14 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     if physics is None:
         raise ModelError("this model's kernels do not know the friction and mass of their pushes: retrain it")
     n = residual.ensemble
-    drawn = physics.detach().double().cpu()[torch.randint(len(physics), (n,), generator=generator)]
+    # the kernels' posterior weights where the model was conditioned on observed pushes (else equal)
+    log_posterior = motion.manipulator.log_weight
+    if log_posterior is None:
+        picks = torch.randint(len(physics), (n,), generator=generator)
+    else:
+        picks = torch.multinomial(torch.softmax(log_posterior.detach().double().cpu(), 0), n, replacement=True,
+                                  generator=generator)
+    drawn = physics.detach().double().cpu()[picks]
     records = rollout_ensemble(body, body_start, condition.robot_start, motion.action, drawn[:, 0], drawn[:, 1],
                                residual.sim)
     finals = records.object_final
@@ -95,6 +102,8 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     log_w = contact_log_weights(condition.manipulator_frame, motion.manipulator, condition.robot_start,
                                 model.settings.contact_bandwidth, condition.contact_patch)
     log_w = torch.logsumexp(log_w.reshape(-1, len(motion.manipulator)), 0).double()
+    if log_posterior is not None:
+        log_w = log_w + log_posterior.detach().double().to(log_w.device)
     log_w = log_w - torch.logsumexp(log_w, 0)  # (J,) normalised
     robot = condition.robot_start
     robot = se3.Pose.unchecked(robot.p.double().reshape(1, 1, 3), robot.q.double().reshape(1, 1, 4))
