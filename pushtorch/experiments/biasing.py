@@ -56,6 +56,8 @@ from pushtorch.experiments.common import (
 from pushtorch.experiments.statistics import sample_entry
 from pushtorch.experiments.suite import run_suite
 from pushtorch.experiments.tasks import prefetch
+from pushtorch.experiments.training import train_residual
+from pushtorch.models.residual import DEFAULT_ENSEMBLE
 from pushtorch.objects import load_object
 
 __all__ = ["prior_label", "run", "run_part"]
@@ -89,7 +91,9 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     Args:
         cfg: the whole composed config (``object=...`` replaces the test objects).
         part: keys ``name``, ``bias``, ``objects``, ``training_object_of``, ``conditions``,
-            ``test_conditions``, ``truth_samples``, ``yaw_range_deg``.
+            ``test_conditions``, ``truth_samples``, ``yaw_range_deg``; optional ``ensemble`` (the
+            ``physics_ensemble`` density peer's rollouts), ``residual`` (true: the ``pushtorch_residual`` model
+            too) and ``residual_ensemble`` (its rollouts per prediction).
         ctx: the experiment context (model settings of this part).
         model_cfg: ``friction``, ``mass``: the trained priors (a name or a list each; their product).
 
@@ -112,6 +116,12 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     prefetch(ctx, lambda task_ctx, tfm: train_model(task_ctx, load_object(tfm[0]), *tfm[1:]), trained,
              what="models trained")
     models = {(t, f, m): train_model(ctx, load_object(t), f, m) for t, f, m in trained}
+    # the density peers: physics_ensemble (rollouts under the model's training prior) and the residual model
+    ensemble_size = part.get("ensemble")
+    residuals = None
+    if part.get("residual"):
+        size = int(part.get("residual_ensemble") or DEFAULT_ENSEMBLE)
+        residuals = {models[tfm].name: train_residual(ctx, load_object(tfm[0]), *tfm[1:], size) for tfm in trained}
     scatter: dict[str, dict[str, list]] = {}
     scatter_actions: dict[str, dict[str, list]] = {}  # the figures draw one row of panels per action
     for t in sorted(needed):
@@ -142,8 +152,11 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
         key = f"{name}_{obj.name}_{f}_{m}"
         physics = (group_ctx.prior("mass", m).mean, group_ctx.prior("friction", f).mean)
         truth_key = truth_fingerprint(group_ctx, conditions, samples, f"{name}_{obj.name}")
+        ensemble = None if not ensemble_size else (group_ctx.prior("friction", f), group_ctx.prior("mass", m),
+                                                   int(ensemble_size))
         predictions, examples = predict_set(
             group_ctx, key, obj, candidates, poses, truth=truth_key, adaptive=adaptive, physics=physics,
+            ensemble=ensemble, residual=residuals,
             seed_key=f"{name}_{obj.name}", bar=group_bar, examples=group_ctx.log_examples if log and k == 0 else None,
         )
         truth, broken = simulate_truth(group_ctx, key, obj, predictions, conditions, samples,

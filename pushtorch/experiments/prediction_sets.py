@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -78,7 +78,7 @@ def observe(obj: ObjectModel, pose: se3.Pose, settings: ModelSettings) -> tuple[
 
 
 _POSE_FIELDS = ("truth_initial", "robot_start", "estimate", "final", "mean_motion", "nearest", "oracle",
-                "cloud_start", "cloud_final", "ensemble_start", "ensemble_final")
+                "cloud_start", "cloud_final", "ensemble_start", "ensemble_final", "residual_start", "residual_final")
 
 
 #: Bump when the predictions a cached set holds would come out differently for the same settings (collision-free
@@ -102,6 +102,8 @@ class PredictionSet:
             push ``(N, A)``, or None.
         ensemble_start, ensemble_final: the physics ensemble's reconstructed body before the push and its
             most probable rollout ``(N, A)`` (the outcome of highest density under the ensemble's own), or None.
+        residual_start, residual_final: the residual model's (``pushtorch_residual``) cloud body before the push
+            and its density's mode ``(N, A)``, from pushtorch's own robot start, or None.
         backoff: ``(N, A)`` metres each robot start was backed off to clear the observed cloud
             (:attr:`pushtorch.prediction.PushCondition.backoff`).
         selected: ``(N, A)`` index into ``model_names`` of the model that made each prediction.
@@ -129,6 +131,8 @@ class PredictionSet:
     densities: list[list[dict]] | None = field(default=None, repr=False)
     ensemble_start: se3.Pose | None = None
     ensemble_final: se3.Pose | None = None
+    residual_start: se3.Pose | None = None
+    residual_final: se3.Pose | None = None
 
     @property
     def invalid_starts(self) -> int:
@@ -150,6 +154,8 @@ class PredictionSet:
             out["physics_from_cloud"] = (self.cloud_start, self.cloud_final)
         if self.ensemble_final is not None:
             out["physics_ensemble"] = (self.ensemble_start, self.ensemble_final)
+        if self.residual_final is not None:
+            out["pushtorch_residual"] = (self.residual_start, self.residual_final)
         if self.oracle is not None:
             out["oracle_physics"] = (truth, self.oracle)
         return out
@@ -252,6 +258,7 @@ def predict_set(
     choose: Callable[[int], int] | None = None,
     physics: tuple[float, float] | None = None,
     ensemble: tuple[Any, Any, int] | None = None,
+    residual: Mapping[str, Any] | None = None,
     seed_key: str | None = None,
     memo: dict | None = None,
     examples: LogConditions | int | None = None,
@@ -280,6 +287,8 @@ def predict_set(
             to skip them.
         ensemble: (friction prior, mass prior, rollouts) of the ``physics_ensemble`` peer (the model's
             training prior; :func:`pushtorch.evaluation.baselines.physics_ensemble_prediction`), or None.
+        residual: the :class:`~pushtorch.models.residual.ResidualModel` of each candidate model, by the model's
+            name (``pushtorch_residual``, from the same robot start as the candidate's prediction), or None.
         seed_key: the name the seeds derive from (default ``key``).
         memo: a dict shared by groups with the same ``seed_key`` and object, keyed by (condition,
             model name, action); holds derived poses and densities, not predictions.
@@ -296,7 +305,8 @@ def predict_set(
     n = int(poses.p.shape[0])
     choose = choose or (lambda i: 0)
     seed_key = seed_key or key
-    made_from = _set_fingerprint(ctx, key, candidates, poses, adaptive, choose, physics, ensemble, seed_key)
+    made_from = _set_fingerprint(ctx, key, candidates, poses, adaptive, choose, physics, ensemble, seed_key,
+                                 residual)
     path = contained_path(ctx.run_dir, "predictions", f"{cache_name(ctx, key)}.npz",
                           what="experiment, object or prior name")
     cached = _cached_set(ctx, key, path, made_from, truth)
@@ -313,7 +323,7 @@ def predict_set(
             _, features = observe(obj, poses.take(i), ctx.settings)
             group.predict_condition(i, features, True)
         return cached, chosen
-    result = _predict_conditions(group, wanted, physics, ensemble, made_from, bar)
+    result = _predict_conditions(group, wanted, physics, ensemble, made_from, bar, residual)
     result.save(path)
     scores_path(ctx, key).unlink(missing_ok=True)  # scores of an older set must not pass for this one's
     return result, chosen
@@ -321,7 +331,8 @@ def predict_set(
 
 def _set_fingerprint(ctx: ExperimentContext, key: str, candidates: Sequence[PushModel], poses: se3.Pose,
                      adaptive: bool, choose: Callable[[int], int], physics: tuple[float, float] | None,
-                     ensemble: tuple[Any, Any, int] | None, seed_key: str) -> str:
+                     ensemble: tuple[Any, Any, int] | None, seed_key: str,
+                     residual: Mapping[str, Any] | None = None) -> str:
     """What a group's prediction set is made from (a cached set is reused only if it matches)."""
     return fingerprint(
         key=key, seed=ctx.seed, seed_key=seed_key, models=[m.name for m in candidates], adaptive=adaptive,
@@ -330,6 +341,8 @@ def _set_fingerprint(ctx: ExperimentContext, key: str, candidates: Sequence[Push
         physics=physics, samples_per_action=ctx.samples_per_action, version=PREDICTION_VERSION,
         engines=[ctx.sim.engine, ctx.physics.engine],
         **({} if ensemble is None else {"ensemble": [repr(ensemble[0]), repr(ensemble[1]), int(ensemble[2])]}),
+        **({} if residual is None else {"residual": {name: [r.ensemble, r.engine_version, r.meta]
+                                                     for name, r in sorted(residual.items())}}),
     )
 
 
@@ -443,13 +456,15 @@ class _GroupPredictor:
 
 #: The pose fields a set predicts per condition and action, in :class:`PredictionSet`'s order.
 _PREDICTED = ("robot_start", "estimate", "final", "mean_motion", "nearest", "oracle", "cloud_start", "cloud_final",
-              "ensemble_start", "ensemble_final")
+              "ensemble_start", "ensemble_final", "residual_start", "residual_final")
 
 
 def _predict_conditions(group: _GroupPredictor, wanted: set[int], physics: tuple[float, float] | None,
-                        ensemble: tuple[Any, Any, int] | None, made_from: str, bar) -> PredictionSet:
+                        ensemble: tuple[Any, Any, int] | None, made_from: str, bar,
+                        residual: Mapping[str, Any] | None = None) -> PredictionSet:
     """Predict every condition and action of ``group`` with its baselines (the physics ones with ``physics``,
-    the ensemble with ``ensemble``); the conditions in ``wanted`` are kept whole for the recording."""
+    the ensemble with ``ensemble``, the residual model with ``residual``); the conditions in ``wanted`` are kept
+    whole for the recording."""
     ctx, obj, poses = group.ctx, group.obj, group.poses
     n, a_count = int(poses.p.shape[0]), int(ctx.actions.shape[0])
     fields: dict[str, list] = {name: [] for name in _PREDICTED}
@@ -477,6 +492,13 @@ def _predict_conditions(group: _GroupPredictor, wanted: set[int], physics: tuple
                 fields["ensemble_start"].append(start)
                 fields["ensemble_final"].append(final)
                 densities[-1][j]["physics_ensemble"] = density
+            if residual is not None:
+                start, final, density = _residual_peer(ctx, features, poses_ij, j,
+                                                       residual[group.candidates[index].name],
+                                                       stable_seed(ctx.seed, group.seed_key, i, j, "residual"))
+                fields["residual_start"].append(start)
+                fields["residual_final"].append(final)
+                densities[-1][j]["pushtorch_residual"] = density
             if bar is not None:
                 bar.update(1)
     return PredictionSet(
@@ -520,6 +542,17 @@ def _ensemble_peer(ctx: ExperimentContext, features: SurfaceFeatures, derived: d
     density = ensemble_density(finals, model.settings.motion_p_std, model.settings.motion_rot_std)
     best = int(density.log_prob(finals.vector().double()).argmax())
     return start, finals.take(best), density
+
+
+def _residual_peer(ctx: ExperimentContext, features: SurfaceFeatures, derived: dict, j: int, residual,
+                   seed: int) -> tuple[se3.Pose, se3.Pose, Any]:
+    """The ``pushtorch_residual`` prediction of one condition and action, from pushtorch's own robot start: the
+    cloud body before the push, the density's mode and the density
+    (:func:`pushtorch.prediction.residual.predict_residual`)."""
+    from pushtorch.prediction.residual import predict_residual
+
+    prediction = predict_residual(residual, features, ctx.actions[j], seed, robot_start=derived["robot_start"])
+    return prediction.start, prediction.final_pose, prediction.density
 
 
 def _stacked(items: list[se3.Pose], n: int, a_count: int) -> se3.Pose | None:

@@ -74,6 +74,13 @@ EXPERIMENTS: dict[str, Entry] = {
     "shape_transfer": Entry("pushtorch.experiments.shape_transfer:run",
                             "§Test Set, §Prediction Accuracy on Novel Contexts; §Conclusion's transfer",
                             "one model pooled over many generated shapes against the two-object model"),
+    "engine_gap": Entry("pushtorch.experiments.quickstart:run", "§Conclusions and future work: transfer to new shapes",
+                        "pushtorch, the residual model and the physics peers with the truth in MuJoCo, the peers in "
+                        "pybullet"),
+    "engine_gap_pybullet": Entry("pushtorch.experiments.quickstart:run", "§Conclusions and future work",
+                                 "the engine gap with the truth in pybullet, the peers in MuJoCo"),
+    "engine_gap_same": Entry("pushtorch.experiments.quickstart:run", "§Conclusions and future work",
+                             "the engine gap with one engine, pybullet, for the truth and the peers"),
     "perception_demo": Entry("pushtorch.experiments.perception_demo:run",
                              "Experimental Setup and Surface Features",
                              "the catalogue's objects, clouds and surface features in one recording"),

@@ -46,8 +46,8 @@ PAPER_POSE_LINEAR_CM = {"position_model": 1.41, "centroid": 7.06}
 
 
 #: The prediction task's predictors in tables and figures, in this order (others follow as first seen).
-METHOD_ORDER = ("pushtorch", "no_motion", "mean_motion", "nearest_push", "physics_from_cloud", "oracle_physics",
-                "nominal_physics")
+METHOD_ORDER = ("pushtorch", "pushtorch_residual", "no_motion", "mean_motion", "nearest_push", "physics_from_cloud",
+                "physics_ensemble", "oracle_physics", "nominal_physics")
 
 
 #: The model-selection methods in tables and figures, in this order.

@@ -24,6 +24,7 @@ __all__ = [
     "placement_tag",
     "train_model",
     "train_pooled",
+    "train_residual",
     "training_records",
 ]
 
@@ -139,6 +140,40 @@ def train_model(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: s
         _log_training(ctx, model, obj)
     ctx._models[cache_key] = model
     return model
+
+
+def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str, ensemble: int):
+    """The residual model (:mod:`pushtorch.models.residual`) of :func:`train_model`'s model, its residuals taken
+    against the physics engine (``ctx.physics``: the peers' simulator, never the world's unless configured so),
+    cached as ``<run_dir>/models/<key>_residual_<engine>.npz``.
+
+    A push model read from its file no longer knows which push each kernel came from, so a residual not yet
+    cached trains the push model again from the same cached pushes and seed (the same model, bit for bit)."""
+    from pushtorch.models.residual import load_residual_model, train_residual_model, with_ensemble
+
+    model = train_model(ctx, obj, friction, mass)
+    key = _model_key(obj.name, friction, mass)
+    path = contained_path(ctx.run_dir, "models", f"{key}{_cache_tag(ctx)}_residual_{ctx.physics.engine}.npz",
+                          what="object or prior name")
+    if path.is_file():
+        try:
+            cached = load_residual_model(path)
+            if cached.sim == ctx.physics and cached.model.name == model.name \
+                    and cached.model.settings == model.settings and cached.model.meta == model.meta:
+                return with_ensemble(cached, ensemble)
+        except RecordFormatError as exc:
+            log.warning("retraining the residual of %s: %s", key, exc)
+    records = training_records(ctx, obj, friction, mass, progress=False)
+    fresh = model
+    if any(m.manipulator.push is None for m in model.motions):  # read from its file: train it again
+        fresh = train_push_model(obj, records, ctx.settings, name=key,
+                                 generator=torch.Generator().manual_seed(stable_seed(ctx.seed, "fit", key)),
+                                 meta={k: v for k, v in model.meta.items() if k not in _SEARCHED})
+    log.info("training the residual of %s against %s on %d pushes", key, ctx.physics.engine,
+             int(records.valid.sum()))
+    residual = train_residual_model(fresh, obj, records, ctx.physics, ensemble)
+    residual.save(path)
+    return residual
 
 
 def _log_training(ctx: ExperimentContext, model: PushModel, obj: ObjectModel) -> None:
