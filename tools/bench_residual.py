@@ -1,0 +1,118 @@
+"""Benchmark of the residual model's prediction against pushtorch's and a 100-rollout physics ensemble, on the
+same cloud and robot start (the residual model: pushtorch.models.residual, docs/method.md "The residual model").
+
+A cube model is trained on ``--pushes`` simulated pybullet pushes per action at the quickstart's model size
+(``conf/model/quick.yaml``; cached in ``--cache``), and its residual model against pybullet (the simulator
+against itself on the cloud's body: the cost is what is measured, not the accuracy). For each of ``--conditions``
+test conditions (the cube at a random yaw in [−45°, 45°], the actions in turn) pushtorch predicts first; its
+robot start is then given to the residual model (``--ensemble`` rollouts) and to ``physics_ensemble`` at 100
+rollouts, each timed on its own after one warm-up of each.
+
+The last line is exactly ``residual_p50_s=<..> pushtorch_p50_s=<..> ensemble100_p50_s=<..> ensemble=<N>``; the
+line before it gives the host's CPU and the ratio residual / pushtorch (the gate: at most 3).
+
+    .venv/bin/python tools/bench_residual.py [--conditions 12] [--ensemble 16] [--pushes 60]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import time
+from pathlib import Path
+
+import torch
+from bench_predict import cpu_name  # tools/ is on sys.path when a tool runs as a script
+
+from pushtorch.evaluation.baselines import physics_ensemble_prediction
+from pushtorch.models.residual import load_residual_model, train_residual_model
+from pushtorch.models.settings import ModelSettings
+from pushtorch.models.training import train_push_model
+from pushtorch.objects import load_object
+from pushtorch.perception import capture_partial_cloud
+from pushtorch.prediction import predict
+from pushtorch.prediction.residual import predict_residual
+from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_training_pushes, run_plan
+from pushtorch.sim.settings import SimSettings
+
+QUICK = Path(__file__).resolve().parent.parent / "conf" / "model" / "quick.yaml"
+
+
+def quick_settings() -> ModelSettings:
+    """The quickstart's model settings (conf/model/default.yaml with conf/model/quick.yaml's changes)."""
+    import yaml
+
+    root = Path(__file__).resolve().parent.parent / "conf" / "model"
+    base = yaml.safe_load((root / "default.yaml").read_text())["settings"]
+    quick = (yaml.safe_load(QUICK.read_text()) or {}).get("settings") or {}
+    return ModelSettings.from_mapping({**base, **quick})
+
+
+def residual_model(pushes: int, folder: Path, ensemble: int):
+    """The cached residual model of the cube, or one trained now (its push model on ``pushes`` per action)."""
+    path = folder / f"cube_{pushes}_residual.npz"
+    if path.exists():
+        return load_residual_model(path)
+    cube = load_object("cube")
+    plan = plan_training_pushes(cube, make_actions(3), pushes, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=0)
+    records_folder = folder / f"pushes_cube_{pushes}"
+    run_plan(object_spec(cube), plan, records_folder, workers=2, progress=False)
+    records = load_records(records_folder)
+    model = train_push_model(cube, records, quick_settings(), generator=torch.Generator().manual_seed(0))
+    started = time.perf_counter()
+    residual = train_residual_model(model, cube, records, SimSettings(), ensemble)
+    print(f"residual trained on {int(records.valid.sum())} pushes in {time.perf_counter() - started:.0f} s")
+    residual.save(path)
+    return residual
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--conditions", type=int, default=12)
+    parser.add_argument("--ensemble", type=int, default=16, help="the residual model's rollouts per prediction")
+    parser.add_argument("--pushes", type=int, default=60, help="training pushes per action")
+    parser.add_argument("--cache", default="runs/bench_residual")
+    args = parser.parse_args()
+    folder = Path(args.cache)
+    folder.mkdir(parents=True, exist_ok=True)
+    residual = residual_model(args.pushes, folder, args.ensemble)
+    if residual.ensemble != args.ensemble:
+        from pushtorch.models.residual import with_ensemble
+
+        residual = with_ensemble(residual, args.ensemble)
+    model, cube = residual.model, load_object("cube")
+    yaws = torch.empty(args.conditions + 1).uniform_(-math.pi / 4, math.pi / 4,
+                                                      generator=torch.Generator().manual_seed(1))
+    times = {"residual": [], "pushtorch": [], "ensemble100": []}
+    for i, yaw in enumerate(yaws.tolist()):
+        pose = cube.resting_pose(yaw=yaw)
+        cloud = capture_partial_cloud(cube, pose, voxel_size=model.settings.voxel_size)
+        action = model.actions[i % len(model.actions)]
+        started = time.perf_counter()
+        prediction = predict(model, cloud, action, i)
+        pushtorch_s = time.perf_counter() - started
+        start = prediction.condition.robot_start
+        started = time.perf_counter()
+        predict_residual(residual, cloud, action, i, robot_start=start)
+        residual_s = time.perf_counter() - started
+        started = time.perf_counter()
+        physics_ensemble_prediction(cloud.points, prediction.condition.object_pose, start, action,
+                                    Normal(0.3, 0.05), Normal(0.5, 0.025), 100, torch.Generator().manual_seed(i))
+        ensemble_s = time.perf_counter() - started
+        if i == 0:
+            continue  # the warm-up
+        times["pushtorch"].append(pushtorch_s)
+        times["residual"].append(residual_s)
+        times["ensemble100"].append(ensemble_s)
+        print(f"condition {i}: pushtorch {pushtorch_s:.2f} s, residual {residual_s:.2f} s, "
+              f"ensemble100 {ensemble_s:.2f} s", flush=True)
+    p50 = {k: statistics.median(v) for k, v in times.items()}
+    print(f"cpu: {cpu_name()}; torch threads {torch.get_num_threads()}; residual / pushtorch "
+          f"{p50['residual'] / p50['pushtorch']:.2f}")
+    print(f"residual_p50_s={p50['residual']:.3f} pushtorch_p50_s={p50['pushtorch']:.3f} "
+          f"ensemble100_p50_s={p50['ensemble100']:.3f} ensemble={residual.ensemble}")
+
+
+if __name__ == "__main__":
+    main()
