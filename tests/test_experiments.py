@@ -40,6 +40,21 @@ def _compose(overrides: list[str], name: str = "config", hydra_config: bool = Fa
         return compose(name, overrides=overrides, return_hydra_config=hydra_config)
 
 
+def test_the_engine_gap_experiments_pin_their_engines_and_predict_every_method():
+    """Three settings, each pinned in its config whatever the default world: two cross-engine, one the inverse
+    crime; the six catalogue objects, 10 conditions x 3 actions, the residual model and the density peer."""
+    pinned = {"engine_gap": ("mujoco", "pybullet"), "engine_gap_pybullet": ("pybullet", "mujoco"),
+              "engine_gap_same": ("pybullet", "pybullet")}
+    for name, engines in pinned.items():
+        cfg = _compose([f"experiment={name}"])
+        assert (cfg.world.engine, cfg.physics.engine) == engines
+        part = cfg.experiment.parts.engine_gap
+        assert len(part.objects) == 6 and part.test_conditions * cfg.experiment.actions.count >= 30
+        assert part.residual and part.ensemble == part.residual_ensemble
+        assert all(cfg.experiment.parts[p].skip for p in cfg.experiment.parts if p != "engine_gap")
+    assert (_compose([]).world.engine, _compose([]).physics.engine) == ("mujoco", "pybullet")  # the default
+
+
 def test_paper_experiments_default_to_the_full_protocol():
     selection = _compose(["experiment=model_selection"])
     assert (selection.experiment.test_conditions, selection.experiment.truth_samples) == (50, 4)

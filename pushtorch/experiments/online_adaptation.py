@@ -56,9 +56,11 @@ from pushtorch.experiments.common import (
 from pushtorch.experiments.prediction_sets import observe
 from pushtorch.experiments.suite import run_suite
 from pushtorch.experiments.tasks import prefetch
+from pushtorch.experiments.training import train_residual
 from pushtorch.io import atomic_write_bytes
 from pushtorch.models.conditioning import Observation
 from pushtorch.models.library import ModelLibrary
+from pushtorch.models.residual import DEFAULT_ENSEMBLE
 from pushtorch.objects import ObjectModel, load_object
 from pushtorch.paths import contained_path
 
@@ -110,6 +112,19 @@ class _Group:
     models: dict
     general_prior: tuple
     memo: dict = field(default_factory=dict)
+    #: the general model's residual model (``pushtorch_residual``; the part's ``residual: true``), or None
+    residual: Any = None
+
+    def residual_predicted(self, model, i: int, j: int, key: str):
+        """``(start, final, density)`` of a residual model on case ``i``, action ``j`` from the case's robot start
+        (memoised by ``key``)."""
+        from pushtorch.prediction.residual import predict_residual
+
+        if key not in self.memo:
+            seed = stable_seed(self.ctx.seed, self.name, self.obj.name, i, j, "residual")
+            pred = predict_residual(model, self.clouds[i][1], self.ctx.actions[j], seed, robot_start=self.starts[i][j])
+            self.memo[key] = (pred.start, pred.final_pose, pred.density)
+        return self.memo[key]
 
     def predicted(self, model, i: int, j: int, key: str):
         """``(estimate, final, density)`` of ``model`` on case ``i``, action ``j`` (memoised by ``key``)."""
@@ -264,6 +279,10 @@ def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int,
             fixed = {m: group.predicted(models[lv], i, j, f"{lv}|{i}|{j}")
                      for m, lv in (("general", "general"), ("congruent", level), ("incongruent", wrong))}
             fixed["physics_from_cloud"] = group.cloud_physics(i, j, means[0], means[1], f"pfc|{i}")
+            if group.residual is not None:  # the residual model conditioned on the same observations
+                fixed["pushtorch_residual"] = group.residual_predicted(
+                    group.residual if k == 0 else group.residual.condition_on(obs[:k], seed=_residual_seed(
+                        group, condition, i)), i, j, f"residual|{condition if k else ''}|{i}|{k}|{j}")
             if k == 0:
                 fixed["debiased"] = group.predicted(debiased, i, j, f"debiased|{i}|{j}")
                 online = online_general = fixed["general"]
@@ -289,6 +308,11 @@ def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int,
         scores.posteriors.setdefault(("online_general", k), []).append(summaries[1])
     return torch.stack([se3.relative(group.starts[i][j], se3.Pose.unchecked(truth.p[j], truth.q[j])).p[:2]
                         for j in range(a_count)])
+
+
+def _residual_seed(group: _Group, condition: str, i: int) -> int:
+    """The seed of the residual model's conditioning on case ``i``'s observations (as the library's)."""
+    return stable_seed(group.ctx.seed, group.name, group.obj.name, condition, i, "condition")
 
 
 def _condition_records(obj: str, condition: str, scores: _Scores, priors: Mapping[str, Any]) -> list[dict]:
@@ -356,6 +380,9 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             models = {level: train_model(ctx, trained_on, *fm) for level, fm in pairs.items()}
             general_prior = (ctx.prior("friction", pairs["general"][0]), ctx.prior("mass", pairs["general"][1]))
             group = _Group(ctx, name, obj, poses, clouds, starts, models, general_prior)
+            if part.get("residual"):
+                group.residual = train_residual(ctx, trained_on, *pairs["general"],
+                                                int(part.get("residual_ensemble") or DEFAULT_ENSEMBLE))
             files = {}
             for level in as_names(part["conditions"][bias]):
                 path = contained_path(ctx.run_dir, "online", f"{name}_{obj.name}_{bias}_{level}.json",

@@ -21,8 +21,8 @@ from pushtorch.experiments.tables import ordered, select
 __all__ = ["ONLINE_ORDER", "online_checks", "online_figure", "online_section"]
 
 #: The predictors in tables and figures, in this order.
-ONLINE_ORDER = ("online", "online_general", "general", "debiased", "congruent", "incongruent", "physics_from_cloud",
-                "physics_from_cloud_online")
+ONLINE_ORDER = ("online", "online_general", "general", "debiased", "congruent", "incongruent", "pushtorch_residual",
+                "physics_from_cloud", "physics_from_cloud_online")
 
 
 def _online(records: Iterable[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
