@@ -8,6 +8,8 @@ import math
 
 import pytest
 import torch
+from hypothesis import given
+from hypothesis import strategies as st
 
 from pushtorch import se3
 from pushtorch.errors import PushtorchError
@@ -49,23 +51,37 @@ def test_the_residual_of_the_simulator_against_itself_is_the_identity(trained):
     assert residual.meta["training_rollouts"] == int(records.valid.sum())
 
 
-def test_a_residual_carries_a_rollout_to_the_world_and_back():
-    g = torch.Generator().manual_seed(3)
-    robot = se3.from_xy_yaw(0.1, -0.2, 0.7).to(torch.float64)
-    sim = se3.from_xy_yaw(torch.rand(5, generator=g, dtype=torch.float64),
-                          torch.rand(5, generator=g, dtype=torch.float64),
-                          torch.rand(5, generator=g, dtype=torch.float64) * 6, z=0.05).to(torch.float64)
-    world = se3.from_xy_yaw(torch.rand(5, generator=g, dtype=torch.float64),
-                            torch.rand(5, generator=g, dtype=torch.float64),
-                            torch.rand(5, generator=g, dtype=torch.float64) * 6, z=0.05).to(torch.float64)
+finite = st.floats(-2.0, 2.0, allow_nan=False, allow_infinity=False)
+quat_raw = st.tuples(finite, finite, finite, finite).filter(lambda v: sum(x * x for x in v) > 1e-2)
+
+
+@st.composite
+def poses(draw, n: int = 3) -> se3.Pose:
+    p = torch.tensor([[draw(finite) for _ in range(3)] for _ in range(n)], dtype=torch.float64)
+    q = torch.tensor([draw(quat_raw) for _ in range(n)], dtype=torch.float64)
+    return se3.Pose.unchecked(p, q / q.norm(dim=-1, keepdim=True))
+
+
+@given(poses(1), poses(), poses(), st.floats(-0.1, 0.1), st.floats(-math.pi, math.pi))
+def test_a_residual_carries_a_rollout_to_the_world_and_depends_on_no_frame_but_the_robots(robot, sim, world, slide,
+                                                                                         heading):
+    """For any poses: corrected(residual_of(...)) is the world's pose; a slide along the robot's heading is a residual
+    along its x; moving robot, rollout and world together by any yaw about the vertical leaves the residual."""
     d = residual_of(robot, sim, world)
     back = corrected(robot, sim, d)
-    torch.testing.assert_close(back.p, world.p)
-    assert float(se3.angle_between(back.q, world.q).max()) < 1e-6
-    # a pure extra slide along the robot's heading is a residual along x whatever the object's heading
-    slide = se3.compose(se3.from_xy_yaw(0.02 * math.cos(0.7), 0.02 * math.sin(0.7), 0.0).to(torch.float64), sim)
-    torch.testing.assert_close(residual_of(robot, sim, slide).p,
-                               torch.tensor([0.02, 0.0, 0.0], dtype=torch.float64).expand(5, 3), atol=1e-9, rtol=0)
+    torch.testing.assert_close(back.p, world.p, atol=1e-9, rtol=0)
+    assert float(se3.quat_distance(back.q, world.q).max()) < 1e-9
+    along = se3.apply(se3.Pose.unchecked(torch.zeros(1, 3, dtype=torch.float64), robot.q),
+                      torch.tensor([[slide, 0.0, 0.0]], dtype=torch.float64))
+    slid = se3.Pose.unchecked(sim.p + along, sim.q)
+    torch.testing.assert_close(residual_of(robot, sim, slid).p,
+                               torch.tensor([slide, 0.0, 0.0], dtype=torch.float64).expand(3, 3), atol=1e-9, rtol=0)
+    turn = se3.Pose.unchecked(torch.tensor([[0.3, -0.1, 0.0]], dtype=torch.float64),  # a yaw about the vertical
+                              torch.tensor([[math.cos(heading / 2), 0.0, 0.0, math.sin(heading / 2)]],
+                                           dtype=torch.float64))
+    moved = residual_of(se3.compose(turn, robot), se3.compose(turn, sim), se3.compose(turn, world))
+    torch.testing.assert_close(moved.p, d.p, atol=1e-9, rtol=0)
+    assert float(se3.quat_distance(moved.q, d.q).max()) < 1e-9
 
 
 def test_the_residual_density_is_normalised_with_its_mode_inside(trained):

@@ -74,7 +74,7 @@ LEVELS = ("low", "medium", "high")
 #: Part keys that do not change a condition's scores (left out of its cache's fingerprint).
 RUN_CONTROL = ("objects", "name", "progress", "workers", "shard_size", "log_examples", "kind")
 #: Bump when a condition's cached scores (``<run_dir>/online/*.json``) would come out differently.
-ONLINE_VERSION = 3
+ONLINE_VERSION = 4
 
 
 def _start(obj, pose: se3.Pose, seed: int) -> se3.Pose:
@@ -315,6 +315,12 @@ def _residual_seed(group: _Group, condition: str, i: int) -> int:
     return stable_seed(group.ctx.seed, group.name, group.obj.name, condition, i, "condition")
 
 
+def _paired(hacc: torch.Tensor, other: list) -> dict[str, float]:
+    """The mean per-push H_acc difference to ``other``'s scores of the same pushes, and its standard error."""
+    diff = hacc - torch.tensor([v[0] for v in other], dtype=torch.float64)
+    return {"difference": float(diff.mean()), "se": float(diff.std() / math.sqrt(len(diff))) if len(diff) > 1 else 0.0}
+
+
 def _condition_records(obj: str, condition: str, scores: _Scores, priors: Mapping[str, Any]) -> list[dict]:
     """The records of one object and condition: one per predictor and k, with the posterior and the paired
     difference to ``congruent`` where they apply."""
@@ -334,9 +340,9 @@ def _condition_records(obj: str, condition: str, scores: _Scores, priors: Mappin
             record.update({key: {lv: [c[key][lv] for c in cases] for lv in cases[0][key]}
                            for key in ("log_evidence", "log_weights")})
         if predictor == "online":
-            diff = t[:, 0] - torch.tensor([v[0] for v in scores.pushes[("congruent", k)]], dtype=torch.float64)
-            record["vs_congruent"] = {"difference": float(diff.mean()),
-                                      "se": float(diff.std() / math.sqrt(len(diff))) if len(diff) > 1 else 0.0}
+            record["vs_congruent"] = _paired(t[:, 0], scores.pushes[("congruent", k)])
+        if k > 0 and (predictor, 0) in scores.pushes:  # what the observed pushes changed, push by push
+            record["vs_k0"] = _paired(t[:, 0], scores.pushes[(predictor, 0)])
         records.append(record)
     return records
 
