@@ -11,7 +11,7 @@ rollouts, each timed on its own after one warm-up of each.
 The last line is exactly ``residual_p50_s=<..> pushtorch_p50_s=<..> ensemble100_p50_s=<..> ensemble=<N>``; the
 line before it gives the host's CPU and the ratio residual / pushtorch (the gate: at most 3).
 
-    .venv/bin/python tools/bench_residual.py [--conditions 12] [--ensemble 16] [--pushes 60]
+    .venv/bin/python tools/bench_residual.py [--conditions 12] [--ensemble 4] [--pushes 60]
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import torch
 from bench_predict import cpu_name  # tools/ is on sys.path when a tool runs as a script
 
 from pushtorch.evaluation.baselines import physics_ensemble_prediction
-from pushtorch.models.residual import load_residual_model, train_residual_model
+from pushtorch.models.residual import DEFAULT_ENSEMBLE, load_residual_model, train_residual_model
 from pushtorch.models.settings import ModelSettings
 from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
@@ -70,7 +70,8 @@ def residual_model(pushes: int, folder: Path, ensemble: int):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--conditions", type=int, default=12)
-    parser.add_argument("--ensemble", type=int, default=16, help="the residual model's rollouts per prediction")
+    parser.add_argument("--ensemble", type=int, default=DEFAULT_ENSEMBLE,
+                        help="the residual model's rollouts per prediction")
     parser.add_argument("--pushes", type=int, default=60, help="training pushes per action")
     parser.add_argument("--cache", default="runs/bench_residual")
     args = parser.parse_args()

@@ -48,8 +48,10 @@ Tensor = torch.Tensor
 __all__ = ["DEFAULT_ENSEMBLE", "RESIDUAL_LADDER", "ResidualModel", "corrected", "load_residual_model",
            "residual_of", "train_residual_model"]
 
-#: Rollouts per prediction unless the model says otherwise.
-DEFAULT_ENSEMBLE = 16
+#: Rollouts per prediction unless the model says otherwise: the largest power of two whose prediction stays within
+#: 3× a pushtorch prediction (tools/bench_residual.py on an Intel Xeon, 2 cores: 0.38 s at 4 rollouts against
+#: pushtorch's 0.16 s; 1.11 s at 16). Not yet chosen by held-out likelihood.
+DEFAULT_ENSEMBLE = 4
 #: The residual kernels' stds tried, position (m) × rotation (rad): the pair of highest leave-one-push-out
 #: likelihood of the training residuals is kept.
 RESIDUAL_LADDER = ((0.0025, 0.005, 0.01, 0.02, 0.04, 0.08), (0.005, 0.01, 0.02, 0.04, 0.08, 0.16))
