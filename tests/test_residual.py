@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from pushtorch import se3
 from pushtorch.errors import PushtorchError
-from pushtorch.models.residual import corrected, residual_of, train_residual_model
+from pushtorch.models.residual import corrected, residual_of, train_residual_model, with_ensemble
 from pushtorch.models.settings import ModelSettings
 from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
@@ -38,6 +38,13 @@ def trained(tmp_path_factory):
     records = load_records(folder)
     model = train_push_model(cube, records, SETTINGS, generator=torch.Generator().manual_seed(0))
     return cube, records, model
+
+
+@pytest.fixture(scope="module")
+def residual(trained):
+    """The small model's residual model against pybullet on its training pushes' cloud bodies (4 rollouts)."""
+    cube, records, model = trained
+    return train_residual_model(model, cube, records, SimSettings(), ensemble=4)
 
 
 def test_the_residual_of_the_simulator_against_itself_is_the_identity(trained):
@@ -84,9 +91,8 @@ def test_a_residual_carries_a_rollout_to_the_world_and_depends_on_no_frame_but_t
     assert float(se3.quat_distance(moved.q, d.q).max()) < 1e-9
 
 
-def test_the_residual_density_is_normalised_with_its_mode_inside(trained):
+def test_the_residual_density_is_normalised_with_its_mode_inside(trained, residual):
     cube, records, model = trained
-    residual = train_residual_model(model, cube, records, SimSettings(), ensemble=4)
     pose = cube.resting_pose(yaw=0.3)
     cloud = capture_partial_cloud(cube, pose)
     prediction = predict_residual(residual, cloud, model.actions[1], 0)
@@ -120,10 +126,8 @@ def test_an_ensemble_rolled_out_in_one_call_is_its_single_rollouts():
         torch.testing.assert_close(alone.q[0], together.q[i], rtol=0, atol=0)
 
 
-def test_a_cloud_with_no_body_is_refused_with_a_clear_error(trained):
+def test_a_cloud_with_no_body_is_refused_with_a_clear_error(trained, residual):
     cube, records, model = trained
-    residual = train_residual_model(model, cube, records, SimSettings(), ensemble=2,
-                                    body_of=lambda obj, pose: (obj, pose))
     g = torch.Generator().manual_seed(0)
     flat = torch.rand(400, 3, generator=g) * torch.tensor([0.1, 0.1, 0.0])  # on the floor: no volume
     with pytest.raises(PushtorchError):
@@ -132,7 +136,7 @@ def test_a_cloud_with_no_body_is_refused_with_a_clear_error(trained):
         cloud_body(flat, se3.identity())
 
 
-def test_a_residual_model_file_round_trips_and_refuses_another_engine_version(trained, tmp_path):
+def test_a_residual_model_file_round_trips_and_refuses_another_engine_version(trained, residual, tmp_path):
     import dataclasses
 
     from pushtorch.errors import RecordFormatError
@@ -140,7 +144,7 @@ def test_a_residual_model_file_round_trips_and_refuses_another_engine_version(tr
     from pushtorch.models.residual import load_residual_model
 
     cube, records, model = trained
-    residual = train_residual_model(model, cube, records, SimSettings(), ensemble=3)
+    residual = with_ensemble(residual, 3)
     path = residual.save(tmp_path / "cube_residual.npz")
     back = load_residual_model(path)
     assert (back.ensemble, back.sim, back.engine_version) == (3, residual.sim, residual.engine_version)
@@ -160,7 +164,7 @@ def test_a_residual_model_file_round_trips_and_refuses_another_engine_version(tr
     assert load_residual_model(tmp_path / "other.npz", other_engine=True).engine_version == "pybullet 0.0.1"
 
 
-def test_conditioned_on_observed_pushes_the_ensemble_draws_from_the_posterior(trained):
+def test_conditioned_on_observed_pushes_the_ensemble_draws_from_the_posterior(trained, residual):
     """condition_on conditions the push model inside; the ensemble's friction and mass are drawn by the kernels'
     posterior weights (here all weight on one kernel: every draw is its push's physics)."""
     import dataclasses
@@ -169,7 +173,7 @@ def test_conditioned_on_observed_pushes_the_ensemble_draws_from_the_posterior(tr
     from pushtorch.sim.runner import simulate_pushes
 
     cube, records, model = trained
-    residual = train_residual_model(model, cube, records, SimSettings(), ensemble=6)
+    residual = with_ensemble(residual, 6)
     pose = cube.resting_pose(yaw=0.1)
     robot = place_robot_against(cube.mesh, pose, 0.1, 0.0, 0.002)
     final = simulate_pushes(cube, robot, pose, model.actions[1].double(), mass=0.6, ground_friction=0.2).object_final

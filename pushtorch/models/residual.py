@@ -45,8 +45,8 @@ from pushtorch.sim.settings import SimSettings
 
 Tensor = torch.Tensor
 
-__all__ = ["DEFAULT_ENSEMBLE", "RESIDUAL_LADDER", "ResidualModel", "corrected", "load_residual_model",
-           "residual_of", "train_residual_model"]
+__all__ = ["DEFAULT_ENSEMBLE", "RESIDUAL_LADDER", "ResidualModel", "choose_bandwidth", "corrected", "engine_version",
+           "load_residual_model", "residual_of", "train_residual_model", "with_ensemble"]
 
 #: Rollouts per prediction unless the model says otherwise: the largest power of two whose prediction stays within
 #: 3× a pushtorch prediction (tools/bench_residual.py on an Intel Xeon, 2 cores: 0.38 s at 4 rollouts against
