@@ -12,6 +12,7 @@ centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one ex
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -115,14 +116,16 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     keep = torch.isfinite(log_weights[0])  # kernels no contact reaches weigh nothing
     means = means.take(keep.nonzero().reshape(-1))
     log_weights = log_weights[:, keep]
-    bandwidth = residual.bandwidth.__class__(residual.bandwidth.p_std, residual.bandwidth.rot_std,
-                                             cutoff_std=NO_CUTOFF, alpha_t=residual.bandwidth.alpha_t)
-    ones = torch.ones(1, dtype=dtype)
-    density = FinalPoseDistribution(means, log_weights, bandwidth, torch.zeros(3, dtype=torch.int64), ones, None,
-                                    Evaluation.DENSE, means, kernels="full")
-    best = int(density.unnormalised_log_prob(means.vector().unsqueeze(-2)).reshape(-1).argmax())
+    bandwidth = dataclasses.replace(residual.bandwidth, cutoff_std=NO_CUTOFF)
+
+    def mixture(mode: torch.Tensor | None) -> FinalPoseDistribution:
+        return FinalPoseDistribution(means, log_weights, bandwidth, torch.zeros(3, dtype=torch.int64),
+                                     torch.ones(1, dtype=dtype), mode, Evaluation.DENSE, means, kernels="full")
+
+    # the mode: the kernel centre of highest density
+    best = int(mixture(None).unnormalised_log_prob(means.vector().unsqueeze(-2)).reshape(-1).argmax())
     mode = means.take(best)
-    density = density._replace(mode=mode.vector())
+    density = mixture(mode.vector())
     thrown = int((~records.valid).sum())
     return ResidualPrediction(residual.name, motion.action, condition, body_start.to(dtype), mode, density,
                               se3.Pose.unchecked(finals.p.to(dtype), finals.q.to(dtype)), drawn, thrown, log_w)
