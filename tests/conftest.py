@@ -42,6 +42,28 @@ def small_model(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def cube_pushes_of(tmp_path_factory):
+    """``cube_pushes_of(per_action, seed)``: the cube and its real pybullet pushes (3 actions, mass N(0.5, 0.025),
+    friction N(0.3, 0.05)), simulated once per test process and size."""
+    from pushtorch.objects import load_object
+    from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_training_pushes, run_plan
+
+    runs = {}
+
+    def make(per_action: int, seed: int):
+        if (per_action, seed) not in runs:
+            cube = load_object("cube")
+            plan = plan_training_pushes(cube, make_actions(3), per_action, Normal(0.5, 0.025), Normal(0.3, 0.05),
+                                        seed=seed)
+            folder = tmp_path_factory.mktemp(f"cube_pushes_{per_action}_{seed}")
+            run_plan(object_spec(cube), plan, folder, workers=1, progress=False)
+            runs[(per_action, seed)] = (cube, load_records(folder))
+        return runs[(per_action, seed)]
+
+    return make
+
+
+@pytest.fixture(scope="session")
 def rotated_surface_gap():
     """``gap(mesh, q, n=1500)``: the largest distance (m) from ``n`` surface samples of ``mesh`` rotated by the wxyz
     quaternion ``q`` to the unrotated surface (open3d's exact point-to-triangle distance; sample seed 3, not the

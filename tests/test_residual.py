@@ -19,7 +19,7 @@ from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
 from pushtorch.perception import PointCloud, capture_partial_cloud
 from pushtorch.prediction.residual import predict_residual
-from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_training_pushes, run_plan
+from pushtorch.sim import make_actions
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
 from pushtorch.sim.push import place_robot_against
 from pushtorch.sim.settings import SimSettings
@@ -29,13 +29,9 @@ SETTINGS = ModelSettings(query_kernels=400, anneal_candidates=60, anneal_steps=1
 
 
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory):
+def trained(cube_pushes_of):
     """The cube, its pybullet pushes (6 per action) and a small model trained on them."""
-    cube = load_object("cube")
-    plan = plan_training_pushes(cube, make_actions(3), 6, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=1)
-    folder = tmp_path_factory.mktemp("residual_pushes")
-    run_plan(object_spec(cube), plan, folder, workers=1, progress=False)
-    records = load_records(folder)
+    cube, records = cube_pushes_of(6, 1)
     model = train_push_model(cube, records, SETTINGS, generator=torch.Generator().manual_seed(0))
     return cube, records, model
 

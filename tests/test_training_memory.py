@@ -18,23 +18,18 @@ from pushtorch.models.contact import (
 )
 from pushtorch.models.settings import ModelSettings
 from pushtorch.models.training import _in_object_frame, robot_motions, train_push_model, training_features
-from pushtorch.objects import load_object
 from pushtorch.robot import bumper_mesh
-from pushtorch.sim import Normal, load_records, make_actions, object_spec, plan_training_pushes, run_plan
 
 SMALL = ModelSettings(voxel_size=0.008, feature_radius=0.02, query_kernels=400, anneal_candidates=60, anneal_steps=15,
                       position_frames=800, environment_kernels=300, manipulator_kernels=40)
 
 
 @pytest.fixture(scope="module")
-def cube_pushes(tmp_path_factory):
+def cube_pushes(cube_pushes_of):
     """The cube, 9 real pybullet pushes per action and the cube's training features in its object frame."""
-    cube = load_object("cube")
-    plan = plan_training_pushes(cube, make_actions(3), 9, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=0)
-    folder = tmp_path_factory.mktemp("cube_pushes")
-    run_plan(object_spec(cube), plan, folder, workers=1, progress=False)
+    cube, records = cube_pushes_of(9, 0)
     pose, features = training_features(cube, SMALL)
-    return cube, load_records(folder), _in_object_frame(features, pose)
+    return cube, records, _in_object_frame(features, pose)
 
 
 def _motion_arrays(model: motion.MotionModel) -> dict[str, torch.Tensor]:

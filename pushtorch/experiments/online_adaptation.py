@@ -275,14 +275,17 @@ def _case(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: int,
     scores.scored.clear()  # the truth is this case's
     for k in observed:
         conditioned = chain[k]
+        # the residual model conditioned on the same observations, once per k
+        residual = None if group.residual is None or k == 0 else \
+            group.residual.condition_on(obs[:k], seed=_residual_seed(group, condition, i))
         for j in range(a_count):
             fixed = {m: group.predicted(models[lv], i, j, f"{lv}|{i}|{j}")
                      for m, lv in (("general", "general"), ("congruent", level), ("incongruent", wrong))}
             fixed["physics_from_cloud"] = group.cloud_physics(i, j, means[0], means[1], f"pfc|{i}")
-            if group.residual is not None:  # the residual model conditioned on the same observations
+            if group.residual is not None:
                 fixed["pushtorch_residual"] = group.residual_predicted(
-                    group.residual if k == 0 else group.residual.condition_on(obs[:k], seed=_residual_seed(
-                        group, condition, i)), i, j, f"residual|{condition if k else ''}|{i}|{k}|{j}")
+                    group.residual if residual is None else residual, i, j,
+                    f"residual|{condition if k else ''}|{i}|{k}|{j}")
             if k == 0:
                 fixed["debiased"] = group.predicted(debiased, i, j, f"debiased|{i}|{j}")
                 online = online_general = fixed["general"]
