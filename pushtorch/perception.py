@@ -17,8 +17,10 @@ Kinect v1, the camera of the paper's experiments. Depth noise is Gaussian along 
 
 from __future__ import annotations
 
+import io
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -26,6 +28,7 @@ import torch
 
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPointCloudError, InvalidPoseError
+from pushtorch.io import atomic_write_bytes
 
 if TYPE_CHECKING:
     from pushtorch.objects import ObjectModel
@@ -41,10 +44,16 @@ __all__ = [
     "PointCloud",
     "capture_full_cloud",
     "capture_partial_cloud",
+    "CLOUD_SUFFIXES",
     "default_partial_camera_position",
+    "load_cloud_file",
     "orbit_viewpoints",
+    "save_cloud_file",
     "voxel_down_sample",
 ]
+
+#: The file endings :func:`load_cloud_file` reads: PLY and PCD (open3d) and npz (an array ``points``).
+CLOUD_SUFFIXES = (".ply", ".pcd", ".npz")
 
 #: Voxel edge (m) of the down-sampled clouds: curvature neighbourhoods see points at most ~4 mm apart.
 DEFAULT_VOXEL_SIZE = 0.004
@@ -467,3 +476,49 @@ def capture_partial_cloud(
         raise InvalidParameterError(f"camera_position must have shape (3,), got {tuple(eye.shape)}")
     cloud = scene.capture(camera, eye, target=target, generator=generator)
     return cloud if voxel_size is None else voxel_down_sample(cloud, voxel_size)
+
+
+def load_cloud_file(path) -> PointCloud:
+    """A point cloud from a file: ``.ply`` or ``.pcd`` (open3d's reader) or ``.npz`` (an ``(N, 3)`` array
+    ``points`` and optionally ``view_origins``), metres, in the frame it was written in (push tables: world).
+
+    Raises:
+        InvalidPointCloudError: a missing file, another ending, an unreadable file, or a cloud that is empty,
+            of the wrong shape or not finite (the message names the file).
+    """
+    path = Path(path)
+    if path.suffix.lower() not in CLOUD_SUFFIXES:
+        raise InvalidPointCloudError(f"{path}: a point cloud file must end in {', '.join(CLOUD_SUFFIXES)}")
+    if not path.is_file():
+        raise InvalidPointCloudError(f"point cloud file not found: {path}")
+    origins = None
+    try:
+        if path.suffix.lower() == ".npz":
+            with np.load(path, allow_pickle=False) as arrays:
+                if "points" not in arrays:
+                    raise InvalidPointCloudError(f"{path} holds no array 'points' (it has {', '.join(arrays) or 'none'})")
+                points = np.asarray(arrays["points"], dtype=np.float64)
+                origins = np.asarray(arrays["view_origins"], dtype=np.float64) if "view_origins" in arrays else None
+        else:
+            from pushtorch.deps import import_open3d
+
+            points = np.asarray(import_open3d().io.read_point_cloud(str(path)).points, dtype=np.float64)
+    except InvalidPointCloudError:
+        raise
+    except Exception as exc:  # numpy and open3d raise many types on a bad file: the cause is the file
+        raise InvalidPointCloudError(f"could not read a point cloud from {path} ({type(exc).__name__}: {exc})") from exc
+    try:
+        return PointCloud(torch.as_tensor(points, dtype=torch.float32),
+                          None if origins is None else torch.as_tensor(origins, dtype=torch.float32))
+    except InvalidPointCloudError as exc:
+        raise InvalidPointCloudError(f"{path}: {exc}") from exc
+
+
+def save_cloud_file(cloud: PointCloud, path) -> None:
+    """Write ``cloud`` as ``.npz`` (its points and view origins, float32, exact), atomically."""
+    arrays = {"points": cloud.points.detach().cpu().float().numpy()}
+    if cloud.view_origins is not None:
+        arrays["view_origins"] = cloud.view_origins.detach().cpu().float().numpy()
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    atomic_write_bytes(Path(path), buffer.getvalue())

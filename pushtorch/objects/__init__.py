@@ -18,6 +18,7 @@ from pushtorch.objects.meshes import (
     VHACD_SETTINGS,
     convex_decomposition,
     load_mesh_file,
+    save_mesh_file,
 )
 from pushtorch.objects.object_model import ObjectModel
 from pushtorch.objects.symmetry import Symmetry
@@ -37,4 +38,5 @@ __all__ = [
     "detect_symmetry",
     "load_mesh_file",
     "load_object",
+    "save_mesh_file",
 ]

@@ -46,6 +46,7 @@ __all__ = [
     "check_up_axis",
     "convex_decomposition",
     "load_mesh_file",
+    "save_mesh_file",
 ]
 
 #: V-HACD settings (pybullet's defaults, stated so the cache key names them): voxels, concavity, vertices.
@@ -350,9 +351,10 @@ def _connected_parts(path: Path, vertices: np.ndarray, faces: np.ndarray,
 
 
 def _joined(path: Path, vertices: np.ndarray, faces: np.ndarray, merged: trimesh.Trimesh,
-            cache_dir: str | Path | None) -> tuple[trimesh.Trimesh, list[trimesh.Trimesh], str]:
+            cache_dir: str | Path | None) -> tuple[trimesh.Trimesh, list[trimesh.Trimesh], str, np.ndarray]:
     """A mesh of several connected parts as one body: its watertight union (centred at its centre of mass),
-    its convex collision parts and their ``collision_source`` (module docstring).
+    its convex collision parts, their ``collision_source`` (module docstring) and the union's centre of mass in
+    the file's frame.
 
     Raises:
         InvalidMeshError: parts more than :data:`BODY_GAP` apart (several bodies), no part that encloses a
@@ -393,6 +395,7 @@ def _joined(path: Path, vertices: np.ndarray, faces: np.ndarray, merged: trimesh
     # the union holds the largest part and at most all of them (to rounding)
     if not (union.is_watertight and max(volumes) * (1 - 1e-4) <= union.volume <= sum(volumes) * (1 + 1e-4)):
         raise InvalidMeshError(f"{path}: the union of its {len(solids)} parts is not one closed surface")
+    origin = np.array(union.center_mass, dtype=np.float64)
     mesh, solids = centred(union, solids)
     collision: list[trimesh.Trimesh] = []
     decomposed = False
@@ -405,7 +408,7 @@ def _joined(path: Path, vertices: np.ndarray, faces: np.ndarray, merged: trimesh
         collision += [trimesh.convex.convex_hull(np.clip(piece.vertices, low, high))
                       for piece in convex_decomposition(solid, cache_dir)]
         decomposed = True
-    return mesh, collision, "convex parts and v-hacd" if decomposed else "convex parts"
+    return mesh, collision, "convex parts and v-hacd" if decomposed else "convex parts", origin
 
 
 def load_mesh_file(path: str | Path, scale: float = 1.0, name: str | None = None,
@@ -477,8 +480,8 @@ def load_mesh_file(path: str | Path, scale: float = 1.0, name: str | None = None
     if problem:
         raise InvalidMeshError(problem)
     if len(mesh.split(only_watertight=False)) > 1:
-        mesh, parts, source = _joined(path, vertices * scale, np.asarray(loaded.faces), mesh, cache_dir)
-        return ObjectModel(name, mesh, detect_symmetry(mesh), parts, source)
+        mesh, parts, source, origin = _joined(path, vertices * scale, np.asarray(loaded.faces), mesh, cache_dir)
+        return ObjectModel(name, mesh, detect_symmetry(mesh), parts, source, origin)
     source = "convex hull"
     if not mesh.is_watertight:
         # The centre of mass of an open mesh is undefined; its convex hull is the best physical proxy.
@@ -488,6 +491,7 @@ def load_mesh_file(path: str | Path, scale: float = 1.0, name: str | None = None
             raise InvalidMeshError(f"{path} is open and flat: it encloses no volume") from exc
     if not mesh.volume > 0:
         raise InvalidMeshError(f"{path} encloses no volume after scaling by {scale}")
+    origin = np.array(mesh.center_mass, dtype=np.float64)
     mesh, _ = centred(mesh)
     parts: list[trimesh.Trimesh] = []
     if mesh.volume < CONVEX_VOLUME_FRACTION * mesh.convex_hull.volume:
@@ -497,4 +501,25 @@ def load_mesh_file(path: str | Path, scale: float = 1.0, name: str | None = None
         parts = [trimesh.convex.convex_hull(np.clip(part.vertices, low, high))
                  for part in convex_decomposition(mesh, cache_dir)]
         source = "v-hacd"
-    return ObjectModel(name, mesh, detect_symmetry(mesh), parts, source)
+    return ObjectModel(name, mesh, detect_symmetry(mesh), parts, source, origin)
+
+
+def save_mesh_file(mesh: trimesh.Trimesh, path: str | Path) -> None:
+    """Write ``mesh`` as a binary PLY with float64 vertices, atomically: lossless, so :func:`load_mesh_file`
+    reads back the same vertices and faces bit for bit (trimesh's own PLY export rounds to float32).
+
+    Raises:
+        InvalidParameterError: ``path`` does not end in ``.ply``.
+    """
+    from pushtorch.io import atomic_write_bytes
+
+    path = Path(path)
+    if path.suffix.lower() != ".ply":
+        raise InvalidParameterError(f"{path}: a lossless mesh is written as .ply")
+    vertices = np.ascontiguousarray(mesh.vertices, dtype="<f8")
+    faces = np.zeros(len(mesh.faces), dtype=[("count", "<u1"), ("index", "<i4", (3,))])
+    faces["count"], faces["index"] = 3, np.asarray(mesh.faces)
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              f"element vertex {len(vertices)}\nproperty double x\nproperty double y\nproperty double z\n"
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    atomic_write_bytes(path, header.encode("ascii") + vertices.tobytes() + faces.tobytes())

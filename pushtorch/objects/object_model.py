@@ -34,6 +34,9 @@ class ObjectModel:
             ``"primitives"`` (catalogue pieces), ``"v-hacd"`` (a concave user mesh decomposed),
             ``"convex parts"`` (a user mesh of several connected parts, each convex or open: their hulls) or
             ``"convex parts and v-hacd"`` (some of those parts concave and decomposed).
+        source_origin: ``(3,)`` where the object frame's origin (the centre of mass) lies in the mesh file's
+            own frame (metres, after scale and up axis), for a mesh loaded from a file; None for built-in
+            shapes. Poses given in the file's frame (a push table's) become object-frame poses by it.
     """
 
     name: str
@@ -41,6 +44,7 @@ class ObjectModel:
     symmetry: Symmetry
     collision_parts: list[trimesh.Trimesh] = field(default_factory=list)
     collision_source: str = "convex hull"
+    source_origin: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if not self.collision_parts:
