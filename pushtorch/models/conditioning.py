@@ -72,6 +72,7 @@ __all__ = [
     "log_membership",
     "new_posterior",
     "observation_seed",
+    "observations_from_table",
     "odometry_log_likelihood",
     "summarise",
 ]
@@ -146,6 +147,30 @@ class Observation:
         return se3.compose(b1, se3.inverse(b0))
 
 
+def observations_from_table(table, rows: Sequence[int] | None = None) -> list[Observation]:
+    """The observed pushes of a push table (:func:`pushtorch.sim.tables.read_push_table`), in row order: each
+    row's cloud, action, object poses, robot start and the robot's final pose (its odometry's evidence).
+
+    Args:
+        rows: the rows to observe (default: every row).
+
+    Raises:
+        RecordFormatError: a row without a cloud.
+    """
+    records = table.records
+    rows = range(len(records)) if rows is None else [int(r) for r in rows]
+
+    def one(pose: se3.Pose, i: int) -> se3.Pose:
+        return se3.Pose(pose.p[i], pose.q[i])
+
+    out = []
+    for i in rows:
+        final_robot = se3.Pose(records.robot_trajectory.p[i, -1], records.robot_trajectory.q[i, -1])
+        out.append(Observation(table.cloud(i), records.action[i], one(records.object_initial, i),
+                               one(records.object_final, i), one(records.robot_start, i), final_robot))
+    return out
+
+
 def kernel_physics(kernels: Sequence[MotionKernels]) -> Tensor:
     """``(N, 2)`` float64 ``(μ, log m)`` of the kernels, concatenated in order.
 
@@ -155,8 +180,9 @@ def kernel_physics(kernels: Sequence[MotionKernels]) -> Tensor:
     parts = []
     for k in kernels:
         if k.physics is None:
-            raise ModelError("this model's kernels do not know the friction and mass of their pushes: retrain it "
-                             "with this pushtorch to condition it on observations")
+            raise ModelError("this model's kernels do not know the ground friction and mass of their pushes, which "
+                             "conditioning weighs: train it on pushes that record them (a push table's 'mass' and "
+                             "'ground_friction' columns; a model file from before kernels kept them: retrain it)")
         phys = k.physics.detach().double().cpu()
         parts.append(torch.stack([phys[:, 0], phys[:, 1].clamp_min(1e-9).log()], -1))
     return torch.cat(parts)

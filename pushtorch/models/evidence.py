@@ -42,11 +42,13 @@ from pushtorch.models.conditioning import (
     log_membership,
     new_posterior,
     observation_seed,
+    observations_from_table,
     odometry_log_likelihood,
 )
 from pushtorch.models.contact import bumper_contact_patch
 from pushtorch.models.motion import contact_log_weights, expert_exponents
 from pushtorch.models.push_condition import features_for, given_start_frame, push_conditions
+from pushtorch.sim.tables import PushTable
 
 if TYPE_CHECKING:
     from pushtorch.models.model import PushModel
@@ -67,6 +69,8 @@ log = logging.getLogger(__name__)
 def _as_list(observations) -> list[Observation]:
     if isinstance(observations, Observation):
         return [observations]
+    if isinstance(observations, PushTable):  # a robot's own log of its first pushes
+        return observations_from_table(observations)
     if isinstance(observations, str | bytes) or not isinstance(observations, Sequence):
         raise InvalidParameterError(f"observations must be an Observation or a list of them, got "
                                     f"{type(observations).__name__}")

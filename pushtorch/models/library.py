@@ -13,12 +13,13 @@ import torch
 
 from pushtorch.errors import InvalidParameterError
 from pushtorch.features import SurfaceFeatures
-from pushtorch.models.conditioning import Observation, kernel_physics, summarise
+from pushtorch.models.conditioning import Observation, kernel_physics, observations_from_table, summarise
 from pushtorch.models.evidence import common_evidence_kernels
 from pushtorch.models.model import PushModel
 from pushtorch.models.push_condition import features_for
 from pushtorch.models.query import feature_distance_heuristic, heuristic_descriptors
 from pushtorch.models.settings import as_generator
+from pushtorch.sim.tables import PushTable
 
 __all__ = [
     "ConditionedLibrary",
@@ -62,6 +63,8 @@ class ModelLibrary:
         first = self.models[0]
         same = all(m.settings.feature_radius == first.settings.feature_radius and m.dtype == first.dtype
                    and m.device == first.device for m in self.models)
+        if isinstance(observations, PushTable):
+            observations = observations_from_table(observations)
         listed = [observations] if isinstance(observations, Observation) else observations
         if not same or not isinstance(listed, list | tuple) or not all(isinstance(o, Observation) for o in listed):
             return observations  # condition_on refuses what is malformed, with its own message

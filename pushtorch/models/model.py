@@ -120,7 +120,9 @@ class PushModel:
         Conditioning is sequential: ``m.condition_on([a]).condition_on([b])`` equals ``m.condition_on([a, b])``.
 
         Args:
-            observations: :class:`~pushtorch.models.conditioning.Observation` s (one or a list; may be empty).
+            observations: :class:`~pushtorch.models.conditioning.Observation` s (one or a list; may be empty), or
+                a push table's rows (a :class:`~pushtorch.sim.tables.PushTable`, every row with its cloud:
+                :func:`~pushtorch.models.conditioning.observations_from_table`).
             seed: the seed of the observations' push conditions (default: the posterior's, or 0).
             prior: ``(friction prior, mass prior)`` (:mod:`pushtorch.sim.priors`): de-bias the kernels towards
                 the training prior rather than where they crowd; only on a model not yet conditioned.

@@ -159,7 +159,7 @@ class MotionKernels:
             se3.Pose.unchecked(arrays[f"{prefix}.m_p"], arrays[f"{prefix}.m_q"]),
             arrays[f"{prefix}.g"],
             arrays[f"{prefix}.patch"],
-            physics=arrays[f"{prefix}.physics"],
+            physics=arrays.get(f"{prefix}.physics"),
             robot_motion=arrays.get(f"{prefix}.robot_motion"),
             log_weight=arrays.get(f"{prefix}.log_weight"),
         )

@@ -79,6 +79,8 @@ def fit_object_parts(obj: ObjectModel, records, settings: ModelSettings, generat
     keep = torch.randperm(len(features), generator=generator)[: settings.position_frames]
     position = fit_position_model(features.select(keep.sort().values), pose)
     features_object = _in_object_frame(features, pose)
+    # a push table without mass and ground friction (pushtorch.sim.tables): kernels that do not know their physics
+    known = bool(torch.isfinite(valid.ground_friction).all() and torch.isfinite(valid.mass).all())
     motions = []
     for a in torch.unique(valid.action_index).tolist():
         sel = valid.take(valid.action_index == a)
@@ -87,7 +89,7 @@ def fit_object_parts(obj: ObjectModel, records, settings: ModelSettings, generat
                 features_object, sel.object_initial, sel.object_final, sel.robot_start, bumper_mesh(se3.identity()),
                 sel.action[0], settings.environment_contacts_training, settings.manipulator_kernels_per_push,
                 settings.contact_cutoff, settings.contact_drop_off, generator,
-                physics=torch.stack([sel.ground_friction, sel.mass], -1),
+                physics=torch.stack([sel.ground_friction, sel.mass], -1) if known else None,
                 robot_motion=robot_motions(sel),
             )
         )

@@ -212,7 +212,8 @@ def load_records(
     allow_partial: bool = False,
     trajectories: bool = True,
 ) -> PushRecords:
-    """Load push records: one shard (``.json``/``.npz``), a shard folder, or a run folder (its ``pushes/``).
+    """Load push records: one shard (``.json``/``.npz``), a shard folder, or a run folder (its ``pushes/``). A push
+    table (``.parquet``) is read by its sibling :func:`pushtorch.sim.tables.read_push_table`.
 
     Shards are read in push-index order, verified against their manifests and never unpickled. A folder
     with a run manifest is checked against it: every promised shard finished, each holding exactly the
@@ -232,6 +233,9 @@ def load_records(
         RecordFormatError: nothing to load, or a corrupt, tampered, duplicated or foreign shard.
     """
     path = Path(path)
+    if path.suffix.lower() == ".parquet":
+        raise RecordFormatError(f"{path} is a push table: read it with pushtorch.read_push_table(path) (its .records "
+                                "are these records, checked; pushtorch.sim.tables)")
     if path.is_file():
         return records_from_arrays(_trimmed(read_shard(path), trajectories), dtype, device)
     if not path.exists():
