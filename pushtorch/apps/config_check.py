@@ -143,7 +143,7 @@ _RULES: list[tuple[str, Rule]] = [
     ("**.runs", _int(1, 100_000)),
     ("**.yaw_range_deg", Rule("pair", -360.0, 360.0)),
     ("**.objects", Rule("names")),
-    ("**.training_objects", Rule("training")),
+    ("**.training_objects", Rule("training", nullable=True)),
     ("**.training_pushes", Rule("int", 1, 10**7, nullable=True)),
     ("experiment.**.held_out", _int(0, 1000)),      # shape_transfer: held-out shapes in the test set
     ("experiment.**.ensemble", _int(1, 10_000)),     # physics_ensemble's rollouts
@@ -163,6 +163,7 @@ _RULES: list[tuple[str, Rule]] = [
     ("duration", _float(1e-3, MAX_DURATION)),
     ("recording", _BOOL),
     ("allow_partial", _BOOL),
+    ("export_table", _BOOL),
     ("name", Rule("name", nullable=True)),
     ("rerun_pushes", _int(0, 1000)),
     ("start_method", Rule("str", nullable=True, choices=("fork", "spawn", "forkserver"))),
@@ -170,7 +171,7 @@ _RULES: list[tuple[str, Rule]] = [
 
 _KIND_WORDS = {"int": "an integer", "float": "a number", "bool": "true or false", "str": "a string",
                "name": "a name", "pair": "a pair [low, high] of numbers", "names": "a list of names",
-               "conditions": "first:k, worst:k, best:k or a list of indices"}
+               "conditions": "first:k, worst:k, best:k or a list of indices", "training": "a list of objects"}
 
 
 def _training_problem(key: str, value: Any) -> str | None:

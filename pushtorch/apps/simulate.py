@@ -10,7 +10,8 @@ robot against the object, draw the physical parameters from the prior, push, rec
 
 Output in the run directory: ``pushes/`` (shards + ``manifest.json``, see :mod:`pushtorch.sim.shards`),
 ``summary.json``, ``resolved_config.yaml`` and ``pushes.rrd`` (a few pushes for Rerun, with a blueprint that
-plays them on ``sim_time``). A killed run resumes
+plays them on ``sim_time``); with ``export_table=true`` also ``pushes/meshes/`` and ``pushes/clouds/``, which make
+``pushes/pushes.parquet`` a push table as a lab's own pushes are given (:mod:`pushtorch.sim.tables`). A killed run resumes
 when the same command is repeated with ``hydra.run.dir=<its directory>``. Configuration reaches the library
 as plain arguments through :func:`simulate_from_config`.
 """
@@ -47,7 +48,8 @@ def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Pat
     Args:
         cfg: the composed config (keys ``object``, ``friction``, ``mass``, ``sim``, ``actions``,
             ``placement``, ``seed``, ``samples_per_action``, ``workers``, ``shard_size``, ``progress``,
-            ``start_method``, ``rerun_pushes``).
+            ``start_method``, ``rerun_pushes``, ``export_table``: also write the mesh, clouds and metadata
+            that make ``pushes/pushes.parquet`` a complete push table, :func:`pushtorch.sim.tables.export_run_table`).
         out_dir: the run directory; shards go to ``out_dir/pushes``.
 
     Returns:
@@ -113,6 +115,11 @@ def simulate_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Pat
         "pushes_per_second": round(summary.pushes_per_second, 2) if summary.simulated_pushes else None,
         "folder": str(summary.folder),
     }
+    if c.get("export_table", False):
+        from pushtorch.sim.tables import export_run_table
+
+        result["table"] = str(export_run_table(out_dir / "pushes", model, settings.robot,
+                                               float(actions_cfg["duration"]), seed=int(c.get("seed", 0))))
     n_rerun = int(c.get("rerun_pushes", 0))
     if n_rerun > 0:
         from pushtorch.viz.blueprint import pushes_blueprint
