@@ -154,3 +154,20 @@ def test_documented_command_runs_as_written(where, module, argv, slurm_on_path):
         except ConfigError as exc:
             # a bare mention of an app (`pushtorch-train`) leaves its mandatory keys to the reader
             assert not argv and "is not set" in str(exc), f"{where}: {exc}"
+
+
+def test_the_push_table_example_trains_and_predicts_as_written(tmp_path):
+    """docs/usage.md's push-table example, run as written from a folder that sees the shipped table: the command
+    trains from tests/data/lab_table, the Python block predicts a push and conditions on three rows."""
+    section = (ROOT / "docs" / "usage.md").read_text().split("## Your own pushes: a push table", 1)[1]
+    blocks = re.findall(r"```(bash|python)\n(.*?)```", section.split("\n## ", 1)[0], re.S)
+    assert [kind for kind, _ in blocks] == ["bash", "python"]
+    (tmp_path / "tests").symlink_to(ROOT / "tests")
+    command = blocks[0][1].strip().replace(".venv/bin/", f"{Path(sys.executable).parent}/")
+    subprocess.run(shlex.split(command), cwd=tmp_path, check=True, capture_output=True, timeout=600)
+    assert (tmp_path / "runs" / "lab_table" / "model.npz").is_file()
+    result = subprocess.run([sys.executable, "-c", blocks[1][1]], cwd=tmp_path, capture_output=True, text=True,
+                            timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    first, second = result.stdout.strip().splitlines()[-2:]
+    assert first.startswith("tensor([") and 0.0 < float(second) < 2.0  # a pose, and a friction coefficient
