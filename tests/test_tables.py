@@ -18,9 +18,10 @@ from hypothesis import strategies as st
 
 from pushtorch import se3
 from pushtorch.apps.train import train_from_config
-from pushtorch.errors import ModelError, RecordFormatError
+from pushtorch.errors import InvalidParameterError, ModelError, RecordFormatError
 from pushtorch.models.conditioning import observations_from_table
 from pushtorch.models.model import load_model
+from pushtorch.models.residual import train_residual_model
 from pushtorch.models.settings import ModelSettings
 from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_mesh_file, load_object, save_mesh_file
@@ -112,6 +113,9 @@ def test_a_table_without_physics_trains_and_predicts_and_conditioning_names_the_
     assert torch.isfinite(prediction.final_pose.p).all()
     with pytest.raises(ModelError, match="'mass' and 'ground_friction'"):
         model.condition_on(observations_from_table(read, [0, 1]))
+    fresh = train_push_model(read.object(read.object_names[0]), read.records, ModelSettings(**SMALL), generator=0)
+    with pytest.raises(InvalidParameterError, match="'mass' and 'ground_friction'"):  # nor can the residual model
+        train_residual_model(fresh, read.object(read.object_names[0]), read.records)
     # the same pushes with their physics condition from the table's rows directly
     full = load_model(_train(table_path, tmp_path / "full")["model"])
     conditioned = full.condition_on(read_push_table(table_path, make_actions(3), 4.0))
@@ -214,3 +218,20 @@ def test_a_tipped_or_lifted_object_is_flagged():
         poses = {name: (pose.p.reshape(1, 3).double().numpy(), pose.q.reshape(1, 4).double().numpy())
                  for name, pose in (("object_initial", start), ("object_final", end))}
         assert infer_flags(poses)[flag][0]
+
+
+def test_a_table_of_two_objects_trains_one_model_each_or_one_pooled_model(tmp_path):
+    path = _copy(tmp_path)
+    table = pq.read_table(path)
+    twin = table.set_column(0, "object_name", pa.array(["lab_twin"] * table.num_rows))
+    meta = {**table.schema.metadata, b"pushtorch.meshes": b'{"lab_prism": "meshes/lab_prism.ply", '
+                                                          b'"lab_twin": "meshes/lab_prism.ply"}'}
+    pq.write_table(pa.concat_tables([table, twin]).replace_schema_metadata(meta), path)
+    each = _train(path, tmp_path / "each")
+    assert [Path(m["model"]).name for m in each["models"]] == ["model_lab_prism.npz", "model_lab_twin.npz"]
+    assert [m["pushes"] for m in each["models"]] == [36, 36]
+    pooled = _train(path, tmp_path / "pooled", model={"settings": SMALL, "training_objects": ["lab_prism", "lab_twin"]})
+    model = load_model(pooled["model"])
+    assert model.meta["pooled"] == ["lab_prism", "lab_twin"] and pooled["pushes"] == 72
+    with pytest.raises(InvalidParameterError, match="lab_other"):
+        _train(path, tmp_path / "bad", model={"settings": SMALL, "training_objects": ["lab_other"]})

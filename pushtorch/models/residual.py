@@ -207,13 +207,18 @@ def train_residual_model(model: PushModel, obj: ObjectModel, records, sim: SimSe
             body a single-shot cloud at the push's start builds (the true mesh: ``lambda o, p: (o, p)``).
 
     Raises:
-        InvalidParameterError: an ensemble < 1, or kernels that do not know their pushes (a loaded model).
+        InvalidParameterError: an ensemble < 1, kernels that do not know their pushes (a loaded model), or
+            records without friction and mass.
     """
     sim = sim or SimSettings()
     if isinstance(ensemble, bool) or int(ensemble) != ensemble or ensemble < 1:
         raise InvalidParameterError(f"the ensemble needs at least one rollout, got {ensemble!r}")
     body_of = body_of or (lambda o, pose: _training_body(o, pose, model.settings.voxel_size))
     valid = records.take(records.valid)
+    if not bool(torch.isfinite(valid.ground_friction).all() and torch.isfinite(valid.mass).all()):
+        raise InvalidParameterError("the residual model rolls each training push out at its own friction and mass, "
+                                    "and these records have none (a push table without 'mass' and "
+                                    "'ground_friction' columns)")
     indices = torch.unique(valid.action_index).tolist()  # the model's actions, in its order (fit_object_parts)
     if len(indices) != len(model.motions):
         raise InvalidParameterError(f"the records have {len(indices)} actions with valid pushes, the model "

@@ -16,6 +16,7 @@ Gazebo/ODE as the ground truth. The pieces, in the order data flows through them
     shards          the no-pickle shard format                                          pushtorch.sim.shards
     run_manifest    what a run's folder promises, and how much of it is there           pushtorch.sim.run_manifest
     records         PushRecords, loading a run, its per-push table                      pushtorch.sim.records
+    tables          a lab's own push tables: read, checked, exported                   pushtorch.sim.tables
     runner          worker processes, progress bar, resumable shards                    pushtorch.sim.runner
     executors       where the shards run: this machine, Ray or Slurm                    pushtorch.sim.executors
     bodies          the body a cloud builds, and its pushes rolled out as an ensemble   pushtorch.sim.bodies
