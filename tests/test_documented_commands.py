@@ -13,6 +13,7 @@ skipped; in code blocks every command must compose.
 from __future__ import annotations
 
 import itertools
+import math
 import os
 import re
 import shlex
@@ -171,3 +172,17 @@ def test_the_push_table_example_trains_and_predicts_as_written(tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     first, second = result.stdout.strip().splitlines()[-2:]
     assert first.startswith("tensor([") and 0.0 < float(second) < 2.0  # a pose, and a friction coefficient
+
+
+def test_the_planning_example_scores_256_candidates_as_written(small_model, tmp_path):
+    """docs/usage.md's planning example, run as written against a small cube model saved where it looks
+    (runs/cube.npz): 256 candidates scored, the best three printed with finite scores."""
+    section = (ROOT / "docs" / "usage.md").read_text().split("### Many candidate pushes of one object", 1)[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    (tmp_path / "runs").mkdir()
+    small_model("cube").save(tmp_path / "runs" / "cube.npz")
+    result = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-2000:]
+    lines = [line for line in result.stdout.splitlines() if line.startswith("candidate ")]
+    scores = [float(line.rsplit("log p ", 1)[1]) for line in lines]
+    assert len(lines) == 3 and all(math.isfinite(v) for v in scores) and scores == sorted(scores, reverse=True)

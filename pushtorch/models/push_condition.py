@@ -58,6 +58,7 @@ if TYPE_CHECKING:
 __all__ = [
     "PushCondition",
     "anneal_schedule",
+    "candidate_conditions",
     "contact_bandwidth",
     "estimate_pose",
     "features_for",
@@ -211,11 +212,12 @@ def _verified_pose(result: QueryResult, position: PositionModel, features: Surfa
 
 
 def manipulator_frame_at(features: SurfaceFeatures, robot_start: se3.Pose, cutoff: float = 0.01,
-                         drop_off: float = 100.0) -> ContactFrames:
+                         drop_off: float = 100.0, clearance: torch.Tensor | None = None) -> ContactFrames:
     """The manipulator contact frame ``(1,)`` for a robot start the caller chose (paper, Manipulator Contact
     Model, as training takes it at a push's start): of the observed features within ``cutoff`` of the bumper
     and facing it, the one with the largest weight ``exp(−λ_c d²)`` (the training law draws by that weight;
-    a prediction takes its mode), related to the start as ``u = v⁻¹ ∘ R0``.
+    a prediction takes its mode), related to the start as ``u = v⁻¹ ∘ R0``. ``clearance``: the cloud's
+    :func:`~pushtorch.models.clearance.clearance_points` on the CPU, when the caller places many starts on it.
 
     Raises:
         InvalidPoseError: ``robot_start`` is not one pose, or its bumper or chassis sits more than
@@ -226,7 +228,8 @@ def manipulator_frame_at(features: SurfaceFeatures, robot_start: se3.Pose, cutof
     robot_start = check_start(robot_start)
     robot_start = se3.Pose.unchecked(robot_start.p.detach().cpu().to(features.p.dtype),
                                      robot_start.q.detach().cpu().to(features.p.dtype))
-    inside = float(backoff_distance(robot_start, clearance_points(features).cpu(), 0.0))
+    clearance = clearance_points(features).cpu() if clearance is None else clearance  # the cloud's, shareable
+    inside = float(backoff_distance(robot_start, clearance, 0.0))
     if inside > GIVEN_START_OVERLAP:
         raise InvalidPoseError(
             f"the given robot start overlaps the observed object: its bumper or chassis must reverse {inside:.3f} m "
@@ -358,3 +361,40 @@ def push_conditions(
         else:
             conditions.append(_given_start_condition(start, frame, environment, pose, f, model))
     return conditions
+
+
+def candidate_conditions(model: PushModel, features: SurfaceFeatures, starts: list[se3.Pose],
+                         action_indices: list[int], generator: torch.Generator | None,
+                         record_history: bool = False) -> tuple[list[PushCondition | None], list[str | None]]:
+    """Push conditions of many given robot starts on one cloud (a planner's candidates, fast path): what depends
+    on the cloud alone is computed once, the pose estimate (annealed and verified) and each action's environment
+    frames, and each start gets its manipulator frame. A start that touches nothing the camera saw, or sits
+    inside the object, gives None and the reason, not an error for the whole call.
+
+    Raises:
+        InvalidPoseError: a start that is not one finite pose (bad input, not a bad candidate).
+    """
+    settings = model.settings
+    starts = [check_start(start) for start in starts]
+    clearance = clearance_points(features).cpu()
+    frames: list[ContactFrames | None] = []
+    reasons: list[str | None] = []
+    for start in starts:
+        try:
+            frames.append(manipulator_frame_at(features, start, settings.contact_cutoff, settings.contact_drop_off,
+                                               clearance))
+            reasons.append(None)
+        except (InvalidPoseError, ModelError) as exc:
+            frames.append(None)
+            reasons.append(str(exc))
+    density = model.position.pose_query(features, settings, generator, Evaluation.FAST)
+    [result] = optimise_query_densities([density], settings.anneal_candidates,
+                                        anneal_schedule(settings, False, Evaluation.FAST), [False], generator,
+                                        record_history, settings.polish_steps)
+    pose = _verified_pose(result, model.position, features, generator)
+    environments = {a: model.motions[a].environment_frames(features, settings, generator)
+                    for a in dict.fromkeys(action_indices)}
+    conditions = [None if frame is None else _given_start_condition(start, frame, environments[a], pose, features,
+                                                                     model)
+                  for start, frame, a in zip(starts, frames, action_indices, strict=True)]
+    return conditions, reasons

@@ -1,7 +1,8 @@
 """Prediction: partial cloud + action → robot start pose, contact frames, initial pose, final-pose density.
 
 Paper, Fig. pipeline (prediction) and §Motion Model / §Model Selection: :func:`predict` and
-:func:`predict_many` (:mod:`pushtorch.prediction.forward`) build each cloud's push condition
+:func:`predict_many` (:mod:`pushtorch.prediction.forward`), and a planner's many candidate pushes of one cloud
+(:func:`predict_candidates`), build each cloud's push condition
 (:mod:`pushtorch.models.push_condition`, its start cleared of the cloud by :mod:`pushtorch.models.clearance`)
 and anneal the action's product of experts over the object's final pose. The names a user needs around a
 prediction are gathered here.
@@ -25,9 +26,18 @@ from pushtorch.models.push_condition import (
     motion_bandwidth,
     query_bandwidth,
 )
-from pushtorch.prediction.forward import Prediction, predict, predict_many, transfer_bandwidth, transfer_distance
+from pushtorch.prediction.forward import (
+    CandidatePredictions,
+    Prediction,
+    predict,
+    predict_candidates,
+    predict_many,
+    transfer_bandwidth,
+    transfer_distance,
+)
 
 __all__ = [
+    "CandidatePredictions",
     "GIVEN_START_OVERLAP",
     "MAX_BACKOFF",
     "OCCLUDED_DEPTH",
@@ -43,6 +53,7 @@ __all__ = [
     "manipulator_frame_at",
     "motion_bandwidth",
     "predict",
+    "predict_candidates",
     "predict_many",
     "query_bandwidth",
     "transfer_bandwidth",

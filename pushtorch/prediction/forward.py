@@ -37,6 +37,7 @@ from pushtorch.models.motion import contact_distances, nearest_in_contact
 from pushtorch.models.push_condition import (
     PushCondition,
     anneal_schedule,
+    candidate_conditions,
     features_for,
     generate_push_condition,
     push_conditions,
@@ -45,8 +46,10 @@ from pushtorch.models.settings import as_generator, check_action
 from pushtorch.perception import PointCloud
 
 __all__ = [
+    "CandidatePredictions",
     "Prediction",
     "predict",
+    "predict_candidates",
     "predict_many",
     "transfer_bandwidth",
     "transfer_distance",
@@ -71,6 +74,34 @@ class Prediction:
     anneal: AnnealResult | None = None  # the motion annealing (with per-step history if recorded)
     #: the product of experts as the method builds it (kernels, experts, mean shift; unnormalised)
     motion_density: MotionDensity | None = field(default=None, repr=False)
+
+
+@dataclass
+class CandidatePredictions:
+    """Many candidate pushes of one cloud (:func:`predict_candidates`).
+
+    Attributes:
+        predictions: per candidate, its :class:`Prediction`, or None where the start is not a push.
+        valid: ``(C,)`` bool, the candidates that are pushes (their start touches the cloud, outside it).
+        reasons: per candidate, why it is not a push (None where it is).
+        density: one batched :class:`~pushtorch.distribution.FinalPoseDistribution` over the valid candidates
+            (``batch_shape (V,)``, in candidate order), or None when none is valid.
+    """
+
+    predictions: list[Prediction | None]
+    valid: torch.Tensor
+    reasons: tuple[str | None, ...]
+    density: FinalPoseDistribution | None
+
+    def log_prob(self, goal: torch.Tensor) -> torch.Tensor:
+        """``(C,)`` the log density (nats) each candidate gives the final pose ``goal`` ``(7,)`` (x, y, z, w, x,
+        y, z), −inf for a candidate that is not a push; differentiable with respect to ``goal``."""
+        count = len(self.predictions)
+        out = torch.full((count,), -math.inf, dtype=goal.dtype, device=goal.device)
+        if self.density is None:
+            return out
+        values = self.density.log_prob(goal.reshape(1, 7).expand(int(self.valid.sum()), 7))
+        return out.index_put((self.valid.nonzero(as_tuple=True)[0].to(goal.device),), values.to(goal.dtype))
 
 
 def _check_actions(actions, count: int) -> torch.Tensor:
@@ -326,3 +357,66 @@ def _prediction(model: PushModel, a: int, condition: PushCondition, density: Mot
                                                                [result.anneal.candidates], method)
     return Prediction(model.name, model.motions[a].action, condition, result.final_pose, result.log_prob,
                       distribution, result.anneal.candidates, result.anneal.log_prob, result.anneal, density)
+
+
+def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | SurfaceFeatures, robot_starts,
+                       actions, seed: int = 0, generator: torch.Generator | None = None, chunk_size: int = 64,
+                       kernels: str = "full") -> CandidatePredictions:
+    """Many candidate pushes of one observed object, as a planner asks for them: each candidate is a robot start
+    and an action, and the result scores any goal pose for all of them in one call
+    (:meth:`CandidatePredictions.log_prob`).
+
+    What depends on the cloud alone is computed once: its surface features, the library's choice of model, the
+    object's pose estimate and each action's environment contacts
+    (:func:`~pushtorch.models.push_condition.candidate_conditions`). Each candidate's product of experts is
+    annealed in chunks of ``chunk_size`` candidates together (memory grows with the chunk). A start that touches
+    nothing the camera saw, or overlaps the object, is flagged (``valid``, ``reasons``) rather than failing the call.
+
+    Args:
+        model: a model (conditioned or pooled) or a library (its model chosen once, by the cloud's ``H_r``).
+        cloud: the observed cloud or its :class:`~pushtorch.features.SurfaceFeatures`.
+        robot_starts: ``(C,)`` start poses (a batched :class:`~pushtorch.se3.Pose`) or a list of ``C`` poses.
+        actions: ``(2,)`` for every candidate, or ``(C, 2)``; each one of ``model.actions``.
+        seed: seeds the one random stream of the call when no ``generator`` is given.
+        kernels: the density's kernels, ``"full"`` (finite everywhere: a planner's gradients) or ``"cut"``.
+
+    Raises:
+        InvalidParameterError: no candidate, actions that do not match, an action the model lacks, a chunk size
+            < 1, or an unknown ``kernels``.
+        InvalidPoseError: a start that is not a finite pose.
+    """
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
+        raise InvalidParameterError(f"chunk_size must be an integer >= 1, got {chunk_size!r}")
+    if kernels not in ("full", "cut"):
+        raise InvalidParameterError(f"kernels must be 'full' or 'cut', got {kernels!r}")
+    if isinstance(robot_starts, se3.Pose):
+        count = robot_starts.batch_shape.numel()
+        p, q = robot_starts.p.reshape(count, 3), robot_starts.q.reshape(count, 4)
+        starts = [se3.Pose(p[i], q[i]) for i in range(count)]
+    else:
+        starts = list(robot_starts)
+    if not starts:
+        raise InvalidParameterError("predict_candidates needs at least one candidate start")
+    actions = _check_actions(actions, len(starts))
+    generator = as_generator(generator) if generator is not None else torch.Generator().manual_seed(int(seed))
+    first = model.models[0] if isinstance(model, ModelLibrary) else model
+    features = features_for(cloud, first.settings, first.position)
+    chosen = model.select(features)[0] if isinstance(model, ModelLibrary) else model
+    a_idx = [chosen.action_index(a) for a in actions]
+    conditions, reasons = candidate_conditions(chosen, features, starts, a_idx, generator)
+    settings = chosen.settings
+    schedule = anneal_schedule(settings, False, Evaluation.FAST)
+    rows = [i for i, c in enumerate(conditions) if c is not None]
+    predictions: list[Prediction | None] = [None] * len(starts)
+    for begin in range(0, len(rows), chunk_size):
+        chunk = rows[begin:begin + chunk_size]
+        densities = [_motion_density(chosen, conditions[i], a_idx[i], Evaluation.FAST) for i in chunk]
+        results = anneal_motion_densities(densities, settings.anneal_candidates, schedule, generator, False,
+                                          settings.polish_steps)
+        for i, density, result in zip(chunk, densities, results, strict=True):
+            predictions[i] = _prediction(chosen, a_idx[i], conditions[i], density, result, Evaluation.FAST)
+    valid = torch.tensor([c is not None for c in conditions], dtype=torch.bool)
+    density = None
+    if rows:
+        density = FinalPoseDistribution.from_predictions([predictions[i] for i in rows]).with_kernels(kernels)
+    return CandidatePredictions(predictions, valid, tuple(reasons), density)

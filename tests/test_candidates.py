@@ -1,0 +1,78 @@
+"""A planner's candidates (pushtorch.prediction.predict_candidates): many robot starts and actions of one real
+cloud in one call, its per-cloud work done once, bad starts flagged rather than failing the call, and one batched
+density that scores a goal for every candidate with gradients."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from pushtorch import se3
+from pushtorch.errors import InvalidParameterError, InvalidPoseError
+from pushtorch.models.library import ModelLibrary
+from pushtorch.objects import load_object
+from pushtorch.perception import capture_partial_cloud
+from pushtorch.prediction import predict_candidates
+from pushtorch.sim.push import place_robot_against
+
+
+@pytest.fixture(scope="module")
+def scene():
+    cube = load_object("cube")
+    pose = cube.resting_pose(yaw=0.2)
+    base = place_robot_against(cube.mesh, pose)
+    starts = [se3.compose(base, se3.from_xy_yaw(0.0, -0.04 + 0.02 * k, 0.0)) for k in range(5)]
+    far, inside = se3.from_xy_yaw(5.0, 5.0, 0.0), se3.from_xy_yaw(0.0, 0.0, 0.0)
+    return capture_partial_cloud(cube, pose), starts, far, inside
+
+
+def test_candidates_of_one_cloud_share_its_estimate_and_flag_starts_that_are_not_pushes(small_model, scene):
+    model = small_model("cube")
+    cloud, starts, far, inside = scene
+    actions = torch.stack([model.actions[k % 3] for k in range(7)])
+    result = predict_candidates(model, cloud, [*starts[:3], far, *starts[3:], inside], actions, chunk_size=2)
+    assert result.valid.tolist() == [True, True, True, False, True, True, False]
+    assert "touches none" in result.reasons[3] and "overlaps the observed object" in result.reasons[6]
+    kept = [p for p in result.predictions if p is not None]
+    # the cloud's work done once: one pose estimate, one set of environment frames per action
+    assert all(p.condition.object_pose is kept[0].condition.object_pose for p in kept)
+    for p in kept:
+        same = [q for q in kept if torch.equal(q.action, p.action)]
+        assert all(q.condition.environment_frames is p.condition.environment_frames for q in same)
+    assert result.density.batch_shape == (5,) and result.density.kernels == "full"
+    goal = kept[1].final_pose.vector().detach().clone().requires_grad_()
+    scores = result.log_prob(goal)
+    assert scores.shape == (7,) and math.isinf(float(scores[3].detach())) and math.isinf(float(scores[6].detach()))
+    assert torch.isfinite(scores[result.valid]).all()
+    scores[result.valid].sum().backward()
+    assert torch.isfinite(goal.grad).all() and float(goal.grad.abs().sum()) > 0
+    # each candidate's density is the one its own prediction carries
+    index = int(result.valid.nonzero()[1])
+    own = result.predictions[index].density.with_kernels("full").log_prob(goal.detach())
+    assert abs(float(scores[index].detach()) - float(own)) < 1e-3
+
+
+def test_a_library_chooses_its_model_once_per_cloud(small_model, scene):
+    cloud, starts, _, _ = scene
+    library = ModelLibrary([small_model("cube"), small_model("cylinder")])
+    result = predict_candidates(library, cloud, se3.Pose.stack(starts), library.models[0].actions[1])
+    names = {p.model_name for p in result.predictions}
+    assert len(names) == 1 and names <= {m.name for m in library.models} and bool(result.valid.all())
+
+
+def test_bad_candidate_inputs_are_refused_by_name(small_model, scene):
+    model = small_model("cube")
+    cloud, starts, _, _ = scene
+    with pytest.raises(InvalidParameterError, match="at least one candidate"):
+        predict_candidates(model, cloud, [], model.actions[0])
+    with pytest.raises(InvalidParameterError, match="2 actions for 5"):
+        predict_candidates(model, cloud, starts, model.actions[:2])
+    with pytest.raises(InvalidParameterError, match="chunk_size"):
+        predict_candidates(model, cloud, starts, model.actions[0], chunk_size=0)
+    bad = se3.Pose.unchecked(torch.tensor([math.nan, 0.0, 0.0]), torch.tensor([1.0, 0.0, 0.0, 0.0]))
+    with pytest.raises(InvalidPoseError):
+        predict_candidates(model, cloud, [starts[0], bad], model.actions[0])
+    with pytest.raises(InvalidParameterError):
+        predict_candidates(model, cloud, starts, torch.tensor([0.1, 0.9]))  # not one of the model's actions
