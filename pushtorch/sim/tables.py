@@ -5,7 +5,7 @@ robot and tracker) and Rigid Body Motions (a record is the object's initial and 
 and the action: any model trains from that). A simulated run's ``pushes.parquet`` (:func:`records_table`) is the
 reference of the format, and :func:`export_run_table` makes a run a complete table: clouds, mesh and metadata.
 
-*The table* (``docs/usage.md``, "Train from your own pushes"): one row per push. Required columns:
+*The table* (``docs/usage.md``, "Your own pushes: a push table"): one row per push. Required columns:
 ``object_name``, ``action_index``, ``speed`` (m/s), ``yaw_rate`` (rad/s) and the poses ``object_initial_*``,
 ``object_final_*``, ``robot_start_*``, ``robot_final_*`` as ``x, y, z`` (m) and ``qw, qx, qy, qz``. Optional:
 ``duration`` (s; else the metadata's), ``index``, ``seed``, the flags ``touched``, ``tipped``, ``left_ground``
@@ -149,11 +149,20 @@ class PushTable:
         path = self.clouds[row]
         if path is None:
             raise RecordFormatError(f"{self.path}: row {row} has no cloud (column 'cloud')")
-        return _cached_cloud(str(path))
+        return _cloud_file(path)
+
+
+def _cloud_file(path: Path):
+    """The cloud in ``path``, read once per version of the file (rows share files)."""
+    try:
+        stamp = path.stat()
+    except OSError:
+        stamp = None
+    return _cached_cloud(str(path), None if stamp is None else (stamp.st_mtime_ns, stamp.st_size))
 
 
 @lru_cache(maxsize=64)
-def _cached_cloud(path: str):
+def _cached_cloud(path: str, stamp):
     from pushtorch.perception import load_cloud_file
 
     return load_cloud_file(path)
@@ -197,8 +206,8 @@ def _columns(table_path: Path, table) -> dict[str, np.ndarray]:
     missing = [c for c in REQUIRED if c not in names]
     if missing:
         raise RecordFormatError(f"{table_path}: missing column{'s' if len(missing) > 1 else ''} "
-                                f"{', '.join(map(repr, missing))} (the schema: docs/usage.md, 'Train from your own "
-                                "pushes')")
+                                f"{', '.join(map(repr, missing))} (the schema: docs/usage.md, 'Your own pushes: "
+                                "a push table')")
     out: dict[str, np.ndarray] = {}
     for name, kind in {**REQUIRED, **_OPTIONAL}.items():
         if name not in names:
@@ -416,7 +425,7 @@ def read_push_table(path: str | Path, actions=None, duration: float | None = Non
         if check_files:
             for value, file in files.items():
                 try:
-                    _cached_cloud(str(file))
+                    _cloud_file(file)
                 except InvalidPointCloudError as exc:
                     _fail(path, "cloud", cols["cloud"] == value, str(exc))
     objects = {name: _load_mesh(path, name, file) for name, file in meshes.items()}
