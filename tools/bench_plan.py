@@ -98,13 +98,13 @@ def _child(model_path: Path, count: int, batched: bool, chunk: int, device: str)
 
 
 def observations(count: int, model) -> list[Observation]:
-    """``count`` observed pybullet pushes of the cube (yaw uniform in ±45°, friction 0.3, mass 0.5), each with its
+    """``count`` observed pybullet pushes of the cube (yaw uniform in ±0.2 rad, friction 0.3, mass 0.5), each with its
     cloud, robot start and the robot's final pose."""
     cube = load_object("cube")
     generator = torch.Generator().manual_seed(1)
     out = []
     for k in range(count):
-        yaw = float(torch.empty(()).uniform_(-0.78, 0.78, generator=generator))
+        yaw = float(torch.empty(()).uniform_(-0.2, 0.2, generator=generator))
         pose = cube.resting_pose(yaw=yaw)
         start = place_robot_against(cube.mesh, pose)
         action = model.actions[k % 3]
@@ -137,8 +137,9 @@ def main() -> None:
     model = load_model(model_path, map_location=device)
     observed = observations(args.observations, model)
     started = time.perf_counter()
-    model.condition_on(observed)
+    posterior = model.condition_on(observed).physics_posterior
     per_obs = (time.perf_counter() - started) / len(observed)
+    print(f"observations accepted {posterior.observed}, left out {posterior.rejected}")
     cloud, starts, _ = candidates(1, device)
     features = features_for(cloud, model.settings, model.position)
     times = []
