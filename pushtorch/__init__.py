@@ -47,8 +47,8 @@ _LAZY = {
 
 __all__ = ["Fixed", "FinalPoseDistribution", "ModelLibrary", "Normal", "Observation", "Pose", "PushtorchError",
            "Uniform", "__version__", "capture_partial_cloud", "load_model", "load_object", "load_records",
-           "make_actions", "object_spec", "plan_training_pushes", "predict", "predict_many", "read_push_table", "run_plan",
-           "simulate_pushes", "train_pooled_model", "train_push_model"]
+           "make_actions", "object_spec", "plan_training_pushes", "predict", "predict_many", "read_push_table",
+           "run_plan", "simulate_pushes", "train_pooled_model", "train_push_model"]
 
 if TYPE_CHECKING:  # what type checkers and IDEs see (py.typed ships with the package)
     from pushtorch.distribution import FinalPoseDistribution
@@ -65,8 +65,8 @@ if TYPE_CHECKING:  # what type checkers and IDEs see (py.typed ships with the pa
     from pushtorch.sim.push import make_actions
     from pushtorch.sim.records import load_records
     from pushtorch.sim.runner import run_plan, simulate_pushes
-    from pushtorch.sim.tables import read_push_table
     from pushtorch.sim.settings import object_spec
+    from pushtorch.sim.tables import read_push_table
 
 
 def __getattr__(name: str) -> Any:

@@ -496,7 +496,8 @@ def load_cloud_file(path) -> PointCloud:
         if path.suffix.lower() == ".npz":
             with np.load(path, allow_pickle=False) as arrays:
                 if "points" not in arrays:
-                    raise InvalidPointCloudError(f"{path} holds no array 'points' (it has {', '.join(arrays) or 'none'})")
+                    raise InvalidPointCloudError(f"{path} holds no array 'points' "
+                                                 f"(it has {', '.join(arrays) or 'none'})")
                 points = np.asarray(arrays["points"], dtype=np.float64)
                 origins = np.asarray(arrays["view_origins"], dtype=np.float64) if "view_origins" in arrays else None
         else:

@@ -11,8 +11,8 @@ robot against the object, draw the physical parameters from the prior, push, rec
 Output in the run directory: ``pushes/`` (shards + ``manifest.json``, see :mod:`pushtorch.sim.shards`),
 ``summary.json``, ``resolved_config.yaml`` and ``pushes.rrd`` (a few pushes for Rerun, with a blueprint that
 plays them on ``sim_time``); with ``export_table=true`` also ``pushes/meshes/`` and ``pushes/clouds/``, which make
-``pushes/pushes.parquet`` a push table as a lab's own pushes are given (:mod:`pushtorch.sim.tables`). A killed run resumes
-when the same command is repeated with ``hydra.run.dir=<its directory>``. Configuration reaches the library
+``pushes/pushes.parquet`` a push table as a lab's own pushes are given (:mod:`pushtorch.sim.tables`). A killed
+run resumes when the same command is repeated with ``hydra.run.dir=<its directory>``. Configuration reaches the library
 as plain arguments through :func:`simulate_from_config`.
 """
 

@@ -212,7 +212,8 @@ def _tables(c: Mapping[str, Any], tables: list[Path], settings, out_dir: Path) -
     else:
         summaries = []
         for n, obj in objects.items():
-            log.info("training %s on %d pushes (%d valid) of the tables", n, len(records[n]), int(records[n].valid.sum()))
+            log.info("training %s on %d pushes (%d valid) of the tables", n, len(records[n]),
+                     int(records[n].valid.sum()))
             model = train_push_model(obj, records[n], settings, name=c.get("name") or n, generator=generator,
                                      meta={**meta, "pushes": len(records[n])})
             summaries.append(_saved(model, obj, records[n], out_dir, "" if len(objects) == 1 else f"_{n}",

@@ -159,16 +159,9 @@ def observations_from_table(table, rows: Sequence[int] | None = None) -> list[Ob
     """
     records = table.records
     rows = range(len(records)) if rows is None else [int(r) for r in rows]
-
-    def one(pose: se3.Pose, i: int) -> se3.Pose:
-        return se3.Pose(pose.p[i], pose.q[i])
-
-    out = []
-    for i in rows:
-        final_robot = se3.Pose(records.robot_trajectory.p[i, -1], records.robot_trajectory.q[i, -1])
-        out.append(Observation(table.cloud(i), records.action[i], one(records.object_initial, i),
-                               one(records.object_final, i), one(records.robot_start, i), final_robot))
-    return out
+    return [Observation(table.cloud(i), records.action[i], records.object_initial.take(i),
+                        records.object_final.take(i), records.robot_start.take(i),
+                        records.robot_trajectory.take((i, -1))) for i in rows]
 
 
 def kernel_physics(kernels: Sequence[MotionKernels]) -> Tensor:

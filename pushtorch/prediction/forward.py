@@ -390,9 +390,8 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
     if kernels not in ("full", "cut"):
         raise InvalidParameterError(f"kernels must be 'full' or 'cut', got {kernels!r}")
     if isinstance(robot_starts, se3.Pose):
-        count = robot_starts.batch_shape.numel()
-        p, q = robot_starts.p.reshape(count, 3), robot_starts.q.reshape(count, 4)
-        starts = [se3.Pose(p[i], q[i]) for i in range(count)]
+        flat = robot_starts.reshape(-1)
+        starts = [flat.take(i) for i in range(flat.batch_shape.numel())]
     else:
         starts = list(robot_starts)
     if not starts:

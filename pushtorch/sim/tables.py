@@ -40,8 +40,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pushtorch.errors import InvalidMeshError, InvalidPointCloudError, PushtorchError, RecordFormatError
+from pushtorch.errors import InvalidPointCloudError, PushtorchError, RecordFormatError
 from pushtorch.io import atomic_write_bytes
+from pushtorch.paths import safe_name
 from pushtorch.sim.drive import DRIVES
 from pushtorch.sim.records import PushRecords, records_table
 from pushtorch.sim.shards import UNIT_QUATERNION_TOLERANCE
@@ -173,7 +174,7 @@ def _load_mesh(table: Path, name: str, path: Path):
 
     try:
         return load_mesh_file(path, name=name)
-    except (InvalidMeshError, PushtorchError) as exc:
+    except PushtorchError as exc:  # an InvalidMeshError, or a name unfit for a file
         raise RecordFormatError(f"{table}: the mesh of object {name!r} ({META['meshes']}): {exc}") from exc
 
 
@@ -282,7 +283,8 @@ def _check_actions(table_path: Path, cols: dict, actions, duration: float, confi
         for a in np.unique(index):
             rows = index == a
             first = int(np.flatnonzero(rows)[0])
-            off = rows & ((np.abs(speed - speed[first]) > ACTION_TOLERANCE) | (np.abs(rate - rate[first]) > ACTION_TOLERANCE))
+            off = rows & ((np.abs(speed - speed[first]) > ACTION_TOLERANCE)
+                          | (np.abs(rate - rate[first]) > ACTION_TOLERANCE))
             _fail(table_path, "action_index", off, f"action_index {a} names two different actions "
                   f"({speed[first]:g} m/s, {rate[first]:g} rad/s in row {first})")
         _fail(table_path, "speed", speed <= 0, "the speed must be positive (the bumper pushes forward)")
@@ -290,8 +292,8 @@ def _check_actions(table_path: Path, cols: dict, actions, duration: float, confi
     actions = np.asarray(torch.as_tensor(actions, dtype=torch.float64).reshape(-1, 2))
     listed = ", ".join(f"{i}: ({a[0]:g} m/s, {a[1]:.4g} rad/s)" for i, a in enumerate(actions))
     where = f"the configured actions are {listed}"
-    _fail(table_path, "action_index", (index < 0) | (index >= len(actions)), f"action_index outside 0..{len(actions) - 1}: "
-          + where)
+    _fail(table_path, "action_index", (index < 0) | (index >= len(actions)),
+          f"action_index outside 0..{len(actions) - 1}: " + where)
     expected = actions[index]
     _fail(table_path, "speed", np.abs(speed - expected[:, 0]) > ACTION_TOLERANCE,
           f"speed {speed[np.argmax(np.abs(speed - expected[:, 0]))]:g} m/s is not its action's: " + where)
@@ -402,8 +404,6 @@ def read_push_table(path: str | Path, actions=None, duration: float | None = Non
     robot, pusher = _check_robot(path, meta)
     cols = _columns(path, table)
     names = tuple(str(v) for v in cols["object_name"])
-    from pushtorch.paths import safe_name
-
     for name in dict.fromkeys(names):
         try:
             safe_name(name, "object_name")
@@ -463,7 +463,8 @@ def _records(cols, poses, names, flags, mass, ground, own, duration, dtype, devi
         object_initial=pose("object_initial"), object_final=pose("object_final"), robot_start=pose("robot_start"),
         object_trajectory=pose("object_final", True), robot_trajectory=pose("robot_final", True),
         time=f([duration]), mass=f(mass), ground_friction=f(ground), object_friction=f(own),
-        touched=torch.as_tensor(flags["touched"], device=device), tipped=torch.as_tensor(flags["tipped"], device=device),
+        touched=torch.as_tensor(flags["touched"], device=device),
+        tipped=torch.as_tensor(flags["tipped"], device=device),
         left_ground=torch.as_tensor(flags["left_ground"], device=device),
         first_contact_time=f(cols.get("first_contact_time", np.full(n, np.nan))),
     )
@@ -522,7 +523,8 @@ def export_run_table(folder: str | Path, obj, robot: str, duration: float, voxel
     unique, which = np.unique(starts, axis=0, return_inverse=True)
     clouds = []
     for k, start in enumerate(unique):
-        pose = se3.Pose(torch.as_tensor(start[:3], dtype=torch.float32), torch.as_tensor(start[3:], dtype=torch.float32))
+        pose = se3.Pose(torch.as_tensor(start[:3], dtype=torch.float32),
+                        torch.as_tensor(start[3:], dtype=torch.float32))
         cloud = capture_partial_cloud(obj, pose, voxel_size=DEFAULT_VOXEL_SIZE if voxel_size is None else voxel_size,
                                       generator=torch.Generator().manual_seed(int(seed) + k))
         save_cloud_file(cloud, folder / f"clouds/start_{k}.npz")
