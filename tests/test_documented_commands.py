@@ -174,6 +174,7 @@ def test_the_push_table_example_trains_and_predicts_as_written(tmp_path):
     assert first.startswith("tensor([") and 0.0 < float(second) < 2.0  # a pose, and a friction coefficient
 
 
+@pytest.mark.slow  # 25 s: the default suite ran 10:58 on the Intel host with it (make test-slow runs it)
 def test_the_planning_example_scores_256_candidates_as_written(small_model, tmp_path):
     """docs/usage.md's planning example, run as written against a small cube model saved where it looks
     (runs/cube.npz): 256 candidates scored, the best three printed with finite scores."""
