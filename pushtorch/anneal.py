@@ -48,6 +48,7 @@ from pushtorch.se3 import (
     vmf_offsets,
     yaw_quaternion,
 )
+from pushtorch.streams import is_keyed
 
 Tensor = torch.Tensor
 
@@ -174,6 +175,8 @@ def _draw_fast_proposals(
     """
     steps = len(temperatures)
     full = torch.Size([steps, *shape])
+    if is_keyed(generator) and generator.dim is not None:  # the problems' dim moves behind the steps'
+        generator = generator.along(generator.dim + 1)
     t = torch.tensor(temperatures, dtype=dtype, device=device).reshape(steps, *([1] * len(shape)))
     if planar is None and schedule.planar:
         planar = torch.ones((), dtype=torch.bool, device=device)

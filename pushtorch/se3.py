@@ -27,7 +27,8 @@ from typing import NamedTuple
 import torch
 from pytorch_kinematics import transforms as pkt
 
-from pushtorch.errors import InvalidPoseError
+from pushtorch.errors import InvalidParameterError, InvalidPoseError
+from pushtorch.streams import KeyedStream, is_keyed
 
 Tensor = torch.Tensor
 
@@ -256,15 +257,37 @@ def angle_between(q1: Tensor, q2: Tensor) -> Tensor:
 DRAW_DTYPE = torch.float32
 
 
-def draw_device(generator: torch.Generator | None, device=None):
+def draw_device(generator: torch.Generator | KeyedStream | None, device=None):
     """Where a draw from ``generator`` runs: on the generator's own device (the draws are moved after), so a CPU
-    generator seeds a model on any device, with the same numbers on each; without a generator, on ``device``."""
+    generator seeds a model on any device, with the same numbers on each; without a generator, on ``device``. A
+    :class:`~pushtorch.streams.KeyedStream` draws on its keys' device."""
     return device if generator is None else generator.device
 
 
-def multinomial(weights: Tensor, n: int, generator: torch.Generator | None = None,
+def _uniform64(shape, generator, device) -> Tensor:
+    """Float64 uniforms on [0, 1) of ``shape`` on ``device``, from a generator or a keyed stream."""
+    if is_keyed(generator):
+        return generator.uniform(shape, torch.float64).to(device)
+    draws = torch.rand(shape, generator=generator, dtype=torch.float64, device=draw_device(generator, device))
+    return draws.to(device)
+
+
+def _normal64(shape, generator, device) -> Tensor:
+    """Float64 standard normals of ``shape`` on ``device``, from a generator or a keyed stream."""
+    if is_keyed(generator):
+        return generator.normal(shape, torch.float64).to(device)
+    draws = torch.randn(shape, generator=generator, dtype=torch.float64, device=draw_device(generator, device))
+    return draws.to(device)
+
+
+def multinomial(weights: Tensor, n: int, generator: torch.Generator | KeyedStream | None = None,
                 replacement: bool = True) -> Tensor:
-    """``torch.multinomial`` drawn where the generator is (:func:`draw_device`), indices on ``weights``' device."""
+    """``torch.multinomial`` drawn where the generator is (:func:`draw_device`), indices on ``weights``' device; a
+    keyed stream draws with replacement by the inverse of each row's cumulative weights."""
+    if is_keyed(generator):
+        if not replacement:
+            raise InvalidParameterError("a keyed stream draws kernel indices with replacement only")
+        return generator.multinomial(weights, n).to(weights.device)
     where = draw_device(generator, weights.device)
     return torch.multinomial(weights.to(where), n, replacement=replacement, generator=generator).to(weights.device)
 
@@ -273,6 +296,8 @@ def random_normal(shape, generator: torch.Generator | None = None, dtype: torch.
                   device=None) -> Tensor:
     """Standard normal draws of ``shape``, the same numbers for every floating ``dtype``
     (:data:`DRAW_DTYPE`) and device (:func:`draw_device`)."""
+    if is_keyed(generator):
+        return generator.normal(shape, DRAW_DTYPE).to(device=device, dtype=dtype)
     draws = torch.randn(shape, generator=generator, dtype=DRAW_DTYPE, device=draw_device(generator, device))
     return draws.to(device=device, dtype=dtype)
 
@@ -281,6 +306,8 @@ def random_uniform(shape, generator: torch.Generator | None = None, dtype: torch
                    device=None) -> Tensor:
     """Uniform draws on [0, 1) of ``shape``, the same numbers for every floating ``dtype``
     (:data:`DRAW_DTYPE`) and device (:func:`draw_device`)."""
+    if is_keyed(generator):
+        return generator.uniform(shape, DRAW_DTYPE).to(device=device, dtype=dtype)
     draws = torch.rand(shape, generator=generator, dtype=DRAW_DTYPE, device=draw_device(generator, device))
     return draws.to(device=device, dtype=dtype)
 
@@ -320,8 +347,7 @@ def truncated_gamma_1p5(upper: Tensor, generator: torch.Generator | None = None)
     (``gammainc``) but no truncated or inverse-CDF gamma sampler.
     """
     upper = upper.clamp(max=80.0)  # P(3/2, 80) = 1 in float64: beyond is the untruncated law
-    u = torch.rand(upper.shape, generator=generator, dtype=torch.float64,
-                   device=draw_device(generator, upper.device)).to(upper.device)
+    u = _uniform64(upper.shape, generator, upper.device)
     target = u * _gamma_1p5_cdf(upper)
     lo = torch.zeros_like(upper)
     hi = upper.clone()
@@ -360,28 +386,38 @@ def vmf_offsets(kappa: float | Tensor, shape: tuple[int, ...] | torch.Size, gene
     bound = torch.clamp(kappa, max=delta)
     cheap = bound >= _UNCUT_BOUND
 
-    def propose(n: Tensor, kappa: Tensor, bound: Tensor, cheap: Tensor) -> tuple[Tensor, Tensor]:
+    def propose(n: Tensor, kappa: Tensor, bound: Tensor, cheap: Tensor, draws) -> tuple[Tensor, Tensor]:
         """``s`` proposals for normal draws ``n (..., 3)`` and whether each is accepted."""
         proposal = (n * n).sum(-1) / 2.0
-        if not bool(cheap.all()):  # only where a cut-off is within reach: the inverse CDF costs 20 Newton steps
-            proposal[~cheap] = truncated_gamma_1p5(bound[~cheap], generator)
+        if is_keyed(draws):  # every row drawn (fixed shapes and call counts: a row's numbers are its own)
+            gamma_draws = draws.fork()
+            if not bool(cheap.all()):
+                proposal = torch.where(cheap, proposal, truncated_gamma_1p5(bound, gamma_draws))
+        elif not bool(cheap.all()):  # only where a cut-off is within reach: the inverse CDF costs 20 Newton steps
+            proposal[~cheap] = truncated_gamma_1p5(bound[~cheap], draws)
         s = proposal / kappa
-        u = torch.rand(s.shape, generator=generator, dtype=torch.float64, device=draw_device(generator, device))
-        u = u.to(s.device)
+        u = _uniform64(s.shape, draws, device)
         return s, (proposal < bound) & (2.0 * u * u < 2.0 - s)
 
     # every row at once, then the rejected ones (~1/(4κ) of them, more near a tight cut-off) again
-    n = torch.randn(*shape, 3, generator=generator, dtype=torch.float64,
-                    device=draw_device(generator, device)).to(device)
-    s, accepted = propose(n, kappa, bound, cheap)
+    n = _normal64((*shape, 3), generator, device)
+    s, accepted = propose(n, kappa, bound, cheap, generator)
     pending = ~accepted
+    rounds = generator.fork() if is_keyed(generator) else generator  # a keyed stream's retries are their own phase
     for _ in range(max_rounds):
         if not bool(pending.any()):
             break
+        if is_keyed(rounds):  # every row again, the pending ones keep theirs
+            fresh = _normal64((*shape, 3), rounds, device)
+            s_try, ok = propose(fresh, kappa, bound, cheap, rounds)
+            ok = ok & pending
+            s, n = torch.where(ok, s_try, s), torch.where(ok.unsqueeze(-1), fresh, n)
+            pending = pending & ~ok
+            continue
         rows = pending.nonzero(as_tuple=True)
-        fresh = torch.randn(rows[0].shape[0], 3, generator=generator, dtype=torch.float64,
-                            device=draw_device(generator, device)).to(device)
-        s_try, ok = propose(fresh, kappa[rows], bound[rows], cheap[rows])
+        fresh = torch.randn(rows[0].shape[0], 3, generator=rounds, dtype=torch.float64,
+                            device=draw_device(rounds, device)).to(device)
+        s_try, ok = propose(fresh, kappa[rows], bound[rows], cheap[rows], rounds)
         chosen = tuple(i[ok] for i in rows)
         s[chosen], n[chosen] = s_try[ok], fresh[ok]
         pending[chosen] = False

@@ -8,7 +8,9 @@ nearest-point queries (the pose verification's k-d tree and the bumper's closest
 with the same answers, and ends with ``cuda_test=<0|1> gpu_p50_s=… gpu_batched_s=… gpu_condition_3_s=…
 cpu_p50_s=… …``: the library test's "a model on the GPU predicts there", the fast path's median latency from
 surface features on the GPU and on that machine's CPU in the same run, the batched time per condition, and the
-time to condition on three observed pushes (with the posterior's mean, which must agree).
+time to condition on three observed pushes (with the posterior's mean, which must agree), and a planner's
+``predict_candidates`` on one cloud: 256 and 1,000 candidates on the GPU (256 on the CPU), in chunks of 64 and in
+one chunk (``GPU_CHECK_PLAN=16,32`` for a short trial).
 
     .venv/bin/python tools/gpu_check.py prepare runs/<run>/models/<a paper-size cube model>.npz
     # on the device, carrying .devcheck:  PYTHONPATH=. python3 tools/gpu_check.py run
@@ -20,6 +22,7 @@ import math
 import sys
 
 FOLDER = ".devcheck"
+PLAN_CANDIDATES = (256, 1000)  # the planner's candidate counts (issue targets: 0.5 s and 2 s on a GPU)
 PURE_PYTHON = ("trimesh", "pytorch_kinematics", "arm_pytorch_utilities", "pytorch_seed")
 
 
@@ -69,8 +72,15 @@ def prepare(model_path: str) -> None:
                              "initial": (pose.p, pose.q), "start": (start.p, start.q),
                              "final": (pushed.object_final.p[0], pushed.object_final.q[0]),
                              "robot_final": (robot.p[0, -1], robot.q[0, -1])})
+    from bench_plan import candidates  # tools/ is on sys.path when a tool runs as a script
+
+    cloud, starts, action_rows = candidates(PLAN_CANDIDATES[-1], "cpu")
+    f = compute_surface_features(cloud, radius=model.settings.feature_radius)
+    plan = {"features": {k: getattr(f, k) for k in ("p", "q", "r", "normal", "k1", "k2", "index")},
+            "start_p": torch.stack([s.p for s in starts]), "start_q": torch.stack([s.q for s in starts]),
+            "actions": torch.tensor(action_rows)}
     torch.save({"conditions": conditions, "prism": features(prism, prism.resting_pose(yaw=0.3)),
-                "observations": observations}, folder / "data.pt")
+                "observations": observations, "plan": plan}, folder / "data.pt")
     print(f"wrote {folder}/: {len(conditions)} conditions, {len(observations)} observed pushes")
 
 
@@ -121,6 +131,31 @@ def _without_open3d() -> None:
     position._nearest_model_search = lambda points: points.detach()
     position._nearest_distances = nearest
     contact.closest_points_on_mesh = closest_on_triangles
+
+
+def _plan(out: dict, name: str, model, plan: dict, device: str, features, synchronise) -> None:
+    """``predict_candidates`` on one cloud's features: 256 and 1,000 candidates, in chunks of 64 and in one chunk."""
+    import time
+
+    from pushtorch import se3
+    from pushtorch.prediction import predict_candidates
+
+    f = features(plan["features"], device)
+    starts = se3.Pose(plan["start_p"].to(device), plan["start_q"].to(device))
+    actions = model.actions[plan["actions"].to(model.actions.device)]
+    predict_candidates(model, f, starts.take(slice(0, 8)), actions[:8], chunk_size=8)  # warm-up
+    import os
+
+    counts = tuple(int(c) for c in os.environ.get("GPU_CHECK_PLAN", ",".join(map(str, PLAN_CANDIDATES))).split(","))
+    counts = counts if name == "gpu" else counts[:1]
+    for count in counts:
+        for chunk in (64, count):
+            synchronise(device)
+            started = time.perf_counter()
+            result = predict_candidates(model, f, starts.take(slice(0, count)), actions[:count], chunk_size=chunk)
+            synchronise(device)
+            out[f"{name}_plan_{count}_chunk_{chunk}_s"] = round(time.perf_counter() - started, 3)
+        out[f"{name}_plan_{count}_valid"] = int(result.valid.sum())
 
 
 def run() -> None:
@@ -191,6 +226,7 @@ def run() -> None:
         out[f"{name}_mu_mean"] = round(adapted.posterior().mu_mean, 4)
         r = predict(adapted, conditions[0], base.actions[0], generator=0)
         out[f"{name}_conditioned_finite"] = int(bool(torch.isfinite(r.final_pose.p).all()))
+        _plan(out, name, model, data["plan"], device, features, synchronise)
     print(json.dumps(out))
     print(" ".join(f"{k}={v}" for k, v in out.items()))
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import torch
 
 from pushtorch.se3 import draw_device, truncated_gamma_1p5, vmf_offsets
+from pushtorch.streams import is_keyed
 
 Tensor = torch.Tensor
 
@@ -23,8 +24,11 @@ __all__ = ["sample_rotation_offsets", "sample_translation_offsets"]
 
 
 def _unit_vectors(shape: tuple[int, ...], generator, device) -> Tensor:
-    v = torch.randn(*shape, 3, generator=generator, dtype=torch.float64,
-                    device=draw_device(generator, device)).to(device)
+    if is_keyed(generator):
+        v = generator.normal((*shape, 3), torch.float64).to(device)
+    else:
+        v = torch.randn(*shape, 3, generator=generator, dtype=torch.float64,
+                        device=draw_device(generator, device)).to(device)
     return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-300)
 
 

@@ -23,6 +23,7 @@ from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.kde import Evaluation, KernelBandwidth, PoseKDE, ProductOfExperts, SharedKernelProduct
 from pushtorch.models.frames import ContactFrames
 from pushtorch.models.motion import CONTACT_DESCRIPTOR_DIM, MotionModel, contact_log_weights, expert_exponents
+from pushtorch.streams import is_keyed
 
 Tensor = torch.Tensor
 
@@ -173,6 +174,8 @@ class MotionDensity:
         """``n`` poses drawn from the experts' mixture (equal shares): annealing's starting candidates."""
         samples, _ = self.experts.sample(max(1, math.ceil(n / self.num_experts)), generator)  # (E, k)
         flat = samples.reshape(-1)
+        if is_keyed(generator):
+            return flat.take(generator.permutation(flat.p.shape[0]).to(flat.p.device)[:n])
         return flat.take(torch.randperm(flat.p.shape[0], generator=generator)[:n])
 
     def widen_until_supported(
@@ -301,14 +304,21 @@ def anneal_motion_densities(
     """
     if not densities:
         raise InvalidParameterError("anneal_motion_densities needs at least one density")
+    keyed = is_keyed(generator)
+    if keyed and len(generator) != len(densities):
+        raise InvalidParameterError(f"a keyed stream of {len(generator)} problems cannot draw for {len(densities)} "
+                                    "densities")
+    proposals = generator.fork() if keyed else generator  # keyed: each problem's start draws are its own
     starts = []
-    for density in densities:
-        init = density.proposal(n_candidates, generator)
+    for b, density in enumerate(densities):
+        init = density.proposal(n_candidates, proposals.take(b) if keyed else generator)
         starts.append(density.widen_until_supported(init, method=Evaluation.FAST))
     # problems in order of kernel count: the product's chunks of neighbouring problems then evaluate about
     # their own counts, not the batch's largest (SharedKernelProduct.chunk_layout)
     order = sorted(range(len(densities)), key=lambda b: densities[b].shared_kernels()[1].shape[1])
     densities, starts = [densities[b] for b in order], [starts[b] for b in order]
+    if keyed:  # the steps' draws keyed by each problem's own key, in the new order
+        generator = generator.fork().take(order)
     stacked = stack_products(densities)
     # its only queries are the annealing's own (finite, normalised) candidates: no per-step checks
     product = SharedKernelProduct(stacked.means, stacked.log_weights, stacked.bandwidth, stacked.trial_rounds,

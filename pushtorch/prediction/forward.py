@@ -44,6 +44,7 @@ from pushtorch.models.push_condition import (
 )
 from pushtorch.models.settings import as_generator, check_action
 from pushtorch.perception import PointCloud
+from pushtorch.streams import KeyedStream, content_keys
 
 __all__ = [
     "CandidatePredictions",
@@ -377,7 +378,10 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
         cloud: the observed cloud or its :class:`~pushtorch.features.SurfaceFeatures`.
         robot_starts: ``(C,)`` start poses (a batched :class:`~pushtorch.se3.Pose`) or a list of ``C`` poses.
         actions: ``(2,)`` for every candidate, or ``(C, 2)``; each one of ``model.actions``.
-        seed: seeds the one random stream of the call when no ``generator`` is given.
+        seed: seeds the call: the per-cloud draws (a ``torch.Generator``) and each candidate's counter-based
+            stream (:class:`~pushtorch.streams.KeyedStream`), keyed by the candidate's start and action, so that no
+            chunk size, order or other candidate changes its prediction (beyond float rounding, 1e-4 m and rad).
+        generator: a ``torch.Generator`` or seed to draw ``seed`` from instead.
         kernels: the density's kernels, ``"full"`` (finite everywhere: a planner's gradients) or ``"cut"``.
 
     Raises:
@@ -397,7 +401,9 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
     if not starts:
         raise InvalidParameterError("predict_candidates needs at least one candidate start")
     actions = _check_actions(actions, len(starts))
-    generator = as_generator(generator) if generator is not None else torch.Generator().manual_seed(int(seed))
+    if generator is not None:  # the keyed streams' seed, drawn from it
+        seed = int(torch.randint(0, 2**62, (1,), generator=as_generator(generator)))
+    generator = torch.Generator().manual_seed(int(seed))  # the per-cloud draws, made once
     first = model.models[0] if isinstance(model, ModelLibrary) else model
     features = features_for(cloud, first.settings, first.position)
     chosen = model.select(features)[0] if isinstance(model, ModelLibrary) else model
@@ -407,10 +413,14 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
     schedule = anneal_schedule(settings, False, Evaluation.FAST)
     rows = [i for i, c in enumerate(conditions) if c is not None]
     predictions: list[Prediction | None] = [None] * len(starts)
+    # each candidate's draws keyed by what it is (its start and action): no order, chunk or company changes them
+    identity = torch.cat([torch.stack([torch.cat([s.p.reshape(3), s.q.reshape(4)]).detach().float().cpu()
+                                       for s in starts]), actions.detach().float().cpu()], -1)
+    stream = KeyedStream(int(seed), content_keys(identity).to(chosen.device))
     for begin in range(0, len(rows), chunk_size):
         chunk = rows[begin:begin + chunk_size]
         densities = [_motion_density(chosen, conditions[i], a_idx[i], Evaluation.FAST) for i in chunk]
-        results = anneal_motion_densities(densities, settings.anneal_candidates, schedule, generator, False,
+        results = anneal_motion_densities(densities, settings.anneal_candidates, schedule, stream.take(chunk), False,
                                           settings.polish_steps)
         for i, density, result in zip(chunk, densities, results, strict=True):
             predictions[i] = _prediction(chosen, a_idx[i], conditions[i], density, result, Evaluation.FAST)
