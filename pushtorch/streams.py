@@ -153,12 +153,14 @@ class KeyedStream:
             layout[dim] = len(self)
             keys = self._mixed_keys.reshape(layout)
         count = math.prod(inner) * per_element
-        element = torch.arange(count, dtype=torch.int64, device=self.device).reshape(*inner, per_element)
+        if count >= 2**32:
+            raise InvalidParameterError(f"a keyed draw of {count} numbers per problem is over 2**32")
+        element = _mul32(torch.arange(count, dtype=torch.int64, device=self.device), _GOLDEN)
+        element = element.reshape(*inner, per_element)
         if self.dim is not None:
             element = element.unsqueeze(dim)
         keys = keys.reshape(*layout, 1) if layout else keys.reshape(1)
-        h = _mix((keys ^ base) & _MASK)
-        return _mix((h + _mul32(element & _MASK, _GOLDEN) + (element >> 32)) & _MASK)
+        return _mix(_mix(keys ^ base) ^ element)  # one mix per number; the problem's key mixed once
 
     def uniform(self, shape, dtype: torch.dtype = torch.float32) -> Tensor:
         """Uniform draws on [0, 1) of ``shape``: 24 bits for float32, 53 for float64."""
@@ -170,9 +172,9 @@ class KeyedStream:
 
     def normal(self, shape, dtype: torch.dtype = torch.float32) -> Tensor:
         """Standard normal draws of ``shape`` (Box-Muller of two uniforms, computed in float64)."""
-        bits = self._bits(shape, 2).double()
-        u1 = ((bits[..., 0] // 32) + 0.5) * 2.0**-27  # in (0, 1): its log is finite
-        u2 = (bits[..., 1] // 32) * 2.0**-27
+        bits = self._bits(shape, 2) >> 5
+        u1 = (bits[..., 0].double() + 0.5) * 2.0**-27  # in (0, 1): its log is finite
+        u2 = bits[..., 1].double() * 2.0**-27
         return (torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(2.0 * math.pi * u2)).to(dtype)
 
     def multinomial(self, weights: Tensor, n: int) -> Tensor:

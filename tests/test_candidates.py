@@ -13,7 +13,10 @@ from hypothesis import strategies as st
 
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError
+from pushtorch.models.frames import ContactFrames
 from pushtorch.models.library import ModelLibrary
+from pushtorch.models.motion import contact_log_weights
+from pushtorch.models.push_condition import candidate_conditions, features_for
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.prediction import predict_candidates
@@ -108,3 +111,24 @@ def test_no_order_or_chunk_size_changes_a_candidates_prediction(small_model, sce
     assert float((p[back] - ref_p).norm(dim=-1).max()) < 1e-4
     angle = 2 * torch.acos((q[back] * ref_q).sum(-1).abs().clamp(max=1.0))
     assert float(angle.max()) < 1e-4
+
+
+def test_contact_weights_of_many_pushes_in_one_call_are_each_pushs_own(small_model, scene):
+    """The batched contact weights a planner's candidates share one call for: frames (C, F), starts (C,) and
+    patches (C, 3) give each candidate the weights (trial rounds included) it gets alone."""
+    model = small_model("cube")
+    cloud, starts, _, _ = scene
+    features = features_for(cloud, model.settings, model.position)
+    conditions, _ = candidate_conditions(model, features, starts, [1] * len(starts), torch.Generator().manual_seed(0))
+    kernels, bandwidth = model.motions[1].environment, model.settings.contact_bandwidth
+    env = conditions[0].environment_frames
+    count = len(conditions)
+    shared = ContactFrames(env.v.expand(count, len(env)), env.r.expand(count, -1, 2), env.u.expand(count, len(env)),
+                           env.weight.expand(count, -1))
+    together = contact_log_weights(shared, kernels, se3.Pose.stack([c.robot_start for c in conditions]), bandwidth,
+                                   torch.stack([c.contact_patch for c in conditions]))
+    assert together.shape == (count, len(env), len(kernels))
+    for c, batched in zip(conditions, together, strict=True):
+        alone = contact_log_weights(env, kernels, c.robot_start, bandwidth, c.contact_patch)
+        assert torch.equal(torch.isfinite(alone), torch.isfinite(batched))
+        assert torch.allclose(alone[torch.isfinite(alone)], batched[torch.isfinite(batched)], atol=1e-5)

@@ -10,7 +10,8 @@ cpu_p50_s=… …``: the library test's "a model on the GPU predicts there", the
 surface features on the GPU and on that machine's CPU in the same run, the batched time per condition, and the
 time to condition on three observed pushes (with the posterior's mean, which must agree), and a planner's
 ``predict_candidates`` on one cloud: 256 and 1,000 candidates on the GPU (256 on the CPU), in chunks of 64 and in
-one chunk (``GPU_CHECK_PLAN=16,32`` for a short trial).
+one chunk (``GPU_CHECK_PLAN=16,32`` for a short trial; ``GPU_CHECK_ONLY_PLAN=1``: that part alone, on the GPU
+where there is one, then profiled).
 
     .venv/bin/python tools/gpu_check.py prepare runs/<run>/models/<a paper-size cube model>.npz
     # on the device, carrying .devcheck:  PYTHONPATH=. python3 tools/gpu_check.py run
@@ -133,8 +134,12 @@ def _without_open3d() -> None:
     contact.closest_points_on_mesh = closest_on_triangles
 
 
-def _plan(out: dict, name: str, model, plan: dict, device: str, features, synchronise) -> None:
-    """``predict_candidates`` on one cloud's features: 256 and 1,000 candidates, in chunks of 64 and in one chunk."""
+def _plan(out: dict, name: str, model, plan: dict, device: str, features, synchronise, profile: bool = False
+          ) -> None:
+    """``predict_candidates`` on one cloud's features: 256 and 1,000 candidates, in chunks of 64 and in one chunk;
+    ``profile``: the first count once more under cProfile (its 40 largest cumulative times printed)."""
+    import cProfile
+    import pstats
     import time
 
     from pushtorch import se3
@@ -156,6 +161,14 @@ def _plan(out: dict, name: str, model, plan: dict, device: str, features, synchr
             synchronise(device)
             out[f"{name}_plan_{count}_chunk_{chunk}_s"] = round(time.perf_counter() - started, 3)
         out[f"{name}_plan_{count}_valid"] = int(result.valid.sum())
+    if profile:
+        profiler = cProfile.Profile()
+        profiler.enable()
+        predict_candidates(model, f, starts.take(slice(0, counts[0])), actions[:counts[0]], chunk_size=counts[0])
+        synchronise(device)
+        profiler.disable()
+        pstats.Stats(profiler).sort_stats("cumulative").print_stats(40)
+        pstats.Stats(profiler).sort_stats("tottime").print_stats(25)
 
 
 def run() -> None:
@@ -202,6 +215,11 @@ def run() -> None:
         ok = p.final_pose.p.device.type == "cuda" and bool(torch.isfinite(p.final_pose.p).all())
         out["cuda_test"] = int(ok and bool(torch.isfinite(p.density.log_prob(p.density.mode)).all()))
         runs.insert(0, ("gpu", gpu, "cuda"))
+    if os.environ.get("GPU_CHECK_ONLY_PLAN"):  # the planner's part alone, on the first device (profiled)
+        name, model, device = runs[0]
+        _plan(out, name, model, data["plan"], device, features, synchronise, profile=True)
+        print(" ".join(f"{k}={v}" for k, v in out.items()))
+        return
     for name, model, device in runs:
         conditions = [features(c, device) for c in data["conditions"][:count]]
         predict(model, conditions[0], base.actions[0], generator=0)  # warm-up (compilation)

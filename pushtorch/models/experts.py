@@ -79,6 +79,9 @@ class MotionDensity:
         density_bandwidth: the motion kernels of the density the prediction returns (the calibrated width,
             :attr:`~pushtorch.models.settings.ModelSettings.density_bandwidth`); None: ``motion_bandwidth``.
             Annealing and :meth:`log_prob` use ``motion_bandwidth``.
+        contact_weights: the manipulator's and the environment frames' :func:`contact_log_weights` against these
+            kernels, computed already (a planner's candidates: one batched call for all of them); None computes
+            them here.
     """
 
     def __init__(
@@ -94,6 +97,7 @@ class MotionDensity:
         drop_cut_kernels: bool = True,
         pool_sharpness: float = 1.0,
         density_bandwidth: KernelBandwidth | None = None,
+        contact_weights: tuple[Tensor, Tensor] | None = None,
     ) -> None:
         if contact_bandwidth.descriptor_dim != CONTACT_DESCRIPTOR_DIM:
             raise InvalidParameterError(
@@ -107,9 +111,10 @@ class MotionDensity:
         # experts share; the experts differ only in their contact weights K^c.
         to_final = se3.relative(robot_start, object_pose)
         experts, shared_means, shared_weights = [], [], []
-        for frame, kernels in frames:
+        for kind, (frame, kernels) in enumerate(frames):
             n_frames = frame.r.reshape(-1, 2).shape[0]
-            log_w = contact_log_weights(frame, kernels, robot_start, contact_bandwidth, contact_patch)  # (F, N)
+            log_w = (contact_log_weights(frame, kernels, robot_start, contact_bandwidth, contact_patch)
+                     if contact_weights is None else contact_weights[kind].reshape(n_frames, len(kernels)))  # (F, N)
             if kernels.log_weight is not None:  # a conditioned model: the posterior's weight of each kernel
                 log_w = log_w + kernels.log_weight.to(log_w)
             finals = se3.compose(se3.compose(robot_start, kernels.m), to_final)  # (N,)

@@ -385,19 +385,29 @@ def contact_log_weights(frames: ContactFrames, kernels: MotionKernels, robot_sta
     kernel ``c_j`` of one contact kind, over ``(u, r, g, patch)`` (Eq. contact_frame_probability and the
     ``g`` and patch terms of the module docstring), each frame's contact density widened by its own trial
     rounds until some kernel reaches it. ``patch``: ``(3,)`` this push's contact patch on the bumper
-    (:func:`~pushtorch.models.contact.bumper_contact_patch`)."""
-    n_frames, n_kernels = frames.r.reshape(-1, 2).shape[0], len(kernels)
+    (:func:`~pushtorch.models.contact.bumper_contact_patch`).
+
+    Many pushes at once: frames ``(C, F)``, ``robot_start (C,)`` and ``patch (C, 3)`` give ``(C, F, N)``, each
+    push's frames fitted as they are alone (a planner's candidates, one call for all of them)."""
+    batched = robot_start.p.dim() == 2
+    batch = frames.r.shape[:-1] if batched else frames.r.reshape(-1, 2).shape[:1]  # (C, F) or (F,)
+    n_kernels = len(kernels)
     dim = CONTACT_DESCRIPTOR_DIM
     contact_kde = PoseKDE(
-        se3.Pose.unchecked(kernels.u.p.expand(n_frames, n_kernels, 3), kernels.u.q.expand(n_frames, n_kernels, 4)),
+        se3.Pose.unchecked(kernels.u.p.expand(*batch, n_kernels, 3), kernels.u.q.expand(*batch, n_kernels, 4)),
         contact_bandwidth,
         descriptors=torch.cat([embed_descriptors(kernels.r), kernels.g, kernels.patch], -1).expand(
-            n_frames, n_kernels, dim),
+            *batch, n_kernels, dim),
     )
-    query_u = se3.Pose.unchecked(frames.u.p.reshape(-1, 1, 3), frames.u.q.reshape(-1, 1, 4))
-    frame_g = se3.apply(se3.inverse(robot_start), frames.v.p.reshape(-1, 3))
-    frame_patch = torch.as_tensor(patch, dtype=frame_g.dtype, device=frame_g.device).reshape(1, 3)
-    query_r = torch.cat([embed_descriptors(frames.r.reshape(-1, 2)), frame_g, frame_patch.expand(len(frame_g), 3)],
+    query_u = se3.Pose.unchecked(frames.u.p.reshape(*batch, 1, 3), frames.u.q.reshape(*batch, 1, 4))
+    to_robot = se3.inverse(robot_start)
+    if batched:  # each push's frames into its own start frame
+        to_robot = to_robot.unsqueeze(-1)
+    frame_g = se3.apply(to_robot, frames.v.p.reshape(*batch, 3))
+    frame_patch = torch.as_tensor(patch, dtype=frame_g.dtype, device=frame_g.device).reshape(-1, 3)
+    if batched:
+        frame_patch = frame_patch.unsqueeze(-2)
+    query_r = torch.cat([embed_descriptors(frames.r.reshape(*batch, 2)), frame_g, frame_patch.expand(*batch, 3)],
                         -1).unsqueeze(-2)
     _, log_w = contact_kde.fitted_log_kernels(query_u, query_r)
     return log_w.squeeze(-2)

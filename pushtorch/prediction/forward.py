@@ -31,9 +31,10 @@ from pushtorch.features import SurfaceFeatures
 from pushtorch.kde import Evaluation, KernelBandwidth
 from pushtorch.models.clearance import check_start
 from pushtorch.models.experts import MotionDensity, MotionPrediction, anneal_motion_densities
+from pushtorch.models.frames import ContactFrames
 from pushtorch.models.library import ModelLibrary
 from pushtorch.models.model import PushModel
-from pushtorch.models.motion import contact_distances, nearest_in_contact
+from pushtorch.models.motion import contact_distances, contact_log_weights, nearest_in_contact
 from pushtorch.models.push_condition import (
     PushCondition,
     anneal_schedule,
@@ -176,12 +177,14 @@ def predict(
                         method=method, robot_starts=None if robot_start is None else [robot_start])[0]
 
 
-def _motion_density(model: PushModel, condition: PushCondition, a: int, method: Evaluation) -> MotionDensity:
+def _motion_density(model: PushModel, condition: PushCondition, a: int, method: Evaluation,
+                    contact_weights: tuple[torch.Tensor, torch.Tensor] | None = None) -> MotionDensity:
     """The action's product of experts; the dense reference keeps every motion kernel of the budget (those the
     contact weight cuts off weigh zero), the fast path drops them before anything is evaluated. Over the
     budget (``manipulator_kernels``, ``environment_kernels``) the kernels nearest in contact are kept
     (:func:`~pushtorch.models.motion.nearest_in_contact`), and a pooled model widens its motion kernels by the
-    manipulator contact's distance to the training ones (:func:`transfer_bandwidth`)."""
+    manipulator contact's distance to the training ones (:func:`transfer_bandwidth`). ``contact_weights``: the
+    frames' contact weights against the action's kernels, computed already (:func:`_candidate_densities`)."""
     settings = model.settings
     motion = model.motions[a]
     patch, start, bandwidth = condition.contact_patch, condition.robot_start, settings.contact_bandwidth
@@ -204,7 +207,44 @@ def _motion_density(model: PushModel, condition: PushCondition, a: int, method: 
         drop_cut_kernels=method is Evaluation.FAST,
         pool_sharpness=settings.pool_sharpness,
         density_bandwidth=transfer_bandwidth(model, condition, a, density=True),
+        contact_weights=contact_weights,
     )
+
+
+def _candidate_densities(model: PushModel, conditions: list[PushCondition], a_idx: list[int]) -> list[MotionDensity]:
+    """The fast path's products of experts of a planner's candidates: the contact weights of every candidate of
+    one action in one batched call (:func:`~pushtorch.models.motion.contact_log_weights` over ``(C, F)`` frames),
+    when the action's kernels fit the budget and the candidates share their environment frames (one cloud's);
+    else one by one (:func:`_motion_density`)."""
+    settings = model.settings
+    out: list[MotionDensity | None] = [None] * len(conditions)
+    for a in sorted(set(a_idx)):
+        rows = [i for i, b in enumerate(a_idx) if b == a]
+        motion = model.motions[a]
+        environment = conditions[rows[0]].environment_frames
+        together = (len(rows) > 1 and len(motion.manipulator) <= settings.manipulator_kernels
+                    and len(motion.environment) <= settings.environment_kernels
+                    and all(conditions[i].environment_frames is environment for i in rows))
+        if not together:
+            for i in rows:
+                out[i] = _motion_density(model, conditions[i], a, Evaluation.FAST)
+            continue
+        mine = [conditions[i] for i in rows]
+        starts = se3.Pose.stack([c.robot_start for c in mine])
+        patches = torch.stack([torch.as_tensor(c.contact_patch) for c in mine])
+        manipulator = ContactFrames(
+            se3.Pose.stack([c.manipulator_frame.v for c in mine]), torch.stack([c.manipulator_frame.r for c in mine]),
+            se3.Pose.stack([c.manipulator_frame.u for c in mine]),
+            torch.stack([c.manipulator_frame.weight for c in mine]))
+        count = len(rows)
+        shared = ContactFrames(environment.v.expand(count, len(environment)), environment.r.expand(count, -1, 2),
+                               environment.u.expand(count, len(environment)), environment.weight.expand(count, -1))
+        bandwidth = settings.contact_bandwidth
+        w_m = contact_log_weights(manipulator, motion.manipulator, starts, bandwidth, patches)  # (C, 1, N_m)
+        w_e = contact_log_weights(shared, motion.environment, starts, bandwidth, patches)  # (C, E, N_e)
+        for j, i in enumerate(rows):
+            out[i] = _motion_density(model, conditions[i], a, Evaluation.FAST, (w_m[j], w_e[j]))
+    return out  # type: ignore[return-value]
 
 
 def transfer_distance(model: PushModel, condition: PushCondition, a: int) -> torch.Tensor:
@@ -419,7 +459,7 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
     stream = KeyedStream(int(seed), content_keys(identity).to(chosen.device))
     for begin in range(0, len(rows), chunk_size):
         chunk = rows[begin:begin + chunk_size]
-        densities = [_motion_density(chosen, conditions[i], a_idx[i], Evaluation.FAST) for i in chunk]
+        densities = _candidate_densities(chosen, [conditions[i] for i in chunk], [a_idx[i] for i in chunk])
         results = anneal_motion_densities(densities, settings.anneal_candidates, schedule, stream.take(chunk), False,
                                           settings.polish_steps)
         for i, density, result in zip(chunk, densities, results, strict=True):
