@@ -32,9 +32,49 @@ import os
 
 from pushtorch.errors import InvalidParameterError
 
-__all__ = ["available_cores", "core_share", "declare_parallel_jobs", "parallel_jobs", "share_cores"]
+__all__ = ["available_cores", "core_share", "declare_parallel_jobs", "parallel_jobs", "return_freed_memory",
+           "share_cores"]
 
 _JOBS_ENV = "PUSHTORCH_PARALLEL_JOBS"
+
+
+_LIBC: list = []  # glibc's handle, looked up once ([None] where there is none)
+_AFTER_TRIM = [0.0]  # resident MB after the last trim
+
+
+def _resident_mb() -> float:
+    """This process's resident memory (MB), from ``/proc/self/statm``; 0 where there is none."""
+    try:
+        with open("/proc/self/statm") as statm:
+            return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):  # pragma: no cover - not Linux
+        return 0.0
+
+
+def return_freed_memory(slack_mb: float = 0.0) -> bool:
+    """Hand the heap's freed pages back to the system (glibc's ``malloc_trim(0)``) and return True; False where the
+    C library is not glibc, or where resident memory grew by no more than ``slack_mb`` since the last trim.
+
+    Training calls it between its blocks of pushes (slack 256 MB): glibc keeps freed blocks below its adaptive
+    mmap threshold (up to 32 MB each) in its heaps, so a long loop over blocks of large tensors holds far more
+    than one block's memory. The slack keeps the trims few, as each costs a walk of the heaps and the next
+    block's page faults. Unlike lowering the mmap threshold (``mallopt``), it changes no allocation policy of the
+    caller's process. Measured in docs/speed.md, "Training from a push table"."""
+    if not _LIBC:
+        import ctypes
+        import ctypes.util
+
+        name = ctypes.util.find_library("c")
+        try:
+            libc = ctypes.CDLL(name) if name else None
+            _LIBC.append(libc if libc is not None and hasattr(libc, "malloc_trim") else None)
+        except OSError:  # pragma: no cover - no loadable C library
+            _LIBC.append(None)
+    if _LIBC[0] is None or (slack_mb > 0 and _resident_mb() - _AFTER_TRIM[0] <= slack_mb):
+        return False
+    _LIBC[0].malloc_trim(0)
+    _AFTER_TRIM[0] = _resident_mb()
+    return True
 
 
 def available_cores() -> int:

@@ -64,10 +64,13 @@ def _records(obj, samples_per_action, folder, seed=0, placement=None):
 
 
 @pytest.fixture(scope="module")
-def cube_model(tmp_path_factory):
-    cube = load_object("cube")
-    records = _records(cube, 100, tmp_path_factory.mktemp("cube_pushes"), placement=SPREAD_PLACEMENTS)
-    return train_push_model(cube, records, FAST, generator=torch.Generator().manual_seed(0))
+def cube_records(tmp_path_factory):
+    return _records(load_object("cube"), 100, tmp_path_factory.mktemp("cube_pushes"), placement=SPREAD_PLACEMENTS)
+
+
+@pytest.fixture(scope="module")
+def cube_model(cube_records):
+    return train_push_model(load_object("cube"), cube_records, FAST, generator=torch.Generator().manual_seed(0))
 
 
 @pytest.fixture(scope="module")
@@ -165,6 +168,31 @@ def test_bandwidths_are_chosen_by_held_out_likelihood_and_kept_in_the_model_file
     assert search["chosen"] != search["start"]
     loaded = load_model(cube_model.save(tmp_path / "cube.npz"))
     assert loaded.settings == cube_model.settings and loaded.meta["bandwidths"] == search
+
+
+def test_above_its_bounds_the_bandwidth_search_keeps_a_seeded_subsample_of_whole_pushes_and_says_so(
+        cube_records, monkeypatch, caplog):
+    """Bandwidths chosen at any size: over its memory bounds the search keeps whole pushes (each kept push can be
+    held out), so it chooses from data with as many held-out pushes as the bounds allow, and the log says so;
+    below them nothing is drawn and every kernel counts. The bounds are lowered here to this model's size (the
+    search's own code, on 100 real pushes per action instead of 2,000)."""
+    import logging
+
+    import pushtorch.models.bandwidth as bandwidth
+    from pushtorch.models.training import fit_object_parts
+
+    _, _, motions = fit_object_parts(load_object("cube"), cube_records, FAST, torch.Generator().manual_seed(0))
+    g = torch.Generator().manual_seed(0)
+    _, full = bandwidth.select_bandwidths(FAST, motions, 5, g)
+    assert full.held_out >= 3 * 80 and torch.equal(g.get_state(), torch.Generator().manual_seed(0).get_state())
+    monkeypatch.setattr(bandwidth, "MAX_MANIPULATOR_PUSHES", 40)
+    monkeypatch.setattr(bandwidth, "MAX_ENVIRONMENT_KERNELS", 300)  # 30 pushes of 10 environment frames
+    with caplog.at_level(logging.INFO, logger="pushtorch.models.bandwidth"):
+        _, thin = bandwidth.select_bandwidths(FAST, motions, 5, torch.Generator().manual_seed(0))
+    assert thin.held_out == 3 * 30 and thin.score_chosen is not None
+    assert caplog.text.count("seeded subsample") == 3 and "kernels of 40 of 100 pushes" in caplog.text
+    _, again = bandwidth.select_bandwidths(FAST, motions, 5, torch.Generator().manual_seed(0))
+    assert again.chosen == thin.chosen  # seeded
 
 
 def test_the_density_takes_its_own_calibrated_width_and_the_mode_keeps_the_floored_one(cube_model):

@@ -11,9 +11,12 @@ arrays tiled (each copy's push indices shifted, every value otherwise repeated),
 (``trajectories=False``). Training places its pushes block by block
 (``pushtorch.models.motion.training_blocks``), so its memory should not grow with the pushes and its time
 should grow about linearly (targets: ``train_peak_mb_100k <= 2000``, ``train_s_100k <= 12 train_s_10k``).
+Last, ``--bandwidth-pushes`` fresh pushes per action (5,000; simulated, not tiled: a tile's copies would share a
+fold) train the default model's parts and its bandwidth search, which must choose from data (held-out pushes
+scored) rather than keep the configured values.
 
     .venv/bin/python tools/bench_scale.py [--pushes 3000] [--train-pushes 10000 100000] [--skip-train]
-        [--skip-scale]
+        [--skip-scale] [--bandwidth-pushes 5000] [--skip-bandwidth]
 
 The last line is ``local_pps=<..> ray_pps=<..> local_scaling=<..> ray_scaling=<..> identical=<0|1>
 train_peak_mb_100k=<..> train_s_10k=<..> train_s_100k=<..>`` (pushes/s at 2 CPUs; scaling = 2-CPU over
@@ -52,6 +55,29 @@ def _timed(kind: str, cpus: int, pushes: int, folder: Path) -> float:
     started = time.perf_counter()
     run_plan(object_spec(cube), plan, folder, workers=cpus, shard_size=25, progress=False, executor=executor)
     return len(plan) / (time.perf_counter() - started)
+
+
+def _bandwidth_from_data(per_action: int, folder: Path) -> int:
+    """1 if the default model's bandwidth search, on ``per_action`` fresh pushes per action, scores held-out pushes
+    (chooses from data), else 0; prints what it kept."""
+    from pushtorch.models.bandwidth import select_bandwidths
+    from pushtorch.models.settings import ModelSettings
+    from pushtorch.models.training import fit_object_parts
+
+    cube = load_object("cube")
+    plan = plan_training_pushes(cube, make_actions(3), per_action, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=2)
+    started = time.perf_counter()
+    run_plan(object_spec(cube), plan, folder, progress=True)
+    print(f"simulated {len(plan)} fresh pushes in {time.perf_counter() - started:.0f} s", flush=True)
+    records = load_records(folder, trajectories=False)
+    settings, generator = ModelSettings(), torch.Generator().manual_seed(0)
+    _, _, motions = fit_object_parts(cube, records, settings, generator)
+    started = time.perf_counter()
+    _, search = select_bandwidths(settings, motions, settings.bandwidth_folds, generator)
+    print(f"bandwidth search on {per_action} pushes per action: {search.held_out} held-out pushes, score "
+          f"{search.score_start} -> {search.score_chosen}, {time.perf_counter() - started:.1f} s; chose "
+          f"{search.chosen}", flush=True)
+    return int(search.held_out > 0 and search.score_chosen is not None)
 
 
 def _train(pushes: int, base: Path) -> dict[str, float]:
@@ -97,6 +123,9 @@ def main() -> None:
                         help="the two training sizes (default 10000 100000)")
     parser.add_argument("--skip-train", action="store_true", help="leave out the training measurements")
     parser.add_argument("--skip-scale", action="store_true", help="leave out the executors' throughput")
+    parser.add_argument("--bandwidth-pushes", type=int, default=5000,
+                        help="fresh pushes per action for the bandwidth search's check (default 5000)")
+    parser.add_argument("--skip-bandwidth", action="store_true", help="leave out the bandwidth search's check")
     args = parser.parse_args()
 
     print(f"CPU: {cpu_name()} ({os.cpu_count()} logical CPUs); {args.pushes} pushes per timed run")
@@ -131,6 +160,7 @@ def main() -> None:
                 print(f"training the default model on {pushes} pushes: {t['seconds']:.1f} s, peak {t['peak_mb']:.0f} MB"
                       f" (contact, position and motion models: {t['parts_seconds']:.1f} s, peak"
                       f" {t['parts_peak_mb']:.0f} MB; then the bandwidth search)", flush=True)
+        from_data = nan if args.skip_bandwidth else _bandwidth_from_data(args.bandwidth_pushes, root / "bandwidth")
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(f"this process's peak: {own:.0f} MB")
     small, large = min(args.train_pushes), max(args.train_pushes)
@@ -138,7 +168,7 @@ def main() -> None:
           f"local_scaling={rate[('local', 2)] / rate[('local', 1)]:.2f} "
           f"ray_scaling={rate[('ray', 2)] / rate[('ray', 1)]:.2f} identical={identical} "
           f"train_peak_mb_100k={trained[large]['peak_mb']:.0f} train_s_10k={trained[small]['seconds']:.1f} "
-          f"train_s_100k={trained[large]['seconds']:.1f}")
+          f"train_s_100k={trained[large]['seconds']:.1f} bandwidth_from_data={from_data}")
 
 if __name__ == "__main__":
     main()

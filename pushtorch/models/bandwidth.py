@@ -38,6 +38,7 @@ the search's record (held-out score before and after, and at the density's stds)
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, replace
 
@@ -50,6 +51,7 @@ from pushtorch.models.frames import embed_descriptors
 from pushtorch.models.motion import MotionKernels, expert_exponents
 
 Tensor = torch.Tensor
+log = logging.getLogger(__name__)
 
 __all__ = ["DENSITY", "BandwidthSearch", "SELECTED", "select_bandwidths"]
 
@@ -84,9 +86,14 @@ DENSITY_SWEEPS = 4
 #: The evidence's outlier shares tried (``density_outlier``, the weight of the mode-width component of each
 #: kernel); the configured one is the starting point, so 0 is kept unless a share scores higher.
 OUTLIER_LADDER = (0.0, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
-#: Held-out pushes scored per action and environment kernels kept as experts' kernels (memory bound).
+#: Held-out pushes scored per action, and the experts' kernels the search keeps (memory bound): the manipulator
+#: kernels of at most ``MAX_MANIPULATOR_PUSHES`` pushes, and the environment kernels of as many whole pushes
+#: (all of each push's frames, so every kept push can be held out) as ``MAX_ENVIRONMENT_KERNELS`` allows, those
+#: pushes among the manipulator's. Above either bound a seeded subsample of pushes is kept, and the log says so:
+#: the search then has its ``MAX_HELD_OUT`` held-out pushes at any size (100 to 100,000 pushes per action).
 MAX_HELD_OUT = 200
 MAX_ENVIRONMENT_KERNELS = 2000
+MAX_MANIPULATOR_PUSHES = 2000
 
 
 @dataclass
@@ -222,6 +229,35 @@ def _log_motion_kernels(terms: _Terms, p_std: float, rot_std: float) -> Tensor:
     return -terms.motion_p / (2 * p_std**2) - terms.motion_q / sigma_q - log_norm
 
 
+def _kept_pushes(motion, n_env_frames: int, generator: torch.Generator | None
+                 ) -> tuple[MotionKernels, MotionKernels, Tensor, Tensor, Tensor]:
+    """One action's kernels the search keeps (``MAX_MANIPULATOR_PUSHES``, ``MAX_ENVIRONMENT_KERNELS``), as index
+    tensors into its manipulator and environment kernels, and the pushes that can be held out (their manipulator
+    kernel and at least ``n_env_frames`` environment frames kept). Below both bounds every kernel is kept and no
+    number is drawn."""
+    man, env = motion.manipulator, motion.environment
+    man_push, env_push = man.push, env.push
+    pushes = torch.unique(man_push)
+    total = len(pushes)
+    thin_man, thin_env = total > MAX_MANIPULATOR_PUSHES, len(env) > MAX_ENVIRONMENT_KERNELS
+    if thin_man:
+        pushes = pushes[torch.randperm(total, generator=generator)[:MAX_MANIPULATOR_PUSHES]].sort().values
+    env_counts = torch.bincount(env_push, minlength=int(max(int(env_push.max()), int(man_push.max()))) + 1)
+    pool = pushes[env_counts[pushes] >= n_env_frames]  # pushes whose environment frames can be the query's
+    if not (thin_man or thin_env):
+        return man, env, torch.arange(len(man)), torch.arange(len(env)), pool
+    per_push = max(1, math.ceil(len(env) / max(1, len(torch.unique(env_push)))))
+    most = max(1, MAX_ENVIRONMENT_KERNELS // per_push)
+    if len(pool) > most:
+        pool = pool[torch.randperm(len(pool), generator=generator)[:most]].sort().values
+    log.info("bandwidth search, action %s: the manipulator kernels of %d of %d pushes and the environment kernels "
+             "of %d pushes kept (a seeded subsample, for memory)", tuple(round(float(a), 4) for a in motion.action),
+             len(pushes), total, len(pool))
+    keep_man = torch.isin(man_push, pushes).nonzero().squeeze(-1)
+    keep_env = torch.isin(env_push, pool).nonzero().squeeze(-1)
+    return man, env, keep_man, keep_env, pool
+
+
 def select_bandwidths(settings, motions: list, folds: int = 5,
                       generator: torch.Generator | None = None) -> tuple[object, BandwidthSearch]:
     """Choose ``SELECTED`` settings by held-out likelihood on the model's own training pushes (module docstring).
@@ -243,19 +279,13 @@ def select_bandwidths(settings, motions: list, folds: int = 5,
         if man_push is None or env_push is None:
             raise InvalidParameterError("select_bandwidths needs motion kernels that know their pushes "
                                         "(fit_motion_model's, not a loaded model's)")
-        env, keep_env = motion.environment, torch.arange(len(motion.environment))
-        if len(env) > MAX_ENVIRONMENT_KERNELS:
-            keep_env = torch.randperm(len(env), generator=generator)[:MAX_ENVIRONMENT_KERNELS].sort().values
-        # a held-out push needs its manipulator kernel and its environment frames among the kernels kept
-        env_counts = torch.bincount(env_push[keep_env], minlength=int(env_push.max()) + 1)
-        candidates = torch.unique(man_push)
-        candidates = candidates[env_counts[candidates] >= n_env_frames]
+        man, env, keep_man, keep_env, candidates = _kept_pushes(motion, n_env_frames, generator)
         if len(candidates) > MAX_HELD_OUT:
             candidates = candidates[torch.randperm(len(candidates), generator=generator)[:MAX_HELD_OUT]]
         if len(candidates) < folds:
             continue
-        t = _kernel_terms(motion.manipulator, env.take(keep_env), man_push, env_push[keep_env], candidates,
-                          n_env_frames, folds, settings)
+        t = _kernel_terms(man.take(keep_man), env.take(keep_env), man_push[keep_man], env_push[keep_env],
+                          candidates, n_env_frames, folds, settings)
         n_experts = t.u_p.shape[1]
         terms.append(t)
         exponents.append(expert_exponents(len(motion.manipulator), len(motion.environment), n_experts - 1,

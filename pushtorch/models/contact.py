@@ -29,6 +29,7 @@ from pushtorch.kde import Evaluation
 from pushtorch.models.frames import ContactFrames, embed_descriptors
 from pushtorch.models.query import QueryDensity, build_query_density
 from pushtorch.models.settings import ModelSettings
+from pushtorch.parallel import return_freed_memory
 
 Tensor = torch.Tensor
 
@@ -263,6 +264,10 @@ def sample_environment_contacts(
     return chosen_idx.reshape(*batch, count)
 
 
+#: How far training's resident memory may grow between two trims of the heap (:func:`return_freed_memory`).
+TRIM_SLACK_MB = 256.0
+
+
 def sample_environment_contacts_in_blocks(points_of: Callable[[slice], Tensor], rows: int, count: int,
                                           blocks: list[slice], generator: torch.Generator | None = None,
                                           device=None) -> Tensor:
@@ -296,6 +301,9 @@ def sample_environment_contacts_in_blocks(points_of: Callable[[slice], Tensor], 
             picks.append(se3.multinomial(weight, 1, generator))
             if len(blocks) == 1:
                 held = (flat, base, ratios)
+            else:  # the block's tensors are freed: their pages go back once the heap has grown (parallel.py)
+                del flat, base, ratios, chosen, weight
+                return_freed_memory(TRIM_SLACK_MB)
         chosen_idx = torch.cat([chosen_idx, torch.cat(picks)], -1)
     return chosen_idx
 
