@@ -79,7 +79,8 @@ class KeyedStream:
 
     Args:
         seed: the stream's seed (an integer in [0, 2**64)).
-        keys: ``(B,)`` integer keys, one per problem (a planner's candidate index); their device is the draws'.
+        keys: ``(B,)`` integer keys, one per problem (a planner's candidate: :func:`content_keys` of its start and
+            action); their device is the draws'.
         dim: the dim of every draw's shape that runs over the problems; ``None`` (only with one key): the whole
             draw belongs to that problem.
     """

@@ -171,7 +171,7 @@ def test_bandwidths_are_chosen_by_held_out_likelihood_and_kept_in_the_model_file
 
 
 def test_above_its_bounds_the_bandwidth_search_keeps_a_seeded_subsample_of_whole_pushes_and_says_so(
-        cube_records, monkeypatch, caplog):
+        cube_model, monkeypatch, caplog):
     """Bandwidths chosen at any size: over its memory bounds the search keeps whole pushes (each kept push can be
     held out), so it chooses from data with as many held-out pushes as the bounds allow, and the log says so;
     below them nothing is drawn and every kernel counts. The bounds are lowered here to this model's size (the
@@ -179,9 +179,8 @@ def test_above_its_bounds_the_bandwidth_search_keeps_a_seeded_subsample_of_whole
     import logging
 
     import pushtorch.models.bandwidth as bandwidth
-    from pushtorch.models.training import fit_object_parts
 
-    _, _, motions = fit_object_parts(load_object("cube"), cube_records, FAST, torch.Generator().manual_seed(0))
+    motions = cube_model.motions  # trained in this process: its kernels know their pushes
     g = torch.Generator().manual_seed(0)
     _, full = bandwidth.select_bandwidths(FAST, motions, 5, g)
     assert full.held_out >= 3 * 80 and torch.equal(g.get_state(), torch.Generator().manual_seed(0).get_state())
