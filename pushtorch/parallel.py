@@ -32,8 +32,8 @@ import os
 
 from pushtorch.errors import InvalidParameterError
 
-__all__ = ["available_cores", "core_share", "declare_parallel_jobs", "parallel_jobs", "return_freed_memory",
-           "share_cores"]
+__all__ = ["available_cores", "core_share", "declare_parallel_jobs", "parallel_jobs", "resident_mb",
+           "return_freed_memory", "share_cores"]
 
 _JOBS_ENV = "PUSHTORCH_PARALLEL_JOBS"
 
@@ -42,7 +42,7 @@ _LIBC: list = []  # glibc's handle, looked up once ([None] where there is none)
 _AFTER_TRIM = [0.0]  # resident MB after the last trim
 
 
-def _resident_mb() -> float:
+def resident_mb() -> float:
     """This process's resident memory (MB), from ``/proc/self/statm``; 0 where there is none."""
     try:
         with open("/proc/self/statm") as statm:
@@ -70,10 +70,10 @@ def return_freed_memory(slack_mb: float = 0.0) -> bool:
             _LIBC.append(libc if libc is not None and hasattr(libc, "malloc_trim") else None)
         except OSError:  # pragma: no cover - no loadable C library
             _LIBC.append(None)
-    if _LIBC[0] is None or (slack_mb > 0 and _resident_mb() - _AFTER_TRIM[0] <= slack_mb):
+    if _LIBC[0] is None or (slack_mb > 0 and resident_mb() - _AFTER_TRIM[0] <= slack_mb):
         return False
     _LIBC[0].malloc_trim(0)
-    _AFTER_TRIM[0] = _resident_mb()
+    _AFTER_TRIM[0] = resident_mb()
     return True
 
 

@@ -13,7 +13,6 @@ from hypothesis import strategies as st
 
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError
-from pushtorch.models.frames import ContactFrames
 from pushtorch.models.library import ModelLibrary
 from pushtorch.models.motion import contact_log_weights
 from pushtorch.models.push_condition import candidate_conditions, features_for
@@ -123,8 +122,7 @@ def test_contact_weights_of_many_pushes_in_one_call_are_each_pushs_own(small_mod
     kernels, bandwidth = model.motions[1].environment, model.settings.contact_bandwidth
     env = conditions[0].environment_frames
     count = len(conditions)
-    shared = ContactFrames(env.v.expand(count, len(env)), env.r.expand(count, -1, 2), env.u.expand(count, len(env)),
-                           env.weight.expand(count, -1))
+    shared = env.expand(count)
     together = contact_log_weights(shared, kernels, se3.Pose.stack([c.robot_start for c in conditions]), bandwidth,
                                    torch.stack([c.contact_patch for c in conditions]))
     assert together.shape == (count, len(env), len(kernels))

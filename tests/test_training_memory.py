@@ -116,28 +116,21 @@ def test_trained_model_is_the_same_with_small_blocks(cube_pushes, monkeypatch):
     _assert_identical(whole, train_push_model(cube, records, SMALL, generator=0).arrays())
 
 
-def _resident_mb() -> float:
-    import os
-
-    with open("/proc/self/statm") as statm:
-        return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-
-
 def test_freed_heap_pages_go_back_to_the_system_between_training_blocks():
     """What training calls between its blocks (parallel.return_freed_memory): 40 MB of small blocks freed below a
     live one stay resident (glibc keeps them in its heap) until the trim hands them back; within the slack
     nothing is trimmed."""
     import sys
 
-    from pushtorch.parallel import return_freed_memory
+    from pushtorch.parallel import resident_mb, return_freed_memory
 
     if not sys.platform.startswith("linux") or not return_freed_memory():
         pytest.skip("glibc's malloc_trim is Linux-only")
     blocks = [bytearray(b"x" * 100_000) for _ in range(400)]  # below glibc's mmap threshold: from the heap
     fence = bytearray(b"y" * 100_000)  # a live block above them keeps free() from trimming the heap's top
     del blocks
-    freed = _resident_mb()
+    freed = resident_mb()
     assert not return_freed_memory(slack_mb=1e6)  # it grew by far less than the slack: no trim
     assert return_freed_memory()
-    assert _resident_mb() < freed - 20.0
+    assert resident_mb() < freed - 20.0
     del fence

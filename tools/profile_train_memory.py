@@ -24,16 +24,9 @@ import torch
 
 from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
+from pushtorch.parallel import resident_mb
 from pushtorch.sim import load_records
 from pushtorch.sim.records import PushRecords
-
-
-def _resident_mb() -> float:
-    with open("/proc/self/status") as status:
-        for line in status:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 def main() -> None:
@@ -49,7 +42,7 @@ def main() -> None:
 
     def watch() -> None:
         while True:
-            now = _resident_mb()
+            now = resident_mb()
             if now > best[0] + 20:
                 best[0] = now
                 stack = "".join(traceback.format_stack(sys._current_frames()[main_thread])[-5:])
@@ -58,7 +51,7 @@ def main() -> None:
 
     threading.Thread(target=watch, daemon=True).start()
     train_push_model(load_object("cube"), records, generator=0)
-    print(f"peak_mb={max(best[0], _resident_mb()):.0f}")
+    print(f"peak_mb={max(best[0], resident_mb()):.0f}")
 
 
 if __name__ == "__main__":

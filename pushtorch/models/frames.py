@@ -68,6 +68,18 @@ class ContactFrames:
             self.weight[..., index],
         )
 
+    @staticmethod
+    def stack(frames: list[ContactFrames]) -> ContactFrames:
+        """Frames of the same count stacked along a new leading dim ``(len(frames), ..., N)``."""
+        return ContactFrames(se3.Pose.stack([f.v for f in frames]), torch.stack([f.r for f in frames]),
+                             se3.Pose.stack([f.u for f in frames]), torch.stack([f.weight for f in frames]))
+
+    def expand(self, count: int) -> ContactFrames:
+        """These ``(N,)`` frames repeated (a view) along a new leading dim: ``(count, N)``."""
+        n = len(self)
+        return ContactFrames(self.v.expand(count, n), self.r.expand(count, n, 2), self.u.expand(count, n),
+                             self.weight.expand(count, n))
+
     def to(self, *args, **kwargs) -> ContactFrames:
         return ContactFrames(
             self.v.to(*args, **kwargs), self.r.to(*args, **kwargs), self.u.to(*args, **kwargs),

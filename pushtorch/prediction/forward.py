@@ -232,13 +232,8 @@ def _candidate_densities(model: PushModel, conditions: list[PushCondition], a_id
         mine = [conditions[i] for i in rows]
         starts = se3.Pose.stack([c.robot_start for c in mine])
         patches = torch.stack([torch.as_tensor(c.contact_patch) for c in mine])
-        manipulator = ContactFrames(
-            se3.Pose.stack([c.manipulator_frame.v for c in mine]), torch.stack([c.manipulator_frame.r for c in mine]),
-            se3.Pose.stack([c.manipulator_frame.u for c in mine]),
-            torch.stack([c.manipulator_frame.weight for c in mine]))
-        count = len(rows)
-        shared = ContactFrames(environment.v.expand(count, len(environment)), environment.r.expand(count, -1, 2),
-                               environment.u.expand(count, len(environment)), environment.weight.expand(count, -1))
+        manipulator = ContactFrames.stack([c.manipulator_frame for c in mine])
+        shared = environment.expand(len(rows))
         bandwidth = settings.contact_bandwidth
         w_m = contact_log_weights(manipulator, motion.manipulator, starts, bandwidth, patches)  # (C, 1, N_m)
         w_e = contact_log_weights(shared, motion.environment, starts, bandwidth, patches)  # (C, E, N_e)
