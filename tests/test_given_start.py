@@ -17,7 +17,7 @@ from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.features import compute_surface_features
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
-from pushtorch.prediction import manipulator_frame_at, predict, predict_many
+from pushtorch.prediction import manipulator_frame_at, manipulator_frames_at, predict, predict_many
 from pushtorch.sim.push import place_robot_against
 
 
@@ -44,6 +44,30 @@ def test_the_manipulator_frame_is_a_feature_touching_the_bumper_where_it_was_pla
     entity = se3.compose(frame.v, frame.u)
     assert torch.allclose(entity.p[0], start.p, atol=1e-5)
     assert float(se3.angle_between(entity.q[0], start.q)) < 1e-3
+
+
+def test_many_starts_get_each_its_own_frame_or_error_in_one_call(cube_scene):
+    """The batched frames are each start's alone: the same as one start at a time, for touching starts, one
+    5 m away (touches nothing) and one driven into the cube (overlaps it)."""
+    cube, pose, cloud = cube_scene
+    features = compute_surface_features(cloud)
+    touching = [place_robot_against(cube.mesh, pose, yaw, lateral, gap=0.002)
+                for yaw, lateral in ((0.0, -0.08), (0.3, 0.0), (-0.2, 0.05))]
+    far = se3.Pose(touching[0].p + torch.tensor([5.0, 0.0, 0.0], dtype=touching[0].p.dtype), touching[0].q)
+    heading = float(se3.yaw_of(touching[1].q))
+    inside = se3.Pose(touching[1].p + 0.15 * torch.tensor([math.cos(heading), math.sin(heading), 0.0],
+                                                          dtype=touching[1].p.dtype), touching[1].q)
+    starts = [touching[0], far, touching[1], inside, touching[2]]
+    frames, errors = manipulator_frames_at(features, starts)
+    assert [type(e).__name__ if e else None for e in errors] == [None, "ModelError", None, "InvalidPoseError", None]
+    assert frames[1] is None and frames[3] is None and "touches none" in str(errors[1])
+    for start, frame in zip(starts, frames, strict=True):
+        if frame is None:
+            continue
+        alone = manipulator_frame_at(features, start)
+        for a, b in ((frame.v.p, alone.v.p), (frame.v.q, alone.v.q), (frame.u.p, alone.u.p), (frame.u.q, alone.u.q),
+                     (frame.r, alone.r), (frame.weight, alone.weight)):
+            assert a.shape == b.shape and torch.allclose(a, b, atol=1e-6), (a, b)
 
 
 def test_a_prediction_from_a_given_start_keeps_it_and_skips_the_robot_query(cube_scene, small_model):

@@ -65,6 +65,7 @@ __all__ = [
     "generate_push_condition",
     "given_start_frame",
     "manipulator_frame_at",
+    "manipulator_frames_at",
     "motion_bandwidth",
     "push_conditions",
     "query_bandwidth",
@@ -218,6 +219,7 @@ def manipulator_frame_at(features: SurfaceFeatures, robot_start: se3.Pose, cutof
     and facing it, the one with the largest weight ``exp(−λ_c d²)`` (the training law draws by that weight;
     a prediction takes its mode), related to the start as ``u = v⁻¹ ∘ R0``. ``clearance``: the cloud's
     :func:`~pushtorch.models.clearance.clearance_points` on the CPU, when the caller places many starts on it.
+    Many starts at once: :func:`manipulator_frames_at`.
 
     Raises:
         InvalidPoseError: ``robot_start`` is not one pose, or its bumper or chassis sits more than
@@ -225,33 +227,55 @@ def manipulator_frame_at(features: SurfaceFeatures, robot_start: se3.Pose, cutof
         ModelError: no observed feature lies within ``cutoff`` of the bumper facing it (the start does not
             touch the object where the camera saw it).
     """
-    robot_start = check_start(robot_start)
-    robot_start = se3.Pose.unchecked(robot_start.p.detach().cpu().to(features.p.dtype),
-                                     robot_start.q.detach().cpu().to(features.p.dtype))
+    [frame], [error] = manipulator_frames_at(features, [check_start(robot_start)], cutoff, drop_off, clearance)
+    if error is not None:
+        raise error
+    return frame
+
+
+def manipulator_frames_at(features: SurfaceFeatures, robot_starts: list[se3.Pose], cutoff: float = 0.01,
+                          drop_off: float = 100.0, clearance: torch.Tensor | None = None
+                          ) -> tuple[list[ContactFrames | None], list[InvalidPoseError | ModelError | None]]:
+    """:func:`manipulator_frame_at` for many starts on one cloud in one batched computation (a planner's
+    candidates): the starts' overlaps with the cloud in one call, the features in every start's frame against
+    the bumper in one closest-point query. Returns each start's frame ``(1,)`` or None, and None or the error
+    :func:`manipulator_frame_at` raises for it (a start that overlaps the object, or touches nothing)."""
+    count = len(robot_starts)
+    dtype = features.p.dtype
+    starts = se3.Pose.unchecked(torch.stack([s.p.detach().cpu().to(dtype).reshape(3) for s in robot_starts]),
+                                torch.stack([s.q.detach().cpu().to(dtype).reshape(4) for s in robot_starts]))
     clearance = clearance_points(features).cpu() if clearance is None else clearance  # the cloud's, shareable
-    inside = float(backoff_distance(robot_start, clearance, 0.0))
-    if inside > GIVEN_START_OVERLAP:
-        raise InvalidPoseError(
-            f"the given robot start overlaps the observed object: its bumper or chassis must reverse {inside:.3f} m "
-            f"along its approach to clear the cloud (at most {GIVEN_START_OVERLAP * 1000:g} mm allowed); place the "
-            "bumper in front of the side the camera saw"
-        )
-    points = se3.apply(se3.inverse(robot_start), features.p.cpu())
-    normals = se3.apply(se3.Pose.unchecked(torch.zeros(3, dtype=points.dtype),
-                                           se3.inverse(robot_start).q), features.normal.cpu())
-    dist, touching = bumper_contacts(bumper_mesh(se3.identity()), points, normals, cutoff)
-    if not bool(touching.any()):
-        raise ModelError(
-            f"the given robot start touches none of the {len(points)} observed surface features: none lies within "
-            f"{cutoff} m of the bumper and faces it (place the bumper against the side the camera saw)"
-        )
+    inside = backoff_distance(starts, clearance, 0.0)  # (C,)
+    to_start = se3.inverse(starts).unsqueeze(-1)  # (C, 1)
+    points = se3.apply(to_start, features.p.cpu())  # (C, P, 3)
+    normals = se3.apply(se3.Pose.unchecked(torch.zeros_like(to_start.p), to_start.q), features.normal.cpu())
+    dist, touching = bumper_contacts(bumper_mesh(se3.identity()), points.reshape(-1, 3), normals.reshape(-1, 3),
+                                     cutoff)
+    dist, touching = dist.reshape(count, -1), touching.reshape(count, -1)
     weight = torch.where(touching, torch.exp(-drop_off * dist**2), torch.zeros_like(dist))
-    best = int(weight.argmax())
+    best = weight.argmax(-1)  # (C,)
     device = features.p.device
-    v = se3.Pose.unchecked(features.p[best : best + 1], features.q[best : best + 1])
-    u = se3.relative(v, se3.Pose.unchecked(robot_start.p.to(device).unsqueeze(0),
-                                           robot_start.q.to(device).unsqueeze(0)))
-    return ContactFrames(v, features.r[best : best + 1], u, weight[best : best + 1].to(device))
+    v = se3.Pose.unchecked(features.p[best.to(device)], features.q[best.to(device)])  # (C,)
+    u = se3.relative(v, se3.Pose.unchecked(starts.p.to(device), starts.q.to(device)))
+    r, w = features.r[best.to(device)], weight.gather(-1, best.unsqueeze(-1)).squeeze(-1).to(device)
+    frames: list[ContactFrames | None] = []
+    errors: list[InvalidPoseError | ModelError | None] = []
+    for i, (overlap, touches) in enumerate(zip(inside.tolist(), touching.any(-1).tolist(), strict=True)):
+        if overlap > GIVEN_START_OVERLAP:
+            frames.append(None)
+            errors.append(InvalidPoseError(
+                f"the given robot start overlaps the observed object: its bumper or chassis must reverse "
+                f"{overlap:.3f} m along its approach to clear the cloud (at most "
+                f"{GIVEN_START_OVERLAP * 1000:g} mm allowed); place the bumper in front of the side the camera saw"))
+        elif not touches:
+            frames.append(None)
+            errors.append(ModelError(
+                f"the given robot start touches none of the {points.shape[1]} observed surface features: none lies "
+                f"within {cutoff} m of the bumper and faces it (place the bumper against the side the camera saw)"))
+        else:
+            frames.append(ContactFrames(v.take(i).unsqueeze(0), r[i : i + 1], u.take(i).unsqueeze(0), w[i : i + 1]))
+            errors.append(None)
+    return frames, errors
 
 
 def given_start_frame(start: se3.Pose | None, features: SurfaceFeatures, model: PushModel) -> ContactFrames | None:
@@ -376,17 +400,8 @@ def candidate_conditions(model: PushModel, features: SurfaceFeatures, starts: li
     """
     settings = model.settings
     starts = [check_start(start) for start in starts]
-    clearance = clearance_points(features).cpu()
-    frames: list[ContactFrames | None] = []
-    reasons: list[str | None] = []
-    for start in starts:
-        try:
-            frames.append(manipulator_frame_at(features, start, settings.contact_cutoff, settings.contact_drop_off,
-                                               clearance))
-            reasons.append(None)
-        except (InvalidPoseError, ModelError) as exc:
-            frames.append(None)
-            reasons.append(str(exc))
+    frames, errors = manipulator_frames_at(features, starts, settings.contact_cutoff, settings.contact_drop_off)
+    reasons = [None if error is None else str(error) for error in errors]
     density = model.position.pose_query(features, settings, generator, Evaluation.FAST)
     [result] = optimise_query_densities([density], settings.anneal_candidates,
                                         anneal_schedule(settings, False, Evaluation.FAST), [False], generator,

@@ -23,6 +23,7 @@ from pushtorch.models.push_condition import (
     estimate_pose,
     generate_push_condition,
     manipulator_frame_at,
+    manipulator_frames_at,
     motion_bandwidth,
     query_bandwidth,
 )
@@ -51,6 +52,7 @@ __all__ = [
     "estimate_pose",
     "generate_push_condition",
     "manipulator_frame_at",
+    "manipulator_frames_at",
     "motion_bandwidth",
     "predict",
     "predict_candidates",
