@@ -42,7 +42,7 @@ def local_records(cube_plan, tmp_path_factory):
 @pytest.fixture(scope="module")
 def ray_instance():
     ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield ray
     ray.shutdown()
 
@@ -182,3 +182,29 @@ def test_an_unknown_slurm_partition_is_refused_and_a_local_array_needs_no_slurm(
         from pushtorch.sim.executors import SlurmPool
 
         SlurmPool(None, None, Executor("slurm"))
+
+
+def test_remote_tasks_return_in_call_order_and_say_where_they_ran(ray_instance, tmp_path):
+    from pushtorch.experiments.context import stable_seed  # a pure function of its arguments
+    from pushtorch.sim.executors import run_remote_tasks, task_host
+
+    done = []
+    results = run_remote_tasks(Executor("ray"), stable_seed, [(0, k) for k in range(5)], tmp_path,
+                               on_done=lambda index, _: done.append(index))
+    assert results == [stable_seed(0, k) for k in range(5)] and sorted(done) == [0, 1, 2, 3, 4]
+    hosts = run_remote_tasks(Executor("ray"), task_host, [(), ()], tmp_path)
+    assert all("/ray-node-" in host for host in hosts)  # a Ray task names its node
+    with pytest.raises(InvalidParameterError, match="task_memory_mb=100000000: no node"):  # never a wait forever
+        run_remote_tasks(Executor("ray", task_memory_mb=10**8), stable_seed, [(1,)], tmp_path)
+
+
+def test_remote_tasks_as_a_submitit_array(tmp_path):
+    pytest.importorskip("submitit")
+    from pushtorch.experiments.context import stable_seed
+    from pushtorch.sim.executors import run_remote_tasks
+
+    assert run_remote_tasks(Executor("slurm", cluster="local"), stable_seed, [(3,), (4,)], tmp_path) == [
+        stable_seed(3), stable_seed(4)]
+    assert len(list(tmp_path.glob("*_result.pkl"))) == 2  # two array tasks ran, their job files in the folder
+    with pytest.raises(InvalidParameterError, match="runs no remote tasks"):
+        run_remote_tasks(Executor(), stable_seed, [(1,)], tmp_path)

@@ -329,7 +329,10 @@ def test_tiny_quickstart_writes_tidy_results(tiny_run):
     cfg, out, summary = tiny_run
     results = json.loads((out / "results.json").read_text())
     assert set(results) == {"experiment", "world", "physics", "config", "overrides", "wall_s", "records",
-                            "model_bandwidths", "separability"}
+                            "model_bandwidths", "separability", "tasks"}
+    # two cores: the models, the groups of predictions and the online conditions ran in local worker processes
+    kinds = {key.split(" | ")[0] for key in results["tasks"] if key.endswith("(local workers)")}
+    assert {"models trained", "groups predicted, pushed and scored", "groups of conditions scored"} <= kinds
     # the default world: the truth in MuJoCo, the physics peers in pybullet (no peer has the truth's physics)
     assert results["world"] == {"engine": "mujoco"} and results["physics"] == {"engine": "pybullet"}
     # every trained model chose its bandwidths from its training pushes, and the run says which
@@ -564,8 +567,37 @@ def test_the_parts_steps_in_worker_processes_give_the_records_of_a_serial_run(ti
     assert spread == serial, f"{differ} of {len(spread)} records differ ({parts})"
 
 
+def test_a_cluster_task_receives_a_trained_model_as_its_files_path_and_a_context_without_its_recording(tiny_run):
+    import pickle
+
+    from pushtorch.experiments.common import context_from_config
+    from pushtorch.experiments.tasks import models_by_path, saved_as, saved_models
+
+    cfg, out, _ = tiny_run
+    path = sorted((out / "models").glob("cube_general_*.npz"))[0]
+    model = saved_as(load_model(path), load_model, str(path))
+    assert saved_models()[id(model)][0] is model
+    ctx = context_from_config(cfg, out)
+    ctx.recording = lambda: None  # as an open recording: not picklable, and not for a task
+    ctx.task_counts["models trained | here"] = 1
+    with models_by_path():
+        payload = pickle.dumps((model, ctx))
+    assert len(payload) < 20_000 and str(path).encode() in payload  # the path, not the kernels' tensors
+    back, task_ctx = pickle.loads(payload)
+    assert back is not model and back.arrays().keys() == model.arrays().keys()
+    assert all(torch.equal(back.arrays()[k], v) for k, v in model.arrays().items())
+    assert task_ctx.recording is None and task_ctx.executor.kind == "local" and task_ctx.workers == 1
+    assert task_ctx.task_counts == {} and task_ctx.run_dir == ctx.run_dir and task_ctx.settings == ctx.settings
+    with pytest.raises((TypeError, pickle.PicklingError, AttributeError)):  # outside, a context pickles as it is
+        pickle.dumps(ctx)
+    key = id(model)
+    del model, back
+    assert key not in saved_models()  # an entry leaves with its model
+
+
 def test_the_friction_biasing_part_on_ray_writes_the_same_records(tiny_run, tmp_path):
-    """executor=ray: the training and ground-truth pushes as Ray tasks (a real local instance), the same records."""
+    """executor=ray: the training pushes as Ray shards; the models, the predictions with their peers, the truth and
+    the scores as Ray tasks (a real local instance). The records are those of the local run."""
     ray = pytest.importorskip("ray")
     _, out, _ = tiny_run
     cfg = _compose([*TINY, "executor=ray", "executor.num_cpus=2", "~experiment.parts.model_selection",
@@ -581,6 +613,121 @@ def test_the_friction_biasing_part_on_ray_writes_the_same_records(tiny_run, tmp_
                 if str(r.get("model", "")).startswith("friction:")]
 
     assert friction(tmp_path / "ray") and friction(tmp_path / "ray") == friction(out)
+    # the models, and the predictions with their peers, truth and scores, ran as Ray tasks (a node of its own)
+    tasks = json.loads((tmp_path / "ray" / "results.json").read_text())["tasks"]
+    assert {key.split(" | ")[0] for key in tasks if "/ray-node-" in key} == {
+        "models trained", "groups predicted, pushed and scored"}, tasks
+
+
+def _session_processes(session: int) -> list[tuple[int, bytes]]:
+    """(pid, cmdline) of every process of a session (/proc/<pid>/stat's sixth field)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+                if int(stat.rsplit(")", 1)[1].split()[3]) == session:
+                    found.append((int(entry.name), (entry / "cmdline").read_bytes()))
+            except (OSError, ValueError, IndexError):
+                pass
+    return found
+
+
+def _kill_session(session: int) -> None:
+    import os
+    import signal
+
+    for pid, _ in _session_processes(session):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:
+            pass
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the nodes' processes in /proc")
+def test_a_ray_cluster_that_loses_a_node_finishes_with_every_record_once(tiny_run, tmp_path, monkeypatch):
+    """A head and a worker node on loopback (one CPU each, each a session of its own) run the friction-biasing
+    part; the worker node is killed, raylet and workers at once, while it runs a task. The run finishes on the
+    head, and its records are the local run's, each once."""
+    import os
+    import socket
+    import tempfile
+    import threading
+    import time
+
+    ray = pytest.importorskip("ray")
+    _, out, _ = tiny_run
+    with socket.socket() as probe:  # a free port for the head
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    # `ray start` notes its cluster in /tmp/ray/ray_current_cluster, where a later ray.init() without an address
+    # would look for it: the note is put back as it was
+    current = Path(tempfile.gettempdir()) / "ray" / "ray_current_cluster"
+    noted = current.read_text() if current.is_file() else None
+    env = dict(os.environ, RAY_AUTH_MODE="disabled")
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    ray_cli = [sys.executable, "-m", "ray.scripts.scripts", "start", "--block", "--node-ip-address", "127.0.0.1",
+               "--num-cpus", "1", "--disable-usage-stats"]
+    head = subprocess.Popen([*ray_cli, "--head", "--port", str(port), "--include-dashboard=false"], env=env,
+                            start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    worker = None
+    try:
+        deadline = time.monotonic() + 60
+        while True:  # the head's GCS answers
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                assert time.monotonic() < deadline, "the Ray head did not start"
+                time.sleep(0.5)
+        worker = subprocess.Popen([*ray_cli, "--address", f"127.0.0.1:{port}"], env=env, start_new_session=True,
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        ray.init(address=f"127.0.0.1:{port}", include_dashboard=False, log_to_driver=False)
+        while sum(n["Alive"] for n in ray.nodes()) < 2:
+            assert time.monotonic() < deadline + 60, "the worker node did not join"
+            time.sleep(0.5)
+        cfg = _compose([*TINY, "executor=ray", f"executor.address=127.0.0.1:{port}",
+                        "~experiment.parts.model_selection", "~experiment.parts.pose_estimation",
+                        "~experiment.parts.mass_biasing", "~experiment.parts.online_adaptation"])
+        result = {}
+
+        def run():
+            try:
+                result["summary"] = quickstart.run(cfg, tmp_path / "two_nodes")
+            except BaseException as exc:  # noqa: BLE001 - reported below
+                result["error"] = exc
+
+        thread = threading.Thread(target=run)
+        thread.start()
+        killed, deadline = None, time.monotonic() + 300
+        while killed is None and thread.is_alive() and time.monotonic() < deadline:
+            if any(cmd.startswith((b"ray::_remote_task", b"ray::run_shard_task"))
+                   for _, cmd in _session_processes(worker.pid)):
+                killed = [cmd.split(b"\0")[0] for _, cmd in _session_processes(worker.pid)]
+                _kill_session(worker.pid)
+            time.sleep(0.05)
+        thread.join(timeout=900)
+        assert killed is not None, "no task was caught running on the worker node"
+        assert "error" not in result, result.get("error")
+        assert "summary" in result, "the run did not finish"
+        assert sum(n["Alive"] for n in ray.nodes()) == 1  # the worker node is gone
+    finally:
+        ray.shutdown()
+        for node in (worker, head):
+            if node is not None:
+                _kill_session(node.pid)
+                node.wait(timeout=30)
+        if noted is None:
+            current.unlink(missing_ok=True)
+        else:
+            current.write_text(noted)
+
+    def friction(path):
+        return sorted(json.dumps(r, sort_keys=True) for r in json.loads((path / "results.json").read_text())["records"]
+                      if str(r.get("model", "")).startswith("friction:"))
+
+    assert friction(tmp_path / "two_nodes") and friction(tmp_path / "two_nodes") == friction(out)
 
 
 def test_train_and_predict_apps_on_the_runs_data(tiny_run, tmp_path):

@@ -49,14 +49,13 @@ from pushtorch.experiments.common import (
     simulate_truth,
     stable_seed,
     summarise,
-    train_model,
     training_records,
     truth_fingerprint,
 )
 from pushtorch.experiments.statistics import sample_entry
 from pushtorch.experiments.suite import run_suite
 from pushtorch.experiments.tasks import prefetch
-from pushtorch.experiments.training import train_residual
+from pushtorch.experiments.training import train_models, train_residual
 from pushtorch.models.residual import DEFAULT_ENSEMBLE
 from pushtorch.objects import load_object
 
@@ -113,9 +112,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     if any(o.name not in training_of for o in objects):
         needed |= set(training)
     trained = [(t, f, m) for t in sorted(needed) for f, m in model_priors]
-    prefetch(ctx, lambda task_ctx, tfm: train_model(task_ctx, load_object(tfm[0]), *tfm[1:]), trained,
-             what="models trained")
-    models = {(t, f, m): train_model(ctx, load_object(t), f, m) for t, f, m in trained}
+    models = train_models(ctx, trained)
     # the density peers: physics_ensemble (rollouts under the model's training prior) and the residual model
     ensemble_size = part.get("ensemble")
     residuals = None

@@ -205,6 +205,8 @@ class ExperimentContext:
             logged: ``recording.conditions``, default the first ``experiment.log_examples``.
         logged_predictions: ``(root entity path, summary)`` of every prediction :func:`log_examples` logged
             (for the recording's blueprint and part summaries; shared by :meth:`with_model` contexts).
+        task_counts: ``{"<kind> | <where>": count}`` of the tasks :func:`pushtorch.experiments.tasks.prefetch`
+            ran (results.json's ``tasks``; shared by :meth:`with_model` contexts).
         placement: how training places the robot (``model.placement``; default the paper's single
             placement, see docs/method.md "Training placement").
         test_placement: None (default): every test push starts where the model's contact model puts the
@@ -230,6 +232,7 @@ class ExperimentContext:
     placement: Placement = Placement()
     test_placement: Placement | None = None
     logged_predictions: list[tuple[str, str]] = field(default_factory=list, repr=False)
+    task_counts: dict[str, int] = field(default_factory=dict, repr=False)
     _models: dict[str, PushModel] = field(default_factory=dict, repr=False)
     _slots: list[int] = field(default_factory=lambda: [0], repr=False)
     # the last ground-truth plan and its (C, N, A, S) shape, keyed by the predictions' fingerprint:
@@ -256,7 +259,7 @@ class ExperimentContext:
         settings = ModelSettings.from_mapping(model_cfg.get("settings", {}))
         samples = int(model_cfg.get("samples_per_action", self.samples_per_action))
         placement = _model_placement(model_cfg) if "placement" in model_cfg else self.placement
-        # the model and slot caches stay shared: replace passes the same dict and list on
+        # the model and slot caches and the task counts stay shared: replace passes the same dicts and list on
         return replace(self, settings=settings, samples_per_action=samples, placement=placement)
 
     def next_slot(self) -> tuple[float, float]:

@@ -38,12 +38,12 @@ from pushtorch.experiments.common import (
     simulate_truth,
     stable_seed,
     summarise,
-    train_model,
     truth_fingerprint,
 )
 from pushtorch.experiments.statistics import sample_entry
 from pushtorch.experiments.suite import run_suite
 from pushtorch.experiments.tasks import prefetch
+from pushtorch.experiments.training import train_models
 from pushtorch.objects import load_object
 
 __all__ = ["METHODS", "run", "run_part"]
@@ -89,9 +89,8 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     if len(training) < 2 and "incongruent" in methods:
         raise InvalidParameterError("the incongruent method needs at least two training objects")
     friction, mass = _single(model_cfg, "friction"), _single(model_cfg, "mass")
-    prefetch(ctx, lambda task_ctx, t: train_model(task_ctx, load_object(t), friction, mass), training,
-             what="models trained")
-    models = [train_model(ctx, load_object(t), friction, mass) for t in training]
+    trained = train_models(ctx, [(t, friction, mass) for t in training])
+    models = [trained[(t, friction, mass)] for t in training]
     condition = (str(part["condition"]["friction"]), str(part["condition"]["mass"]))
     samples = int(part["truth_samples"])
     records: list[dict] = []

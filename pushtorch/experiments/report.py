@@ -95,7 +95,8 @@ def write_outputs(out_dir: Path, experiment: str, config: Mapping[str, Any], wal
                   overrides: Sequence[str] = ()) -> dict[str, Any]:
     """results.json, figures, report.md; returns their paths and the acceptance checks."""
     results = write_results(out_dir, experiment, config, wall_s, records, overrides,
-                            extras.get("model_bandwidths"), extras.get("online_separability") or ())
+                            extras.get("model_bandwidths"), extras.get("online_separability") or (),
+                            extras.get("tasks"))
     figures = make_figures(out_dir, primary(records), extras)
     figure_data = write_figure_data(out_dir, extras)  # what tools/redraw_figures.py redraws them from
     checks = acceptance_checks(primary(records), extras.get("thrown") or ())

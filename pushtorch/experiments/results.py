@@ -122,13 +122,15 @@ def engines(config: Mapping[str, Any]) -> dict[str, dict[str, str]]:
 def write_results(out_dir: Path, experiment: str, config: Mapping[str, Any], wall_s: float,
                   records: Sequence[Mapping[str, Any]], overrides: Sequence[str] = (),
                   model_bandwidths: Mapping[str, Any] | None = None,
-                  separability: Sequence[Mapping[str, Any]] = ()) -> Path:
+                  separability: Sequence[Mapping[str, Any]] = (), tasks: Mapping[str, int] | None = None) -> Path:
     """``results.json`` in the run directory (the layout in the module docstring).
 
     ``overrides`` are the run's command-line overrides (Hydra's task overrides), so a sweep's jobs can be
     told apart and tabulated by what was swept (``pushtorch-collect``). ``model_bandwidths``: per
     trained model, the bandwidths its search chose (``PushModel.meta["bandwidths"]``). ``separability``: the
     online-adaptation experiment's separability of adjacent test conditions (key ``separability``, when any).
+    ``tasks``: ``{"<kind> | <where>": count}`` of the work that ran as tasks (local worker processes or a
+    cluster's; key ``tasks``, when any).
     """
     path = Path(out_dir) / "results.json"
     payload = {"experiment": experiment, **engines(config), "config": dict(config), "overrides": list(overrides),
@@ -136,6 +138,8 @@ def write_results(out_dir: Path, experiment: str, config: Mapping[str, Any], wal
                "model_bandwidths": dict(model_bandwidths or {})}
     if separability:
         payload["separability"] = list(separability)
+    if tasks:
+        payload["tasks"] = dict(tasks)
     path.write_text(json.dumps(payload, indent=1, allow_nan=True))
     return path
 

@@ -147,6 +147,7 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]],
         ctx.recording.disconnect()  # completes the file (flush alone leaves it without its footer)
     extras["model_bandwidths"] = {m.name: m.meta["bandwidths"] for m in ctx._models.values()
                                   if "bandwidths" in m.meta}
+    extras["tasks"] = dict(sorted(ctx.task_counts.items()))
     wall = time.perf_counter() - start
     outputs = write_outputs(out_dir, name, plain(cfg), wall, records, extras, overrides=list(overrides))
     passed = sum(c["passed"] for c in outputs["checks"])

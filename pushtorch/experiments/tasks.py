@@ -8,24 +8,44 @@ finds every cache filled and only reads, records and logs, in its usual order. S
 a serial run, a killed run resumes from whatever the tasks wrote, and the recording is written by one process.
 
 Inside a task the context simulates in its own process (``workers=1``), logs nothing to the recording and shows
-no progress bars; the part's bar advances as tasks finish. Nothing is prefetched with one core (the loop does
-the work itself, as before), or with ``executor=ray|slurm``, whose pushes go to the cluster from the loop.
+no progress bars; the part's bar advances as tasks finish. Nothing is prefetched with one core on the local
+executor (the loop does the work itself, as before).
+
+With ``executor=ray`` or ``executor=slurm`` the same tasks run on the cluster
+(:func:`pushtorch.sim.executors.run_remote_tasks`), one CPU and one torch thread each, into the run folder that
+every node shares; the submitting process plans, then its loop reads the caches and writes the report. What a
+task needs crosses by pickle, with two exceptions: a model an experiment trained travels as its file's path and
+is read again there (:func:`saved_as`), and an experiment context travels
+as the task's context (no recording, no model cache, the local executor with one worker), wherever a step holds
+one. A task compiles the fast path exactly when the submitting process does, so that its records are those of
+a local run on the same host and thread count; on nodes with other CPUs floats may differ in their last bits.
+Each task says where it ran; the counts per kind and host are kept in the context (``task_counts``) and written
+to results.json (``tasks``).
 """
 
 from __future__ import annotations
 
+import copyreg
 import dataclasses
 import logging
+import os
 import time
-from collections.abc import Callable, Sequence
+import weakref
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 from pushtorch.experiments.context import ExperimentContext
+from pushtorch.sim.executors import Executor, run_remote_tasks, task_host
 from pushtorch.sim.tasks import run_tasks, task_workers
 
-__all__ = ["prefetch", "warm_up"]
+__all__ = ["models_by_path", "prefetch", "saved_as", "saved_models", "warm_up"]
 
 log = logging.getLogger("pushtorch.experiments")
+
+#: Every live model this process trained or read for an experiment, by ``id``: (a weak reference to it, how to
+#: read it again, its arguments). An entry leaves with its model.
+_SAVED: dict[int, tuple[weakref.ref, Callable, tuple]] = {}
 
 #: What :func:`_run` works on, set before the workers fork: task index → (step, task context, item).
 _STATE: dict[int, tuple[Callable[[ExperimentContext, Any], Any], ExperimentContext, Any]] = {}
@@ -38,6 +58,25 @@ def _run(index: int) -> float:
     step, ctx, item = _STATE[index]
     step(ctx, item)
     return time.perf_counter() - start
+
+
+def saved_as(model, reader: Callable, *arguments):
+    """``model``, noted as one that ``reader(*arguments)`` reads again from its file on the shared run folder:
+    a task on a cluster receives it as that path, not as pickled tensors. Returns ``model``."""
+    key = id(model)
+
+    def forget(ref: weakref.ref) -> None:
+        if _SAVED.get(key, (None,))[0] is ref:
+            del _SAVED[key]
+
+    _SAVED[key] = (weakref.ref(model, forget), reader, arguments)
+    return model
+
+
+def saved_models() -> dict[int, tuple[Any, Callable, tuple]]:
+    """``{id(model): (model, reader, arguments)}`` of every live model :func:`saved_as` noted in this process."""
+    return {key: (model, reader, arguments) for key, (ref, reader, arguments) in list(_SAVED.items())
+            if (model := ref()) is not None}
 
 
 def warm_up(model) -> None:
@@ -74,7 +113,12 @@ def prefetch(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], An
         Whether the items ran in workers (False: nothing was done, the loop does the work).
     """
     items = list(items)
-    if ctx.executor.kind != "local" or task_workers(len(items), ctx.workers) <= 1:
+    if not items:
+        return False
+    if ctx.executor.kind != "local":
+        _run_remote(ctx, step, items, on_done, what)
+        return True
+    if task_workers(len(items), ctx.workers) <= 1:
         return False
     if warm is not None:
         warm_up(warm)
@@ -87,6 +131,83 @@ def prefetch(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], An
                             on_done=None if on_done is None else (lambda index, _: on_done(items[index])))
     finally:
         _STATE.clear()
+    where = f"{task_host()} (local workers)"
+    ctx.task_counts[f"{what} | {where}"] = ctx.task_counts.get(f"{what} | {where}", 0) + len(items)
     log.info("%d %s in %d worker processes: %.0f s (%.0f s of work, the longest %.0f s)", len(items), what,
              task_workers(len(items), ctx.workers), time.perf_counter() - start, sum(seconds), max(seconds))
     return True
+
+
+def _task_context(ctx: ExperimentContext) -> ExperimentContext:
+    """What a remote task works with: the context without its recording and model cache, simulating in its own
+    process on the local executor."""
+    return dataclasses.replace(ctx, workers=1, executor=Executor(), recording=None, progress=False,
+                               logged_predictions=[], task_counts={}, _models={}, _slots=[0], _truth_plan=None)
+
+
+def _rebuild_context(fields: dict) -> ExperimentContext:
+    return ExperimentContext(**fields)
+
+
+def _reduce_context(ctx: ExperimentContext):
+    task = _task_context(ctx)
+    return _rebuild_context, ({f.name: getattr(task, f.name) for f in dataclasses.fields(task)},)
+
+
+def _reduce_saved(model):
+    """A model this process trained or read: its file's path, read again where it is unpickled."""
+    entry = _SAVED.get(id(model))
+    if entry is None or entry[0]() is not model:
+        return model.__reduce_ex__(4)
+    return entry[1], entry[2]
+
+
+@contextmanager
+def models_by_path() -> Iterator[None]:
+    """While open, pickling sends trained models as their files' paths and contexts as task contexts."""
+    reducers: dict[type, Callable] = {type(entry[0]): _reduce_saved for entry in saved_models().values()}
+    reducers[ExperimentContext] = _reduce_context
+    before = {kind: copyreg.dispatch_table.get(kind) for kind in reducers}
+    copyreg.dispatch_table.update(reducers)
+    try:
+        yield
+    finally:
+        for kind, old in before.items():
+            if old is None:
+                copyreg.dispatch_table.pop(kind, None)
+            else:
+                copyreg.dispatch_table[kind] = old
+
+
+def _remote_task(step: Callable[[ExperimentContext, Any], Any], ctx: ExperimentContext, item: Any,
+                 compiled: bool) -> tuple[float, str]:
+    """One task on a cluster's worker: ``step(ctx, item)`` on one torch thread, compiled as its submitter
+    compiles; returns its seconds and where it ran."""
+    import torch
+
+    start = time.perf_counter()
+    torch.set_num_threads(1)
+    os.environ["PUSHTORCH_COMPILE"] = "1" if compiled else "0"
+    step(ctx, item)
+    return time.perf_counter() - start, task_host()
+
+
+def _run_remote(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], Any], items: list,
+                on_done: Callable[[Any], None] | None, what: str) -> None:
+    """Every item as a task of the context's Ray or Slurm executor (module notes)."""
+    from pushtorch.kde import fast_path_compiled
+
+    compiled = fast_path_compiled("cpu")
+    start = time.perf_counter()
+    with models_by_path():
+        task_ctx = _task_context(ctx)
+        results = run_remote_tasks(ctx.executor, _remote_task, [(step, task_ctx, item, compiled) for item in items],
+                                   ctx.run_dir / ".submitit" / "tasks",
+                                   on_done=None if on_done is None else (lambda index, _: on_done(items[index])))
+    hosts: dict[str, int] = {}
+    for _, where in results:
+        hosts[where] = hosts.get(where, 0) + 1
+        ctx.task_counts[f"{what} | {where}"] = ctx.task_counts.get(f"{what} | {where}", 0) + 1
+    log.info("%d %s as %s tasks on %s: %.0f s (%.0f s of work, the longest %.0f s)", len(items), what,
+             ctx.executor.kind, ", ".join(f"{h} ({n})" for h, n in sorted(hosts.items())),
+             time.perf_counter() - start, sum(r[0] for r in results), max(r[0] for r in results))

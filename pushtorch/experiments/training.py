@@ -13,6 +13,7 @@ import torch
 
 from pushtorch.errors import RecordFormatError
 from pushtorch.experiments.context import ExperimentContext, stable_seed
+from pushtorch.experiments.tasks import prefetch, saved_as
 from pushtorch.models.model import PushModel, load_model
 from pushtorch.models.training import train_push_model
 from pushtorch.objects import ObjectModel
@@ -23,6 +24,7 @@ __all__ = [
     "engine_tag",
     "placement_tag",
     "train_model",
+    "train_models",
     "train_pooled",
     "train_residual",
     "training_records",
@@ -138,8 +140,24 @@ def train_model(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: s
         model.save(path)
     if ctx.recording is not None and all(m.name != model.name for m in ctx._models.values()):
         _log_training(ctx, model, obj)
-    ctx._models[cache_key] = model
+    ctx._models[cache_key] = saved_as(model, load_model, str(path))
     return model
+
+
+def train_models(ctx: ExperimentContext, keys) -> dict[tuple[str, str, str], PushModel]:
+    """:func:`train_model` for every ``(object name, friction, mass)`` of ``keys``, as tasks where there is
+    room (:func:`pushtorch.experiments.tasks.prefetch`). On a Ray or Slurm executor the training pushes go to
+    the cluster first as the run's shards, so that a model's pushes are spread as before and its task only
+    trains."""
+    from pushtorch.objects import load_object
+
+    keys = list(keys)
+    if ctx.executor.kind != "local":
+        for t, f, m in keys:
+            training_records(ctx, load_object(t), f, m, progress=ctx.progress)
+    prefetch(ctx, lambda task_ctx, tfm: train_model(task_ctx, load_object(tfm[0]), *tfm[1:]), keys,
+             what="models trained")
+    return {(t, f, m): train_model(ctx, load_object(t), f, m) for t, f, m in keys}
 
 
 def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str, ensemble: int):
@@ -160,7 +178,7 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
             cached = load_residual_model(path)
             if cached.sim == ctx.physics and cached.model.name == model.name \
                     and cached.model.settings == model.settings and cached.model.meta == model.meta:
-                return with_ensemble(cached, ensemble)
+                return saved_as(with_ensemble(cached, ensemble), _read_residual, str(path), int(ensemble))
         except RecordFormatError as exc:
             log.warning("retraining the residual of %s: %s", key, exc)
     records = training_records(ctx, obj, friction, mass, progress=False)
@@ -173,7 +191,14 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
              int(records.valid.sum()))
     residual = train_residual_model(fresh, obj, records, ctx.physics, ensemble)
     residual.save(path)
-    return residual
+    return saved_as(residual, _read_residual, str(path), int(ensemble))
+
+
+def _read_residual(path: str, ensemble: int):
+    """A residual model file with ``ensemble`` rollouts per prediction, as :func:`train_residual` returned it."""
+    from pushtorch.models.residual import load_residual_model, with_ensemble
+
+    return with_ensemble(load_residual_model(path), ensemble)
 
 
 def _log_training(ctx: ExperimentContext, model: PushModel, obj: ObjectModel) -> None:
@@ -209,5 +234,5 @@ def train_pooled(ctx: ExperimentContext, shapes: list[ObjectModel], friction: st
                                    parts=parts)
         model = choose_widening(model, shapes, records, parts, widening_pushes, generator)
         model.save(path)
-    ctx._models[cache_key] = model
+    ctx._models[cache_key] = saved_as(model, load_model, str(path))
     return model

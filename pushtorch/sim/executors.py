@@ -15,6 +15,11 @@ the result (:func:`pushtorch.sim.records.load_records`).
   ``partition``, ``array_parallelism``). A pre-empted task is requeued by submitit and skips the shards it
   had finished. ``cluster=local`` runs the array as local processes (tests, laptops).
 
+An experiment's work beyond pushes (training its models, prediction sets with their peers, scores) goes to the
+same executor as tasks (:func:`run_remote_tasks`, called by :mod:`pushtorch.experiments.tasks`): one CPU each,
+``task_memory_mb`` each (Ray's ``memory`` resource, Slurm's ``--mem``), their outputs written into the shared
+run folder. Each task says where it ran (:func:`task_host`).
+
 Ray and submitit are optional extras (``pip install "pushtorch[ray]"`` / ``"pushtorch[slurm]"``); a missing
 one, or a Ray address nobody answers at, is a one-line :class:`~pushtorch.errors.InvalidParameterError` raised
 before any file is written.
@@ -28,13 +33,14 @@ import shutil
 import socket
 import subprocess
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import Any
 
 from pushtorch.errors import InvalidParameterError, MissingDependencyError
 
-__all__ = ["EXECUTORS", "Executor", "executor_from_config", "slurm_problem"]
+__all__ = ["EXECUTORS", "Executor", "executor_from_config", "run_remote_tasks", "slurm_problem", "task_host"]
 
 #: The executors ``executor.kind`` may name.
 EXECUTORS = ("local", "ray", "slurm")
@@ -55,6 +61,8 @@ class Executor:
         partition: slurm: the partition (None: the site's default).
         array_parallelism: slurm: array tasks running at once.
         tasks: slurm: array tasks, each a block of consecutive shards (0: one per shard, at most 256).
+        task_memory_mb: ray and slurm: the memory an experiment task states (training a part's model,
+            one group of predictions with its peers and scores); Ray schedules by it, Slurm requests it.
     """
 
     kind: str = "local"
@@ -67,6 +75,7 @@ class Executor:
     partition: str | None = None
     array_parallelism: int = 64
     tasks: int = 0
+    task_memory_mb: int = 3000
 
     def __post_init__(self) -> None:
         if self.kind not in EXECUTORS:
@@ -75,7 +84,7 @@ class Executor:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise InvalidParameterError(f"executor.{name} must be a non-negative integer, got {value!r}")
-        for name in ("timeout_min", "array_parallelism"):
+        for name in ("timeout_min", "array_parallelism", "task_memory_mb"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise InvalidParameterError(f"executor.{name} must be a positive integer, got {value!r}")
@@ -157,6 +166,24 @@ def _check_address(address: str) -> None:
         ) from exc
 
 
+def _ray_session(executor: Executor):
+    """Ray, joined to ``executor.address`` or started locally with ``num_cpus`` (once per process)."""
+    ray = _require("ray", "ray")
+    if not ray.is_initialized():
+        if executor.address:
+            _check_address(executor.address)
+            try:
+                ray.init(address=executor.address, include_dashboard=False, log_to_driver=False)
+            except ConnectionError as exc:
+                raise InvalidParameterError(f"executor.address={executor.address!r}: {exc}") from exc
+        else:
+            # address="local": a new instance even where `ray start` left a cluster's address in Ray's temp folder
+            # (ray.init() would join that cluster, or refuse num_cpus)
+            ray.init(address="local", num_cpus=executor.num_cpus or os.cpu_count(), include_dashboard=False,
+                     log_to_driver=False)
+    return ray
+
+
 class _RemotePool:
     """What the remote pools share: nothing to release (Ray and the array's jobs outlive the pool), and the
     context-manager protocol :func:`pushtorch.sim.runner.run_plan` uses."""
@@ -177,18 +204,7 @@ class RayPool(_RemotePool):
     """Shards as Ray tasks (retried when a worker dies); :meth:`imap_unordered` yields as they finish."""
 
     def __init__(self, spec, settings, executor: Executor):
-        ray = _require("ray", "ray")
-        self.ray = ray
-        if not ray.is_initialized():
-            if executor.address:
-                _check_address(executor.address)
-                try:
-                    ray.init(address=executor.address, include_dashboard=False, log_to_driver=False)
-                except ConnectionError as exc:
-                    raise InvalidParameterError(f"executor.address={executor.address!r}: {exc}") from exc
-            else:
-                ray.init(num_cpus=executor.num_cpus or os.cpu_count(), include_dashboard=False,
-                         log_to_driver=False)
+        ray = self.ray = _ray_session(executor)
         self._spec = ray.put(spec)
         self._settings = settings
         self._remote = ray.remote(num_cpus=1, max_retries=int(executor.max_retries))(run_shard_task)
@@ -264,6 +280,91 @@ class SlurmPool(_RemotePool):
                 yield from job.result()
             if pending and not finished:
                 time.sleep(0.2)
+
+
+def task_host() -> str:
+    """Where this process runs: the host's name, and the Ray node's id (its first 8 characters) inside a Ray
+    task, so that two nodes on one machine are told apart."""
+    import sys
+
+    host = socket.gethostname()
+    ray = sys.modules.get("ray")
+    if ray is not None and ray.is_initialized():
+        try:
+            return f"{host}/ray-node-{ray.get_runtime_context().get_node_id()[:8]}"
+        except Exception:  # noqa: BLE001 - not inside a task of a connected worker: the host alone
+            return host
+    return host
+
+
+def run_remote_tasks(executor: Executor, function: Callable, calls: Sequence[tuple], folder: Path,
+                     on_done: Callable[[int, Any], None] | None = None) -> list:
+    """``[function(*call) for call in calls]`` as tasks of a ``ray`` or ``slurm`` executor, one CPU and
+    ``executor.task_memory_mb`` each; results in the order of ``calls``.
+
+    ``function`` and its arguments cross to the workers by pickle (cloudpickle), at submission: what should travel
+    by path is the caller's to arrange (:mod:`pushtorch.experiments.tasks`). A Ray task whose worker dies is run
+    again (``max_retries``); a Slurm array (submitit, its job files under ``folder``) runs one task per call.
+    ``on_done(index, result)`` is called here as each finishes.
+
+    Raises:
+        InvalidParameterError: a local executor, one that cannot start (:func:`slurm_problem`), or a Ray cluster
+            without a node of ``task_memory_mb``;
+        MissingDependencyError: its extra is not installed; whatever a task raised.
+    """
+    calls = list(calls)
+    results: list = [None] * len(calls)
+    if not calls:
+        return results
+    if executor.kind == "ray":
+        ray = _ray_session(executor)
+        largest = max((node["Resources"].get("memory", 0.0) for node in ray.nodes() if node.get("Alive")),
+                      default=0.0) / 2**20
+        if largest < executor.task_memory_mb:  # Ray would wait for such a node forever
+            raise InvalidParameterError(
+                f"executor.task_memory_mb={executor.task_memory_mb}: no node of this Ray cluster offers that much "
+                f"memory (the largest offers {largest:.0f} MB); lower it, or add a larger node")
+        remote = ray.remote(num_cpus=1, memory=int(executor.task_memory_mb) * 2**20,
+                            max_retries=int(executor.max_retries))(function)
+        # each argument is put once: a closure shared by every call is serialised once, not per task
+        puts: dict[int, Any] = {}
+        refs = {}
+        for index, call in enumerate(calls):
+            args = [puts[id(a)] if id(a) in puts else puts.setdefault(id(a), ray.put(a)) for a in call]
+            refs[remote.remote(*args)] = index
+        pending = list(refs)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            index = refs[done[0]]
+            results[index] = ray.get(done[0])
+            if on_done is not None:
+                on_done(index, results[index])
+        return results
+    if executor.kind != "slurm":
+        raise InvalidParameterError(f"executor {executor.kind!r} runs no remote tasks")
+    if problem := slurm_problem(executor):
+        raise InvalidParameterError(problem)
+    submitit = _require("submitit", "slurm")
+    runner = submitit.AutoExecutor(folder=str(Path(executor.folder) if executor.folder else folder),
+                                   cluster=executor.cluster)
+    parameters: dict[str, Any] = {"timeout_min": executor.timeout_min, "cpus_per_task": 1,
+                                  "mem_gb": executor.task_memory_mb / 1024}
+    if runner.cluster == "slurm":
+        parameters["slurm_array_parallelism"] = executor.array_parallelism
+        if executor.partition:
+            parameters["slurm_partition"] = executor.partition
+    runner.update_parameters(**parameters)
+    jobs = runner.map_array(function, *(list(column) for column in zip(*calls, strict=True)))
+    pending = dict(enumerate(jobs))
+    while pending:
+        finished = [index for index, job in pending.items() if job.done()]
+        for index in finished:
+            results[index] = pending.pop(index).result()
+            if on_done is not None:
+                on_done(index, results[index])
+        if pending and not finished:
+            time.sleep(0.2)
+    return results
 
 
 def executor_pool(executor: Executor, spec, settings):
