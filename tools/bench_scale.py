@@ -11,17 +11,24 @@ arrays tiled (each copy's push indices shifted, every value otherwise repeated),
 (``trajectories=False``). Training places its pushes block by block
 (``pushtorch.models.motion.training_blocks``), so its memory should not grow with the pushes and its time
 should grow about linearly (targets: ``train_peak_mb_100k <= 2000``, ``train_s_100k <= 12 train_s_10k``).
-Last, ``--bandwidth-pushes`` fresh pushes per action (5,000; simulated, not tiled: a tile's copies would share a
+Then ``--bandwidth-pushes`` fresh pushes per action (5,000; simulated, not tiled: a tile's copies would share a
 fold) train the default model's parts and its bandwidth search, which must choose from data (held-out pushes
-scored) rather than keep the configured values.
+scored) rather than keep the configured values. Last, the whole experiment at 1 and 2 CPUs: the quickstart's
+friction-biasing part alone (its configuration pinned: ``experiment=quickstart``, the other parts dropped, no
+progress bars) with ``executor=ray``, in a fresh process and a fresh run folder each time, confined to the CPUs
+(``sched_setaffinity``: the submitting process and its Ray instance alike) with ``executor.num_cpus`` as many;
+``--experiment-repeats`` times each (3), alternating. ``experiment_scaling`` is the median wall time at 1 CPU
+over the median at 2 (target >= 1.7); the serial fraction it implies (Amdahl: ``2/s - 1``) is printed beside it,
+for docs/cluster.md's extrapolation.
 
     .venv/bin/python tools/bench_scale.py [--pushes 3000] [--train-pushes 10000 100000] [--skip-train]
-        [--skip-scale] [--bandwidth-pushes 5000] [--skip-bandwidth]
+        [--skip-scale] [--bandwidth-pushes 5000] [--skip-bandwidth] [--experiment-repeats 3]
+        [--skip-experiment]
 
 The last line is ``local_pps=<..> ray_pps=<..> local_scaling=<..> ray_scaling=<..> identical=<0|1>
-train_peak_mb_100k=<..> train_s_10k=<..> train_s_100k=<..>`` (pushes/s at 2 CPUs; scaling = 2-CPU over
-1-CPU throughput; the training values are those of the smaller and the larger of ``--train-pushes``;
-``nan`` where a part was skipped).
+train_peak_mb_100k=<..> train_s_10k=<..> train_s_100k=<..> experiment_scaling=<..> bandwidth_from_data=<0|1>``
+(pushes/s at 2 CPUs; scaling = 2-CPU over 1-CPU throughput; the training values are those of the smaller and
+the larger of ``--train-pushes``; ``nan`` where a part was skipped).
 """
 
 from __future__ import annotations
@@ -80,6 +87,40 @@ def _bandwidth_from_data(per_action: int, folder: Path) -> int:
     return int(search.held_out > 0 and search.score_chosen is not None)
 
 
+#: The pinned experiment: the quickstart's friction-biasing part alone.
+EXPERIMENT = ["experiment=quickstart", "experiment.progress=false", "executor=ray", "~experiment.parts.model_selection",
+              "~experiment.parts.pose_estimation", "~experiment.parts.mass_biasing",
+              "~experiment.parts.online_adaptation"]
+
+
+def _experiment_seconds(cpus: int, folder: Path) -> float:
+    """Wall seconds of the pinned experiment in a fresh process confined to the first ``cpus`` CPUs."""
+    allowed = sorted(os.sched_getaffinity(0))[:cpus]
+    started = time.perf_counter()
+    result = subprocess.run([sys.executable, "-m", "pushtorch", *EXPERIMENT, f"executor.num_cpus={cpus}",
+                             f"hydra.run.dir={folder}"], capture_output=True, text=True, timeout=4 * 3600,
+                            preexec_fn=lambda: os.sched_setaffinity(0, allowed))
+    seconds = time.perf_counter() - started
+    if result.returncode != 0:
+        raise SystemExit(f"the experiment at {cpus} CPU failed: {result.stderr[-2000:]}")
+    return seconds
+
+
+def _experiment_scaling(repeats: int, root: Path) -> float:
+    """The pinned experiment's median wall time at 1 CPU over its median at 2 (module notes)."""
+    import statistics
+
+    seconds: dict[int, list[float]] = {1: [], 2: []}
+    for k in range(repeats):
+        for cpus in (1, 2):
+            seconds[cpus].append(_experiment_seconds(cpus, root / f"experiment_{cpus}_{k}"))
+            print(f"the friction-biasing part on Ray, {cpus} CPU: {seconds[cpus][-1]:.1f} s", flush=True)
+    scaling = statistics.median(seconds[1]) / statistics.median(seconds[2])
+    print(f"experiment: medians {statistics.median(seconds[1]):.1f} s at 1 CPU, {statistics.median(seconds[2]):.1f} s"
+          f" at 2; scaling {scaling:.2f}, serial fraction {2 / scaling - 1:.3f} (Amdahl)", flush=True)
+    return scaling
+
+
 def _train(pushes: int, base: Path) -> dict[str, float]:
     """A fresh process loads ``pushes`` tiled records and trains the default model: its max RSS (MB) and the
     seconds ``train_push_model`` took (``peak_mb``, ``seconds``), and both when the bandwidth search began, after
@@ -126,6 +167,9 @@ def main() -> None:
     parser.add_argument("--bandwidth-pushes", type=int, default=5000,
                         help="fresh pushes per action for the bandwidth search's check (default 5000)")
     parser.add_argument("--skip-bandwidth", action="store_true", help="leave out the bandwidth search's check")
+    parser.add_argument("--experiment-repeats", type=int, default=3,
+                        help="runs of the experiment at each CPU count (default 3; the medians' ratio)")
+    parser.add_argument("--skip-experiment", action="store_true", help="leave out the experiment's scaling")
     args = parser.parse_args()
 
     print(f"CPU: {cpu_name()} ({os.cpu_count()} logical CPUs); {args.pushes} pushes per timed run")
@@ -142,7 +186,7 @@ def main() -> None:
                 rate[("local", cpus)] = _timed("local", cpus, args.pushes, root / f"local{cpus}")
                 print(f"local, {cpus} CPU: {rate[('local', cpus)]:.1f} pushes/s", flush=True)
             for cpus in (1, 2):
-                ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False)
+                ray.init(address="local", num_cpus=cpus, include_dashboard=False, log_to_driver=False)
                 _timed("ray", cpus, 30, root / f"warm{cpus}")  # workers started and their worlds built
                 rate[("ray", cpus)] = _timed("ray", cpus, args.pushes, root / f"ray{cpus}")
                 ray.shutdown()
@@ -161,6 +205,7 @@ def main() -> None:
                       f" (contact, position and motion models: {t['parts_seconds']:.1f} s, peak"
                       f" {t['parts_peak_mb']:.0f} MB; then the bandwidth search)", flush=True)
         from_data = nan if args.skip_bandwidth else _bandwidth_from_data(args.bandwidth_pushes, root / "bandwidth")
+        experiment = nan if args.skip_experiment else _experiment_scaling(args.experiment_repeats, root)
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(f"this process's peak: {own:.0f} MB")
     small, large = min(args.train_pushes), max(args.train_pushes)
@@ -168,7 +213,8 @@ def main() -> None:
           f"local_scaling={rate[('local', 2)] / rate[('local', 1)]:.2f} "
           f"ray_scaling={rate[('ray', 2)] / rate[('ray', 1)]:.2f} identical={identical} "
           f"train_peak_mb_100k={trained[large]['peak_mb']:.0f} train_s_10k={trained[small]['seconds']:.1f} "
-          f"train_s_100k={trained[large]['seconds']:.1f} bandwidth_from_data={from_data}")
+          f"train_s_100k={trained[large]['seconds']:.1f} experiment_scaling={experiment:.2f} "
+          f"bandwidth_from_data={from_data}")
 
 if __name__ == "__main__":
     main()

@@ -147,14 +147,20 @@ def train_model(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: s
 def train_models(ctx: ExperimentContext, keys) -> dict[tuple[str, str, str], PushModel]:
     """:func:`train_model` for every ``(object name, friction, mass)`` of ``keys``, as tasks where there is
     room (:func:`pushtorch.experiments.tasks.prefetch`). On a Ray or Slurm executor the training pushes go to
-    the cluster first as the run's shards, so that a model's pushes are spread as before and its task only
-    trains."""
+    the cluster first as shards, every model's at once (a thread per model submits its run's shards and waits),
+    so that the pushes are spread as widely as the cluster allows and each model's task only trains."""
+    from concurrent.futures import ThreadPoolExecutor
+
     from pushtorch.objects import load_object
+    from pushtorch.sim.executors import connect
 
     keys = list(keys)
-    if ctx.executor.kind != "local":
-        for t, f, m in keys:
-            training_records(ctx, load_object(t), f, m, progress=ctx.progress)
+    if ctx.executor.kind != "local" and keys:
+        connect(ctx.executor)  # once, before the threads submit
+        with ThreadPoolExecutor(max_workers=len(keys), thread_name_prefix="pushtorch-training-pushes") as pool:
+            runs = [pool.submit(training_records, ctx, load_object(t), f, m, False) for t, f, m in keys]
+            for run in runs:
+                run.result()  # a run's error, raised here
     prefetch(ctx, lambda task_ctx, tfm: train_model(task_ctx, load_object(tfm[0]), *tfm[1:]), keys,
              what="models trained")
     return {(t, f, m): train_model(ctx, load_object(t), f, m) for t, f, m in keys}

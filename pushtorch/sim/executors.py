@@ -40,7 +40,8 @@ from typing import Any
 
 from pushtorch.errors import InvalidParameterError, MissingDependencyError
 
-__all__ = ["EXECUTORS", "Executor", "executor_from_config", "run_remote_tasks", "slurm_problem", "task_host"]
+__all__ = ["EXECUTORS", "Executor", "connect", "executor_from_config", "run_remote_tasks", "slurm_problem",
+           "task_host"]
 
 #: The executors ``executor.kind`` may name.
 EXECUTORS = ("local", "ray", "slurm")
@@ -164,6 +165,13 @@ def _check_address(address: str) -> None:
             f"executor.address={address!r}: no Ray head answers there ({exc}); start one with `ray start --head`"
             " or give its host:port"
         ) from exc
+
+
+def connect(executor: Executor) -> None:
+    """Join (or start) the executor's Ray cluster in this process now, once: before threads submit to it. Nothing
+    for the local and Slurm executors."""
+    if executor.kind == "ray":
+        _ray_session(executor)
 
 
 def _ray_session(executor: Executor):
