@@ -32,6 +32,7 @@ import os
 import shutil
 import socket
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, fields
@@ -293,8 +294,6 @@ class SlurmPool(_RemotePool):
 def task_host() -> str:
     """Where this process runs: the host's name, and the Ray node's id (its first 8 characters) inside a Ray
     task, so that two nodes on one machine are told apart."""
-    import sys
-
     host = socket.gethostname()
     ray = sys.modules.get("ray")
     if ray is not None and ray.is_initialized():
