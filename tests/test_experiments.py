@@ -711,6 +711,9 @@ def test_a_ray_cluster_that_loses_a_node_finishes_with_every_record_once(tiny_ru
         assert killed is not None, "no task was caught running on the worker node"
         assert "error" not in result, result.get("error")
         assert "summary" in result, "the run did not finish"
+        gone = time.monotonic() + 120  # Ray marks a node dead after its missed health checks
+        while sum(n["Alive"] for n in ray.nodes()) != 1 and time.monotonic() < gone:
+            time.sleep(1.0)
         assert sum(n["Alive"] for n in ray.nodes()) == 1  # the worker node is gone
     finally:
         ray.shutdown()
