@@ -155,7 +155,9 @@ def train_models(ctx: ExperimentContext, keys) -> dict[tuple[str, str, str], Pus
     from pushtorch.sim.executors import connect
 
     keys = list(keys)
-    if ctx.executor.kind != "local" and keys:
+    # a run smaller than a shard simulates in this process (training_records), in one world at a time: no threads
+    shards = ctx.samples_per_action * int(ctx.actions.shape[0]) >= ctx.shard_size
+    if ctx.executor.kind != "local" and keys and shards:
         connect(ctx.executor)  # once, before the threads submit
         with ThreadPoolExecutor(max_workers=len(keys), thread_name_prefix="pushtorch-training-pushes") as pool:
             runs = [pool.submit(training_records, ctx, load_object(t), f, m, False) for t, f, m in keys]
