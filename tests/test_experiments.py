@@ -498,6 +498,7 @@ def test_rerun_in_the_same_directory_reuses_models_and_predictions(tiny_run):
     assert json.loads((out / "results.json").read_text())["records"] == before
 
 
+@pytest.mark.slow  # 20 s: a second test set's run
 def test_the_placement_spread_test_set_runs_beside_the_default_one_in_one_folder(tiny_run, tmp_path):
     import shutil
 
@@ -595,6 +596,7 @@ def test_a_cluster_task_receives_a_trained_model_as_its_files_path_and_a_context
     assert key not in saved_models()  # an entry leaves with its model
 
 
+@pytest.mark.slow  # 30-55 s: a Ray instance and its workers; Ray's shards and tasks stay in make test (test_executors)
 def test_the_friction_biasing_part_on_ray_writes_the_same_records(tiny_run, tmp_path):
     """executor=ray: the training pushes as Ray shards; the models, the predictions with their peers, the truth and
     the scores as Ray tasks (a real local instance). The records are those of the local run."""

@@ -170,6 +170,7 @@ def test_bandwidths_are_chosen_by_held_out_likelihood_and_kept_in_the_model_file
     assert loaded.settings == cube_model.settings and loaded.meta["bandwidths"] == search
 
 
+@pytest.mark.slow  # 30 s: trains past the search's bounds
 def test_above_its_bounds_the_bandwidth_search_keeps_a_seeded_subsample_of_whole_pushes_and_says_so(
         cube_model, monkeypatch, caplog):
     """Bandwidths chosen at any size: over its memory bounds the search keeps whole pushes (each kept push can be
