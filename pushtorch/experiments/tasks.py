@@ -131,11 +131,16 @@ def prefetch(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], An
                             on_done=None if on_done is None else (lambda index, _: on_done(items[index])))
     finally:
         _STATE.clear()
-    where = f"{task_host()} (local workers)"
-    ctx.task_counts[f"{what} | {where}"] = ctx.task_counts.get(f"{what} | {where}", 0) + len(items)
+    _count(ctx, what, f"{task_host()} (local workers)", len(items))
     log.info("%d %s in %d worker processes: %.0f s (%.0f s of work, the longest %.0f s)", len(items), what,
              task_workers(len(items), ctx.workers), time.perf_counter() - start, sum(seconds), max(seconds))
     return True
+
+
+def _count(ctx: ExperimentContext, what: str, where: str, count: int) -> None:
+    """``count`` more tasks of kind ``what`` ran at ``where`` (results.json's ``tasks``)."""
+    key = f"{what} | {where}"
+    ctx.task_counts[key] = ctx.task_counts.get(key, 0) + count
 
 
 def _task_context(ctx: ExperimentContext) -> ExperimentContext:
@@ -207,7 +212,8 @@ def _run_remote(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any],
     hosts: dict[str, int] = {}
     for _, where in results:
         hosts[where] = hosts.get(where, 0) + 1
-        ctx.task_counts[f"{what} | {where}"] = ctx.task_counts.get(f"{what} | {where}", 0) + 1
+    for where, count in hosts.items():
+        _count(ctx, what, where, count)
     log.info("%d %s as %s tasks on %s: %.0f s (%.0f s of work, the longest %.0f s)", len(items), what,
              ctx.executor.kind, ", ".join(f"{h} ({n})" for h, n in sorted(hosts.items())),
              time.perf_counter() - start, sum(r[0] for r in results), max(r[0] for r in results))

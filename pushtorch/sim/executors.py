@@ -272,23 +272,37 @@ class SlurmPool(_RemotePool):
         e = self.executor
         blocks = min(len(tasks), e.tasks or 256)
         chunks = [tasks[k * len(tasks) // blocks:(k + 1) * len(tasks) // blocks] for k in range(blocks)]
-        folder = Path(e.folder) if e.folder else Path(tasks[0][1]) / ".submitit"
-        runner = self.submitit.AutoExecutor(folder=str(folder), cluster=e.cluster)
-        parameters = {"timeout_min": e.timeout_min}
-        if runner.cluster == "slurm":
-            parameters["slurm_array_parallelism"] = e.array_parallelism
-            if e.partition:
-                parameters["slurm_partition"] = e.partition
-        runner.update_parameters(**parameters)
-        jobs = runner.map_array(run_shard_block, [self.spec] * blocks, [self.settings] * blocks, chunks)
-        pending = list(jobs)
-        while pending:
-            finished = [job for job in pending if job.done()]
-            for job in finished:
-                pending.remove(job)
-                yield from job.result()
-            if pending and not finished:
-                time.sleep(0.2)
+        jobs = _slurm_array(self.submitit, e, Path(tasks[0][1]) / ".submitit", run_shard_block,
+                            [[self.spec] * blocks, [self.settings] * blocks, chunks])
+        for _, result in _as_they_end(jobs):
+            yield from result
+
+
+def _slurm_array(submitit, executor: Executor, folder: Path, function: Callable, columns: list[list],
+                 **parameters) -> list:
+    """One submitit array job of ``function`` over ``columns`` (one list per argument), its job files under
+    ``executor.folder`` or ``folder``, with the executor's time limit (and, on Slurm, its parallelism and partition)
+    and ``parameters``; returns its jobs."""
+    runner = submitit.AutoExecutor(folder=str(Path(executor.folder) if executor.folder else folder),
+                                   cluster=executor.cluster)
+    parameters["timeout_min"] = executor.timeout_min
+    if runner.cluster == "slurm":
+        parameters["slurm_array_parallelism"] = executor.array_parallelism
+        if executor.partition:
+            parameters["slurm_partition"] = executor.partition
+    runner.update_parameters(**parameters)
+    return runner.map_array(function, *columns)
+
+
+def _as_they_end(jobs: list) -> Iterator[tuple[int, Any]]:
+    """``(index, result)`` of each submitit job as it ends (a job's error raised here)."""
+    pending = dict(enumerate(jobs))
+    while pending:
+        finished = [index for index, job in pending.items() if job.done()]
+        for index in finished:
+            yield index, pending.pop(index).result()
+        if pending and not finished:
+            time.sleep(0.2)
 
 
 def task_host() -> str:
@@ -351,26 +365,13 @@ def run_remote_tasks(executor: Executor, function: Callable, calls: Sequence[tup
         raise InvalidParameterError(f"executor {executor.kind!r} runs no remote tasks")
     if problem := slurm_problem(executor):
         raise InvalidParameterError(problem)
-    submitit = _require("submitit", "slurm")
-    runner = submitit.AutoExecutor(folder=str(Path(executor.folder) if executor.folder else folder),
-                                   cluster=executor.cluster)
-    parameters: dict[str, Any] = {"timeout_min": executor.timeout_min, "cpus_per_task": 1,
-                                  "mem_gb": executor.task_memory_mb / 1024}
-    if runner.cluster == "slurm":
-        parameters["slurm_array_parallelism"] = executor.array_parallelism
-        if executor.partition:
-            parameters["slurm_partition"] = executor.partition
-    runner.update_parameters(**parameters)
-    jobs = runner.map_array(function, *(list(column) for column in zip(*calls, strict=True)))
-    pending = dict(enumerate(jobs))
-    while pending:
-        finished = [index for index, job in pending.items() if job.done()]
-        for index in finished:
-            results[index] = pending.pop(index).result()
-            if on_done is not None:
-                on_done(index, results[index])
-        if pending and not finished:
-            time.sleep(0.2)
+    jobs = _slurm_array(_require("submitit", "slurm"), executor, folder, function,
+                        [list(column) for column in zip(*calls, strict=True)], cpus_per_task=1,
+                        mem_gb=executor.task_memory_mb / 1024)
+    for index, result in _as_they_end(jobs):
+        results[index] = result
+        if on_done is not None:
+            on_done(index, result)
     return results
 
 
