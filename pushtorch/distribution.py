@@ -37,7 +37,7 @@ from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.kde import Evaluation, KernelBandwidth, PoseKDE, SharedKernelProduct
 from pushtorch.kde.normaliser import NO_CUTOFF, expert_log_probs, log_kernel_normaliser, log_normaliser
-from pushtorch.models.experts import stack_products
+from pushtorch.models.experts import StackedProducts, stack_products
 from pushtorch.models.settings import as_generator
 
 Tensor = torch.Tensor
@@ -71,6 +71,8 @@ class FinalPoseDistribution(Distribution):
             they guide the importance sampler of the normaliser.
         validate_args: torch's convention (default: ``torch.distributions.Distribution``'s global setting);
             an invalid query raises :class:`~pushtorch.errors.InvalidPoseError` (a ValueError).
+        normaliser_samples: proposals per expert and part of the normaliser's importance sampler (default
+            :data:`NORMALISER_SAMPLES`; its cost grows linearly with them).
     """
 
     arg_constraints: dict = {}
@@ -81,8 +83,10 @@ class FinalPoseDistribution(Distribution):
                  exponent: Tensor, mode: Tensor | None, method: Evaluation | str = Evaluation.FAST,
                  normaliser_centres: se3.Pose | None = None, validate_args: bool | None = None, *,
                  kernels: str = "cut", frame: tuple[se3.Pose, se3.Pose] | None = None,
-                 log_z: Tensor | None = None) -> None:
+                 log_z: Tensor | None = None, normaliser_samples: int = NORMALISER_SAMPLES) -> None:
         method = Evaluation.of(method)
+        if isinstance(normaliser_samples, bool) or not isinstance(normaliser_samples, int) or normaliser_samples < 1:
+            raise InvalidParameterError(f"normaliser_samples must be an integer >= 1, got {normaliser_samples!r}")
         if kernels not in KERNELS:
             raise InvalidParameterError(f"kernels must be one of {', '.join(map(repr, KERNELS))}, got {kernels!r}")
         batch = means.batch_shape[:-1]
@@ -96,7 +100,7 @@ class FinalPoseDistribution(Distribution):
         self.trial_rounds = trial_rounds.expand(*batch, 3)
         self.exponent, self.method, self.kernels, self.frame = exponent, method, kernels, frame
         self._mode = mode
-        self.normaliser_centres = normaliser_centres
+        self.normaliser_centres, self.normaliser_samples = normaliser_centres, normaliser_samples
         self._log_z: Tensor | None = log_z
         self._log_kernel: Tensor | None = None
         self._experts: PoseKDE | None = None
@@ -118,16 +122,29 @@ class FinalPoseDistribution(Distribution):
         densities = [densities] if single else list(densities)
         if not densities:
             raise InvalidParameterError("a distribution needs at least one prediction")
-        stacked = stack_products(densities)
-        mode = modes.vector().to(stacked.log_weights.dtype).reshape(len(densities), 7)
+        centres_pose = None
         if centres is not None:
             counts = {c.p.shape[0] for c in centres}
-            centres = se3.Pose.stack(centres) if len(counts) == 1 else None  # ragged: default centres
+            centres_pose = se3.Pose.stack(centres) if len(counts) == 1 else None  # ragged: default centres
+        dist = FinalPoseDistribution.from_stacked(stack_products(densities), modes, centres_pose, method,
+                                                  validate_args)
+        return dist[0] if single else dist
+
+    @staticmethod
+    def from_stacked(stacked: StackedProducts, modes: se3.Pose, centres: se3.Pose | None = None,
+                     method: Evaluation | str = Evaluation.FAST, validate_args: bool | None = None,
+                     normaliser_samples: int = NORMALISER_SAMPLES) -> FinalPoseDistribution:
+        """One distribution of ``batch_shape (B,)`` over stacked products of experts
+        (:class:`~pushtorch.models.experts.StackedProducts`: a planner's candidates, built batched), their annealed
+        ``modes (B,)`` and candidates ``centres (B, n)`` (the normaliser's proposal centres; None: default)."""
+        count = stacked.log_weights.shape[1]
+        mode = modes.vector().to(stacked.log_weights.dtype).reshape(count, 7)
         dist = FinalPoseDistribution(stacked.means, stacked.log_weights, stacked.density_bandwidth,
-                                     stacked.trial_rounds, stacked.exponent, mode, method, centres, validate_args)
+                                     stacked.trial_rounds, stacked.exponent, mode, method, centres, validate_args,
+                                     normaliser_samples=normaliser_samples)
         if stacked.density_bandwidth != stacked.bandwidth:
             dist = dist._widened_to_mode(stacked.bandwidth)
-        return dist[0] if single else dist
+        return dist
 
     @staticmethod
     def from_predictions(predictions, method: Evaluation | str | None = None,
@@ -169,7 +186,8 @@ class FinalPoseDistribution(Distribution):
         arguments = dict(means=self.means, log_weights=self.log_weights, bandwidth=self.bandwidth,
                          trial_rounds=self.trial_rounds, exponent=self.exponent, mode=self._mode,
                          method=self.method, normaliser_centres=self.normaliser_centres,
-                         validate_args=self._validate_args, kernels=self.kernels, frame=self.frame)
+                         validate_args=self._validate_args, kernels=self.kernels, frame=self.frame,
+                         normaliser_samples=self.normaliser_samples)
         return FinalPoseDistribution(**(arguments | changes), log_z=log_z)
 
     # ------------------------------------------------------------------------------------------ properties
@@ -218,7 +236,7 @@ class FinalPoseDistribution(Distribution):
                     self.normaliser_centres.reshape(flat_batch, -1).take(b)
                 # seeded per prediction: its normaliser is the same alone and in any batch
                 generator = as_generator(None, self.means.p.device)
-                values.append(log_normaliser(kde, generator, NORMALISER_SAMPLES, centres, exponent[counted, b]))
+                values.append(log_normaliser(kde, generator, self.normaliser_samples, centres, exponent[counted, b]))
             self._log_z = torch.stack(values).reshape(self.batch_shape)
         return self._log_z
 

@@ -5,6 +5,7 @@ density that scores a goal for every candidate with gradients."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -12,7 +13,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pushtorch import se3
-from pushtorch.errors import InvalidParameterError, InvalidPoseError
+from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
+from pushtorch.kde import SharedKernelProduct
+from pushtorch.models.experts import MotionDensity, candidate_products
+from pushtorch.models.frames import ContactFrames
 from pushtorch.models.library import ModelLibrary
 from pushtorch.models.motion import contact_log_weights
 from pushtorch.models.push_condition import candidate_conditions, features_for
@@ -75,11 +79,16 @@ def test_bad_candidate_inputs_are_refused_by_name(small_model, scene):
         predict_candidates(model, cloud, starts, model.actions[:2])
     with pytest.raises(InvalidParameterError, match="chunk_size"):
         predict_candidates(model, cloud, starts, model.actions[0], chunk_size=0)
+    with pytest.raises(InvalidParameterError, match="normaliser_samples"):
+        predict_candidates(model, cloud, starts, model.actions[0], normaliser_samples=0)
     bad = se3.Pose.unchecked(torch.tensor([math.nan, 0.0, 0.0]), torch.tensor([1.0, 0.0, 0.0, 0.0]))
     with pytest.raises(InvalidPoseError):
         predict_candidates(model, cloud, [starts[0], bad], model.actions[0])
     with pytest.raises(InvalidParameterError):
         predict_candidates(model, cloud, starts, torch.tensor([0.1, 0.9]))  # not one of the model's actions
+    widening = replace(model, settings=replace(model.settings, transfer_widening=2.0))  # a calibrated pooled model's
+    with pytest.raises(ModelError, match="transfer_widening=2"):
+        predict_candidates(widening, cloud, starts, model.actions[0])
 
 
 def _final_poses(result) -> tuple[torch.Tensor, torch.Tensor]:
@@ -130,3 +139,29 @@ def test_contact_weights_of_many_pushes_in_one_call_are_each_pushs_own(small_mod
         alone = contact_log_weights(env, kernels, c.robot_start, bandwidth, c.contact_patch)
         assert torch.equal(torch.isfinite(alone), torch.isfinite(batched))
         assert torch.allclose(alone[torch.isfinite(alone)], batched[torch.isfinite(batched)], atol=1e-5)
+
+
+def test_products_built_at_once_are_each_candidates_own_product(small_model, scene):
+    """The planner's batched construction (candidate_products, no density object per candidate) gives every
+    candidate the product of experts its own MotionDensity is: the same log-density at poses drawn from it."""
+    model = small_model("cube")
+    cloud, starts, _, _ = scene
+    features = features_for(cloud, model.settings, model.position)
+    conditions, _ = candidate_conditions(model, features, starts, [2] * len(starts), torch.Generator().manual_seed(0))
+    settings, motion = model.settings, model.motions[2]
+    stacked = candidate_products(motion, ContactFrames.stack([c.manipulator_frame for c in conditions]),
+                                 conditions[0].environment_frames, conditions[0].object_pose,
+                                 se3.Pose.stack([c.robot_start for c in conditions]),
+                                 torch.stack([c.contact_patch for c in conditions]), settings.contact_bandwidth,
+                                 settings.motion_bandwidth)
+    together = SharedKernelProduct(stacked.means, stacked.log_weights, stacked.bandwidth, stacked.trial_rounds,
+                                   expert_exponent=stacked.exponent)
+    alone = [MotionDensity(motion, c.manipulator_frame, c.environment_frames, c.object_pose, c.robot_start,
+                           c.contact_patch, settings.contact_bandwidth, settings.motion_bandwidth) for c in conditions]
+    queries = se3.Pose.stack([d.proposal(24, torch.Generator().manual_seed(k)) for k, d in enumerate(alone)])
+    batched = together.log_prob(queries)
+    each = torch.stack([d.log_prob(queries.take(k), "fast") for k, d in enumerate(alone)])
+    assert torch.equal(torch.isfinite(batched), torch.isfinite(each)) and bool(torch.isfinite(each).any())
+    finite = torch.isfinite(each)
+    assert torch.allclose(batched[finite], each[finite], rtol=1e-4, atol=1e-3)
+    assert stacked.means.batch_shape[1] == max(d.shared_kernels()[0].batch_shape[0] for d in alone)

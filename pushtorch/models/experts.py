@@ -13,16 +13,19 @@ How the kernels are trained, and the decisions behind their frames, are in :mod:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
+from pytorch_kinematics import transforms as pkt
 
 from pushtorch import se3
 from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal, polish_candidates
 from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.kde import Evaluation, KernelBandwidth, PoseKDE, ProductOfExperts, SharedKernelProduct
+from pushtorch.kde.sampling import sample_rotation_offsets, sample_translation_offsets
 from pushtorch.models.frames import ContactFrames
 from pushtorch.models.motion import CONTACT_DESCRIPTOR_DIM, MotionModel, contact_log_weights, expert_exponents
+from pushtorch.se3 import multinomial
 from pushtorch.streams import is_keyed
 
 Tensor = torch.Tensor
@@ -32,7 +35,12 @@ __all__ = [
     "MotionPrediction",
     "StackedProducts",
     "anneal_motion_densities",
+    "anneal_stacked",
+    "candidate_products",
+    "concat_products",
+    "draw_starts",
     "stack_products",
+    "widen_stacked",
 ]
 
 
@@ -79,9 +87,6 @@ class MotionDensity:
         density_bandwidth: the motion kernels of the density the prediction returns (the calibrated width,
             :attr:`~pushtorch.models.settings.ModelSettings.density_bandwidth`); None: ``motion_bandwidth``.
             Annealing and :meth:`log_prob` use ``motion_bandwidth``.
-        contact_weights: the manipulator's and the environment frames' :func:`contact_log_weights` against these
-            kernels, computed already (a planner's candidates: one batched call for all of them); None computes
-            them here.
     """
 
     def __init__(
@@ -97,7 +102,6 @@ class MotionDensity:
         drop_cut_kernels: bool = True,
         pool_sharpness: float = 1.0,
         density_bandwidth: KernelBandwidth | None = None,
-        contact_weights: tuple[Tensor, Tensor] | None = None,
     ) -> None:
         if contact_bandwidth.descriptor_dim != CONTACT_DESCRIPTOR_DIM:
             raise InvalidParameterError(
@@ -111,10 +115,9 @@ class MotionDensity:
         # experts share; the experts differ only in their contact weights K^c.
         to_final = se3.relative(robot_start, object_pose)
         experts, shared_means, shared_weights = [], [], []
-        for kind, (frame, kernels) in enumerate(frames):
+        for frame, kernels in frames:
             n_frames = frame.r.reshape(-1, 2).shape[0]
-            log_w = (contact_log_weights(frame, kernels, robot_start, contact_bandwidth, contact_patch)
-                     if contact_weights is None else contact_weights[kind].reshape(n_frames, len(kernels)))  # (F, N)
+            log_w = contact_log_weights(frame, kernels, robot_start, contact_bandwidth, contact_patch)  # (F, N)
             if kernels.log_weight is not None:  # a conditioned model: the posterior's weight of each kernel
                 log_w = log_w + kernels.log_weight.to(log_w)
             finals = se3.compose(se3.compose(robot_start, kernels.m), to_final)  # (N,)
@@ -294,11 +297,10 @@ def anneal_motion_densities(
 
     Every condition's :meth:`MotionDensity.shared_kernels` are padded to common kernel and expert
     counts (padding kernels weigh nothing, padding experts are masked out) and stacked along a problem
-    dim, in order of kernel count, so each annealing step is one fused evaluation per chunk of
-    conditions, each chunk up to its own largest count (:class:`pushtorch.kde.SharedKernelProduct`).
-    Each condition's start candidates and trial rounds are its own (:meth:`MotionDensity.proposal`,
-    :meth:`MotionDensity.widen_until_supported`); a batch of one anneals exactly as
-    :meth:`MotionDensity.predict`'s fast path.
+    dim (:func:`stack_products`), then annealed together (:func:`anneal_stacked`). Each condition's start
+    candidates and trial rounds are its own (:meth:`MotionDensity.proposal`,
+    :meth:`MotionDensity.widen_until_supported`); a batch of one anneals exactly as :meth:`MotionDensity.predict`'s
+    fast path.
 
     Returns:
         One :class:`MotionPrediction` per density, in order.
@@ -318,21 +320,10 @@ def anneal_motion_densities(
     for b, density in enumerate(densities):
         init = density.proposal(n_candidates, proposals.take(b) if keyed else generator)
         starts.append(density.widen_until_supported(init, method=Evaluation.FAST))
-    # problems in order of kernel count: the product's chunks of neighbouring problems then evaluate about
-    # their own counts, not the batch's largest (SharedKernelProduct.chunk_layout)
-    order = sorted(range(len(densities)), key=lambda b: densities[b].shared_kernels()[1].shape[1])
-    densities, starts = [densities[b] for b in order], [starts[b] for b in order]
-    if keyed:  # the steps' draws keyed by each problem's own key, in the new order
-        generator = generator.fork().take(order)
-    stacked = stack_products(densities)
-    # its only queries are the annealing's own (finite, normalised) candidates: no per-step checks
-    product = SharedKernelProduct(stacked.means, stacked.log_weights, stacked.bandwidth, stacked.trial_rounds,
-                                  validate_args=False, expert_exponent=stacked.exponent)
     init = se3.Pose.unchecked(torch.stack([s.p for s in starts]), torch.stack([s.q for s in starts]))  # (B, C)
-    result = anneal(product, init, schedule, generator, record_history=record_history, method=Evaluation.FAST)
-    result = polish_candidates(result, product.mean_shift, product.log_prob, polish_steps)
-    out: list[MotionPrediction | None] = [None] * len(densities)
-    for b, original in enumerate(order):
+    result = anneal_stacked(stack_products(densities), init, schedule, generator, record_history, polish_steps)
+    out = []
+    for b in range(len(densities)):
         part = AnnealResult(
             best=se3.Pose.unchecked(result.best.p[b], result.best.q[b]),
             best_log_prob=result.best_log_prob[b],
@@ -342,5 +333,196 @@ def anneal_motion_densities(
                      else se3.Pose.unchecked(result.history.p[:, b], result.history.q[:, b])),
             history_log_prob=None if result.history_log_prob is None else result.history_log_prob[:, b],
         )
-        out[original] = MotionPrediction(part.best, part.best_log_prob, part)
-    return out  # type: ignore[return-value]
+        out.append(MotionPrediction(part.best, part.best_log_prob, part))
+    return out
+
+
+def _take_problems(stacked: StackedProducts, index: Tensor) -> StackedProducts:
+    """The problems at ``index`` of stacked products (a subset or a reordering)."""
+    return replace(stacked, means=se3.Pose.unchecked(stacked.means.p[index], stacked.means.q[index]),
+                   log_weights=stacked.log_weights[:, index], exponent=stacked.exponent[:, index],
+                   trial_rounds=stacked.trial_rounds[index])
+
+
+def _product(stacked: StackedProducts, validate_args: bool = True) -> SharedKernelProduct:
+    return SharedKernelProduct(stacked.means, stacked.log_weights, stacked.bandwidth, stacked.trial_rounds,
+                               validate_args=validate_args, expert_exponent=stacked.exponent)
+
+
+def anneal_stacked(
+    stacked: StackedProducts,
+    init: se3.Pose,
+    schedule: AnnealSchedule,
+    generator: torch.Generator | None = None,
+    record_history: bool = False,
+    polish_steps: int = 0,
+) -> AnnealResult:
+    """Anneal stacked products of experts ``(B,)`` from their start candidates ``init (B, n)`` on the fast path
+    and polish every candidate by ``polish_steps`` mean-shift steps; the result ``(B,)`` in the products' order.
+
+    The problems anneal in order of kernel count, so that the product's chunks of neighbouring problems each
+    evaluate about their own count rather than the batch's largest (``SharedKernelProduct.chunk_layout``); a
+    keyed stream's steps are drawn by each problem's own key, in that order (a ``torch.Generator`` draws for the
+    sorted batch). The steps are drawn before the loop and the loop has no host synchronisation
+    (:class:`~pushtorch.kde.FusedAnnealing`).
+    """
+    weighted = torch.isfinite(stacked.log_weights).any(0)  # (B, K)
+    counts = (weighted * torch.arange(1, weighted.shape[-1] + 1, device=weighted.device)).amax(-1).tolist()
+    order = sorted(range(len(counts)), key=lambda b: counts[b])
+    index = torch.tensor(order, device=init.p.device)
+    if is_keyed(generator):
+        generator = generator.fork().take(order)
+    product = _product(_take_problems(stacked, index), validate_args=False)  # its own normalised candidates only
+    start = se3.Pose.unchecked(init.p[index], init.q[index])
+    result = anneal(product, start, schedule, generator, record_history=record_history, method=Evaluation.FAST)
+    result = polish_candidates(result, product.mean_shift, product.log_prob, polish_steps)
+    back = torch.argsort(index)
+    history = None if result.history is None else se3.Pose.unchecked(result.history.p[:, back],
+                                                                    result.history.q[:, back])
+    return AnnealResult(
+        best=se3.Pose.unchecked(result.best.p[back], result.best.q[back]),
+        best_log_prob=result.best_log_prob[back],
+        candidates=se3.Pose.unchecked(result.candidates.p[back], result.candidates.q[back]),
+        log_prob=result.log_prob[back],
+        history=history,
+        history_log_prob=None if result.history_log_prob is None else result.history_log_prob[:, back],
+    )
+
+
+def candidate_products(
+    motion: MotionModel,
+    manipulator_frames: ContactFrames,
+    environment_frames: ContactFrames,
+    object_pose: se3.Pose,
+    robot_starts: se3.Pose,
+    contact_patches: Tensor,
+    contact_bandwidth: KernelBandwidth,
+    motion_bandwidth: KernelBandwidth,
+    density_bandwidth: KernelBandwidth | None = None,
+    pool_sharpness: float = 1.0,
+) -> StackedProducts:
+    """The products of experts of ``B`` candidate pushes of one cloud and one action, built at once: the stacked
+    layout (:func:`stack_products`) of the :class:`MotionDensity` (fast path) of each candidate, without building
+    any of them.
+
+    Args:
+        motion: the action's motion kernels (all of them: within the prediction's kernel budget).
+        manipulator_frames: ``(B, 1)`` each candidate's manipulator contact frame.
+        environment_frames: ``(E,)`` the cloud's environment contact frames, shared by the candidates.
+        object_pose: ``()`` the cloud's pose estimate.
+        robot_starts: ``(B,)`` start poses; contact_patches: ``(B, 3)``.
+        contact_bandwidth, motion_bandwidth, density_bandwidth, pool_sharpness: as :class:`MotionDensity`.
+
+    Each candidate's contact weights come from one batched call per contact kind
+    (:func:`~pushtorch.models.motion.contact_log_weights` over ``(B, F)`` frames), its final-pose kernels from
+    one broadcast composition ``R0 ∘ m_j ∘ R0⁻¹ ∘ B0'``, and its kernels that no expert weighs are moved behind
+    the weighted ones (a stable sort: the weighted ones keep their order) and cut after the batch's largest
+    weighted count, so that each product evaluates about its own kernels, as a :class:`MotionDensity` that drops
+    its cut kernels does. Trial rounds start at zero (:func:`widen_stacked` fits them).
+    """
+    count = robot_starts.batch_shape[0]
+    to_final = se3.relative(robot_starts, object_pose)  # (B,)
+    weights, finals = [], []
+    for frames, kernels in ((manipulator_frames, motion.manipulator),
+                            (environment_frames.expand(count), motion.environment)):
+        log_w = contact_log_weights(frames, kernels, robot_starts, contact_bandwidth, contact_patches)
+        log_w = log_w.reshape(count, -1, len(kernels)).transpose(0, 1)  # (F, B, N)
+        if kernels.log_weight is not None:  # a conditioned model: the posterior's weight of each kernel
+            log_w = log_w + kernels.log_weight.to(log_w)
+        weights.append(log_w)
+        finals.append(se3.compose(se3.compose(robot_starts.unsqueeze(-1), kernels.m), to_final.unsqueeze(-1)))
+    (w_m, w_e), n_m, n_e = weights, weights[0].shape[-1], weights[1].shape[-1]
+    n_env = w_e.shape[0]
+    log_w = torch.cat([torch.cat([w_m, torch.full((1, count, n_e), -math.inf).to(w_m)], -1),
+                       torch.cat([torch.full((n_env, count, n_m), -math.inf).to(w_e), w_e], -1)], 0)  # (1+E, B, K)
+    p = torch.cat([f.p for f in finals], 1)  # (B, K, 3)
+    q = torch.cat([f.q for f in finals], 1)
+    weighted = torch.isfinite(log_w).any(0)  # (B, K)
+    kept = max(1, int(weighted.sum(-1).max()))  # one synchronisation, before any annealing
+    order = torch.argsort((~weighted).to(torch.int8), dim=-1, stable=True)[:, :kept]  # (B, K')
+    p = torch.gather(p, 1, order.unsqueeze(-1).expand(count, kept, 3))
+    q = torch.gather(q, 1, order.unsqueeze(-1).expand(count, kept, 4))
+    log_w = torch.gather(log_w, 2, order.unsqueeze(0).expand(1 + n_env, count, kept))
+    dtype = object_pose.p.dtype
+    exponent = expert_exponents(n_m, n_e, n_env, pool_sharpness, dtype).to(log_w.device)
+    rounds = torch.zeros(count, 3, dtype=torch.int64, device=log_w.device)
+    exponent = exponent.unsqueeze(-1).expand(1 + n_env, count).clone()
+    density_bandwidth = motion_bandwidth if density_bandwidth is None else density_bandwidth
+    return StackedProducts(se3.Pose.unchecked(p, q), log_w, exponent, rounds, motion_bandwidth, density_bandwidth)
+
+
+def draw_starts(stacked: StackedProducts, n: int, generator: torch.Generator | None = None) -> se3.Pose:
+    """``(B, n)`` annealing start candidates of stacked products, each drawn from its problem's experts' mixture
+    with equal shares (each counted expert a kernel density over the final pose, :meth:`PoseKDE.sample`'s exact
+    truncated kernel draws): :meth:`MotionDensity.proposal` for many problems in one draw. A keyed stream draws
+    along the problems (each problem's numbers its own)."""
+    log_w = stacked.log_weights.double()  # (E, B, K)
+    n_experts, count, n_kernels = log_w.shape
+    counted = (stacked.exponent > 0).unsqueeze(-1)  # (E, B, 1): padding experts are not drawn from
+    share = torch.where(counted, torch.softmax(log_w, -1), 0.0) / counted.sum(0).clamp_min(1)
+    index = multinomial(share.transpose(0, 1).reshape(count, n_experts * n_kernels), n, generator) % n_kernels
+    p = torch.gather(stacked.means.p, 1, index.unsqueeze(-1).expand(count, n, 3))
+    q = torch.gather(stacked.means.q, 1, index.unsqueeze(-1).expand(count, n, 4))
+    bandwidth = stacked.bandwidth
+    beta = torch.pow(torch.tensor(bandwidth.alpha_t, dtype=torch.float64, device=p.device),
+                     -stacked.trial_rounds.double()).to(p.dtype).double()  # (B, 3), as PoseKDE's
+    delta_p, delta_q, _ = bandwidth.delta
+    std = (bandwidth.p_std / torch.sqrt(beta[:, 0])).unsqueeze(-1).expand(count, n)
+    offset = sample_translation_offsets(std, delta_p, generator)
+    kappa = (beta[:, 1] / bandwidth.sigma_q).unsqueeze(-1).expand(count, n)
+    turn = pkt.quaternion_raw_multiply(q.double(), sample_rotation_offsets(kappa, delta_q, generator))
+    return se3.Pose.unchecked(p + offset.to(p.dtype), (turn / turn.norm(dim=-1, keepdim=True)).to(p.dtype))
+
+
+def widen_stacked(stacked: StackedProducts, candidates: se3.Pose, max_rounds: int = 10) -> StackedProducts:
+    """Trial rounds for each stacked product ``(B,)``: widen the kernels of every problem none of whose
+    ``candidates (B, n)`` has a non-zero density, until all have one (:meth:`MotionDensity.widen_until_supported`
+    for many problems; one synchronisation per round, before any annealing).
+
+    Raises:
+        ModelError: a problem still without support after ``max_rounds``.
+    """
+    for _ in range(max_rounds + 1):
+        unsupported = ~torch.isfinite(_product(stacked).log_prob(candidates)).any(-1)  # (B,)
+        if not bool(unsupported.any()):
+            return stacked
+        rounds = stacked.trial_rounds.clone()
+        rounds[:, :2] += unsupported.unsqueeze(-1).to(rounds.dtype)
+        stacked = replace(stacked, trial_rounds=rounds)
+    raise ModelError(
+        f"the experts of {int(unsupported.sum())} of {len(unsupported)} products share no final pose even after "
+        f"{max_rounds} trial rounds: the contact frames' predictions contradict each other"
+    )
+
+
+def concat_products(parts: list[StackedProducts]) -> StackedProducts:
+    """Stacked products of several batches joined along the problems, padded to common kernel and expert counts
+    as :func:`stack_products` pads (padding kernels weigh nothing; a padding expert copies its problem's first
+    and counts for nothing).
+
+    Raises:
+        InvalidParameterError: no parts, or parts of different dtype or bandwidths.
+    """
+    if not parts:
+        raise InvalidParameterError("joining stacked products needs at least one")
+    first = parts[0]
+    if any(p.bandwidth != first.bandwidth or p.density_bandwidth != first.density_bandwidth
+           or p.log_weights.dtype != first.log_weights.dtype for p in parts):
+        raise InvalidParameterError("products stacked together need one motion bandwidth and dtype")
+    if len(parts) == 1:
+        return first
+    n_experts = max(p.log_weights.shape[0] for p in parts)
+    n_kernels = max(p.log_weights.shape[2] for p in parts)
+    ps, qs, weights, exponents = [], [], [], []
+    for part in parts:
+        e, count, k = part.log_weights.shape
+        pad = n_kernels - k
+        ps.append(torch.nn.functional.pad(part.means.p, (0, 0, 0, pad)))
+        qs.append(torch.nn.functional.pad(part.means.q, (0, 0, 0, pad)))
+        qs[-1][:, k:, 0] = 1.0  # padding kernels at the identity
+        w = torch.nn.functional.pad(part.log_weights, (0, pad), value=-math.inf)
+        weights.append(torch.cat([w, w[:1].expand(n_experts - e, count, n_kernels)], 0))
+        exponents.append(torch.nn.functional.pad(part.exponent, (0, 0, 0, n_experts - e)))
+    return StackedProducts(se3.Pose.unchecked(torch.cat(ps), torch.cat(qs)), torch.cat(weights, 1),
+                           torch.cat(exponents, 1), torch.cat([p.trial_rounds for p in parts]), first.bandwidth,
+                           first.density_bandwidth)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import torch
@@ -26,15 +27,26 @@ import torch
 from pushtorch import se3
 from pushtorch.anneal import AnnealResult
 from pushtorch.distribution import FinalPoseDistribution
-from pushtorch.errors import InvalidParameterError
+from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.features import SurfaceFeatures
 from pushtorch.kde import Evaluation, KernelBandwidth
 from pushtorch.models.clearance import check_start
-from pushtorch.models.experts import MotionDensity, MotionPrediction, anneal_motion_densities
+from pushtorch.models.experts import (
+    MotionDensity,
+    MotionPrediction,
+    StackedProducts,
+    anneal_motion_densities,
+    anneal_stacked,
+    candidate_products,
+    concat_products,
+    draw_starts,
+    stack_products,
+    widen_stacked,
+)
 from pushtorch.models.frames import ContactFrames
 from pushtorch.models.library import ModelLibrary
 from pushtorch.models.model import PushModel
-from pushtorch.models.motion import contact_distances, contact_log_weights, nearest_in_contact
+from pushtorch.models.motion import contact_distances, nearest_in_contact
 from pushtorch.models.push_condition import (
     PushCondition,
     anneal_schedule,
@@ -48,6 +60,7 @@ from pushtorch.perception import PointCloud
 from pushtorch.streams import KeyedStream, content_keys
 
 __all__ = [
+    "PLANNER_NORMALISER_SAMPLES",
     "CandidatePredictions",
     "Prediction",
     "predict",
@@ -58,6 +71,13 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: Importance samples per expert of each planner candidate's normaliser (:func:`predict_candidates`). A goal scored
+#: under many candidates makes a normaliser for each, and its cost grows linearly with the samples. On the
+#: paper-size cube model of ``tools/bench_plan.py`` (``tools/normaliser_spread.py``: four candidates, eight seeds
+#: each), log Z's standard deviation between seeds is 0.012 nats at 64 (0.040 s a candidate), 0.0035 at 256
+#: (0.13 s) and 0.003 at 1,024 (0.44 s): a planner ranks candidates whose log densities differ by nats.
+PLANNER_NORMALISER_SAMPLES = 64
 
 
 @dataclass
@@ -83,14 +103,15 @@ class CandidatePredictions:
     """Many candidate pushes of one cloud (:func:`predict_candidates`).
 
     Attributes:
-        predictions: per candidate, its :class:`Prediction`, or None where the start is not a push.
+        predictions: per candidate, its :class:`Prediction` (made when asked for, views of the batch; without
+            ``motion_density``), or None where the start is not a push.
         valid: ``(C,)`` bool, the candidates that are pushes (their start touches the cloud, outside it).
         reasons: per candidate, why it is not a push (None where it is).
         density: one batched :class:`~pushtorch.distribution.FinalPoseDistribution` over the valid candidates
             (``batch_shape (V,)``, in candidate order), or None when none is valid.
     """
 
-    predictions: list[Prediction | None]
+    predictions: Sequence[Prediction | None]
     valid: torch.Tensor
     reasons: tuple[str | None, ...]
     density: FinalPoseDistribution | None
@@ -177,14 +198,12 @@ def predict(
                         method=method, robot_starts=None if robot_start is None else [robot_start])[0]
 
 
-def _motion_density(model: PushModel, condition: PushCondition, a: int, method: Evaluation,
-                    contact_weights: tuple[torch.Tensor, torch.Tensor] | None = None) -> MotionDensity:
+def _motion_density(model: PushModel, condition: PushCondition, a: int, method: Evaluation) -> MotionDensity:
     """The action's product of experts; the dense reference keeps every motion kernel of the budget (those the
     contact weight cuts off weigh zero), the fast path drops them before anything is evaluated. Over the
     budget (``manipulator_kernels``, ``environment_kernels``) the kernels nearest in contact are kept
     (:func:`~pushtorch.models.motion.nearest_in_contact`), and a pooled model widens its motion kernels by the
-    manipulator contact's distance to the training ones (:func:`transfer_bandwidth`). ``contact_weights``: the
-    frames' contact weights against the action's kernels, computed already (:func:`_candidate_densities`)."""
+    manipulator contact's distance to the training ones (:func:`transfer_bandwidth`)."""
     settings = model.settings
     motion = model.motions[a]
     patch, start, bandwidth = condition.contact_patch, condition.robot_start, settings.contact_bandwidth
@@ -207,39 +226,7 @@ def _motion_density(model: PushModel, condition: PushCondition, a: int, method: 
         drop_cut_kernels=method is Evaluation.FAST,
         pool_sharpness=settings.pool_sharpness,
         density_bandwidth=transfer_bandwidth(model, condition, a, density=True),
-        contact_weights=contact_weights,
     )
-
-
-def _candidate_densities(model: PushModel, conditions: list[PushCondition], a_idx: list[int]) -> list[MotionDensity]:
-    """The fast path's products of experts of a planner's candidates: the contact weights of every candidate of
-    one action in one batched call (:func:`~pushtorch.models.motion.contact_log_weights` over ``(C, F)`` frames),
-    when the action's kernels fit the budget and the candidates share their environment frames (one cloud's);
-    else one by one (:func:`_motion_density`)."""
-    settings = model.settings
-    out: list[MotionDensity | None] = [None] * len(conditions)
-    for a in sorted(set(a_idx)):
-        rows = [i for i, b in enumerate(a_idx) if b == a]
-        motion = model.motions[a]
-        environment = conditions[rows[0]].environment_frames
-        together = (len(rows) > 1 and len(motion.manipulator) <= settings.manipulator_kernels
-                    and len(motion.environment) <= settings.environment_kernels
-                    and all(conditions[i].environment_frames is environment for i in rows))
-        if not together:
-            for i in rows:
-                out[i] = _motion_density(model, conditions[i], a, Evaluation.FAST)
-            continue
-        mine = [conditions[i] for i in rows]
-        starts = se3.Pose.stack([c.robot_start for c in mine])
-        patches = torch.stack([torch.as_tensor(c.contact_patch) for c in mine])
-        manipulator = ContactFrames.stack([c.manipulator_frame for c in mine])
-        shared = environment.expand(len(rows))
-        bandwidth = settings.contact_bandwidth
-        w_m = contact_log_weights(manipulator, motion.manipulator, starts, bandwidth, patches)  # (C, 1, N_m)
-        w_e = contact_log_weights(shared, motion.environment, starts, bandwidth, patches)  # (C, E, N_e)
-        for j, i in enumerate(rows):
-            out[i] = _motion_density(model, conditions[i], a, Evaluation.FAST, (w_m[j], w_e[j]))
-    return out  # type: ignore[return-value]
 
 
 def transfer_distance(model: PushModel, condition: PushCondition, a: int) -> torch.Tensor:
@@ -395,9 +382,91 @@ def _prediction(model: PushModel, a: int, condition: PushCondition, density: Mot
                       distribution, result.anneal.candidates, result.anneal.log_prob, result.anneal, density)
 
 
+def _chunk_products(model: PushModel, conditions: list[PushCondition], a_idx: list[int],
+                    stream: KeyedStream) -> tuple[StackedProducts, se3.Pose]:
+    """A chunk of a planner's candidates: their products of experts, stacked in the chunk's order, and their
+    annealing start candidates ``(B, n)``, drawn from ``stream.fork()`` (each candidate's draws its own).
+
+    Each action's candidates are built at once (:func:`~pushtorch.models.experts.candidate_products`, start
+    candidates by :func:`~pushtorch.models.experts.draw_starts`, trial rounds by
+    :func:`~pushtorch.models.experts.widen_stacked`) when the action's kernels fit the prediction's budget; else
+    each candidate's :class:`MotionDensity` is built alone (the budget's nearest kernels differ per candidate)."""
+    settings = model.settings
+    n = settings.anneal_candidates
+    proposals = stream.fork()
+    parts, starts, positions = [], [], []
+    for a in sorted(set(a_idx)):
+        mine = [j for j, b in enumerate(a_idx) if b == a]
+        group = [conditions[j] for j in mine]
+        motion = model.motions[a]
+        together = (len(motion.manipulator) <= settings.manipulator_kernels
+                    and len(motion.environment) <= settings.environment_kernels
+                    and all(c.environment_frames is group[0].environment_frames
+                            and c.object_pose is group[0].object_pose for c in group))
+        if together:
+            stacked = candidate_products(
+                motion, ContactFrames.stack([c.manipulator_frame for c in group]), group[0].environment_frames,
+                group[0].object_pose, se3.Pose.stack([c.robot_start for c in group]),
+                torch.stack([torch.as_tensor(c.contact_patch) for c in group]), settings.contact_bandwidth,
+                transfer_bandwidth(model, group[0], a), transfer_bandwidth(model, group[0], a, density=True),
+                settings.pool_sharpness)
+            init = draw_starts(stacked, n, proposals.take(mine))
+            stacked = widen_stacked(stacked, init)
+        else:
+            densities = [_motion_density(model, c, a, Evaluation.FAST) for c in group]
+            init = se3.Pose.stack([d.widen_until_supported(d.proposal(n, proposals.take(j)), method=Evaluation.FAST)
+                                   for d, j in zip(densities, mine, strict=True)])
+            stacked = stack_products(densities)
+        parts.append(stacked)
+        starts.append(init)
+        positions.extend(mine)
+    back = torch.argsort(torch.tensor(positions))
+    joined = concat_products(parts)
+    joined = replace(joined, means=se3.Pose.unchecked(joined.means.p[back], joined.means.q[back]),
+                     log_weights=joined.log_weights[:, back], exponent=joined.exponent[:, back],
+                     trial_rounds=joined.trial_rounds[back])
+    init = se3.Pose.cat(starts)
+    return joined, se3.Pose.unchecked(init.p[back], init.q[back])
+
+
+class _CandidateList(Sequence):
+    """A planner's predictions as a sequence of :class:`Prediction` (None for a candidate that is not a push), each
+    made when asked for from the batch's tensors."""
+
+    def __init__(self, model: PushModel, conditions: list[PushCondition | None], a_idx: list[int],
+                 result: AnnealResult, density: FinalPoseDistribution) -> None:
+        self._model, self._conditions, self._a_idx, self._result, self._density = (model, conditions, a_idx, result,
+                                                                                   density)
+        self._rows = {i: row for row, i in enumerate(i for i, c in enumerate(conditions) if c is not None)}
+
+    def __len__(self) -> int:
+        return len(self._conditions)
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(len(self)))]
+        i = range(len(self))[index]
+        if self._conditions[i] is None:
+            return None
+        row, r = self._rows[i], self._result
+        candidates = se3.Pose.unchecked(r.candidates.p[row], r.candidates.q[row])
+        final = se3.Pose.unchecked(r.best.p[row], r.best.q[row])
+        anneal = AnnealResult(final, r.best_log_prob[row], candidates, r.log_prob[row])
+        return Prediction(self._model.name, self._model.motions[self._a_idx[i]].action, self._conditions[i], final,
+                          r.best_log_prob[row], self._density[row], candidates, r.log_prob[row], anneal)
+
+
+def _cat_poses(values: list) -> se3.Pose | torch.Tensor:
+    """Chunks' poses or tensors joined along their leading (candidate) dim."""
+    if isinstance(values[0], se3.Pose):
+        return se3.Pose.unchecked(torch.cat([v.p for v in values]), torch.cat([v.q for v in values]))
+    return torch.cat(values)
+
+
 def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | SurfaceFeatures, robot_starts,
                        actions, seed: int = 0, generator: torch.Generator | None = None, chunk_size: int = 64,
-                       kernels: str = "full") -> CandidatePredictions:
+                       kernels: str = "full",
+                       normaliser_samples: int = PLANNER_NORMALISER_SAMPLES) -> CandidatePredictions:
     """Many candidate pushes of one observed object, as a planner asks for them: each candidate is a robot start
     and an action, and the result scores any goal pose for all of them in one call
     (:meth:`CandidatePredictions.log_prob`).
@@ -418,16 +487,23 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
             chunk size, order or other candidate changes its prediction (beyond float rounding, 1e-4 m and rad).
         generator: a ``torch.Generator`` or seed to draw ``seed`` from instead.
         kernels: the density's kernels, ``"full"`` (finite everywhere: a planner's gradients) or ``"cut"``.
+        normaliser_samples: the importance samples per expert of each candidate's normaliser, made on the first
+            ``log_prob`` (:data:`PLANNER_NORMALISER_SAMPLES`; a single prediction's density takes
+            :data:`~pushtorch.distribution.NORMALISER_SAMPLES`).
 
     Raises:
         InvalidParameterError: no candidate, actions that do not match, an action the model lacks, a chunk size
             < 1, or an unknown ``kernels``.
         InvalidPoseError: a start that is not a finite pose.
+        ModelError: a model that widens each prediction by its transfer distance (a calibrated pooled model,
+            ``transfer_widening > 0``): its candidates' densities differ in bandwidth.
     """
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
         raise InvalidParameterError(f"chunk_size must be an integer >= 1, got {chunk_size!r}")
     if kernels not in ("full", "cut"):
         raise InvalidParameterError(f"kernels must be 'full' or 'cut', got {kernels!r}")
+    if isinstance(normaliser_samples, bool) or not isinstance(normaliser_samples, int) or normaliser_samples < 1:
+        raise InvalidParameterError(f"normaliser_samples must be an integer >= 1, got {normaliser_samples!r}")
     if isinstance(robot_starts, se3.Pose):
         flat = robot_starts.reshape(-1)
         starts = [flat.take(i) for i in range(flat.batch_shape.numel())]
@@ -442,25 +518,33 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
     first = model.models[0] if isinstance(model, ModelLibrary) else model
     features = features_for(cloud, first.settings, first.position)
     chosen = model.select(features)[0] if isinstance(model, ModelLibrary) else model
+    if chosen.settings.transfer_widening > 0:
+        raise ModelError(
+            f"model {chosen.name!r} widens each prediction by its own transfer distance (transfer_widening="
+            f"{chosen.settings.transfer_widening:g}), so its candidates' densities do not share one bandwidth and "
+            "cannot be one batched density; predict its candidates with predict(..., robot_start=...) one by one")
     a_idx = [chosen.action_index(a) for a in actions]
     conditions, reasons = candidate_conditions(chosen, features, starts, a_idx, generator)
     settings = chosen.settings
     schedule = anneal_schedule(settings, False, Evaluation.FAST)
     rows = [i for i, c in enumerate(conditions) if c is not None]
-    predictions: list[Prediction | None] = [None] * len(starts)
+    valid = torch.tensor([c is not None for c in conditions], dtype=torch.bool)
+    if not rows:
+        return CandidatePredictions([None] * len(starts), valid, tuple(reasons), None)
     # each candidate's draws keyed by what it is (its start and action): no order, chunk or company changes them
-    identity = torch.cat([torch.stack([torch.cat([s.p.reshape(3), s.q.reshape(4)]).detach().float().cpu()
-                                       for s in starts]), actions.detach().float().cpu()], -1)
-    stream = KeyedStream(int(seed), content_keys(identity).to(chosen.device))
+    every = se3.Pose.stack(starts)
+    identity = torch.cat([every.p.reshape(-1, 3), every.q.reshape(-1, 4), actions.to(every.p)], -1).detach().float()
+    stream = KeyedStream(int(seed), content_keys(identity.cpu()).to(chosen.device))
+    parts, results = [], []
     for begin in range(0, len(rows), chunk_size):
         chunk = rows[begin:begin + chunk_size]
-        densities = _candidate_densities(chosen, [conditions[i] for i in chunk], [a_idx[i] for i in chunk])
-        results = anneal_motion_densities(densities, settings.anneal_candidates, schedule, stream.take(chunk), False,
-                                          settings.polish_steps)
-        for i, density, result in zip(chunk, densities, results, strict=True):
-            predictions[i] = _prediction(chosen, a_idx[i], conditions[i], density, result, Evaluation.FAST)
-    valid = torch.tensor([c is not None for c in conditions], dtype=torch.bool)
-    density = None
-    if rows:
-        density = FinalPoseDistribution.from_predictions([predictions[i] for i in rows]).with_kernels(kernels)
-    return CandidatePredictions(predictions, valid, tuple(reasons), density)
+        draws = stream.take(chunk)  # the start candidates' phase, then the steps'
+        stacked, init = _chunk_products(chosen, [conditions[i] for i in chunk], [a_idx[i] for i in chunk], draws)
+        results.append(anneal_stacked(stacked, init, schedule, draws, False, settings.polish_steps))
+        parts.append(stacked)
+    result = AnnealResult(*(_cat_poses([getattr(r, f) for r in results]) for f in ("best", "best_log_prob",
+                                                                                     "candidates", "log_prob")))
+    base = FinalPoseDistribution.from_stacked(concat_products(parts), result.best, result.candidates,
+                                              normaliser_samples=normaliser_samples)
+    predictions = _CandidateList(chosen, conditions, a_idx, result, base)
+    return CandidatePredictions(predictions, valid, tuple(reasons), base.with_kernels(kernels))
