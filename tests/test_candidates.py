@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.kde import SharedKernelProduct
+from pushtorch.models.conditioning import Observation
 from pushtorch.models.experts import MotionDensity, candidate_products
 from pushtorch.models.frames import ContactFrames
 from pushtorch.models.library import ModelLibrary
@@ -24,6 +25,7 @@ from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.prediction import predict_candidates
 from pushtorch.sim.push import place_robot_against
+from pushtorch.sim.runner import simulate_pushes
 
 
 @pytest.fixture(scope="module")
@@ -165,3 +167,28 @@ def test_products_built_at_once_are_each_candidates_own_product(small_model, sce
     finite = torch.isfinite(each)
     assert torch.allclose(batched[finite], each[finite], rtol=1e-4, atol=1e-3)
     assert stacked.means.batch_shape[1] == max(d.shared_kernels()[0].batch_shape[0] for d in alone)
+
+
+def test_a_conditioned_model_and_one_over_its_kernel_budget_predict_candidates_each_as_alone(small_model, scene):
+    """A conditioned model (its kernels re-weighted by an observed push) takes the batched construction; a model
+    whose kernels exceed the prediction's budget (as a pooled model's do) builds each candidate's density alone
+    from its nearest kernels. Both give each candidate the prediction it gets in a chunk of one."""
+    model = small_model("cube")
+    cloud, starts, _, _ = scene
+    cube = load_object("cube")
+    pose = cube.resting_pose(yaw=0.1)
+    start = place_robot_against(cube.mesh, pose)
+    pushed = simulate_pushes(cube, start, pose, model.actions[1], 0.5, 0.3)
+    observed = Observation(capture_partial_cloud(cube, pose), model.actions[1], pose,
+                           se3.Pose(pushed.object_final.p[0], pushed.object_final.q[0]), start)
+    half = len(model.motions[0].environment) // 2
+    budget = replace(model, settings=replace(model.settings, environment_kernels=half))
+    actions = torch.stack([model.actions[k % 3] for k in range(len(starts))])
+    for variant in (model.condition_on([observed]), budget):
+        together = predict_candidates(variant, cloud, starts, actions, seed=1, chunk_size=5)
+        alone = predict_candidates(variant, cloud, starts, actions, seed=1, chunk_size=1)
+        assert bool(together.valid.all())
+        gap = max(float((a.final_pose.p - b.final_pose.p).norm())
+                  for a, b in zip(together.predictions, alone.predictions, strict=True))
+        assert gap < 1e-4
+        assert torch.isfinite(together.log_prob(together.predictions[0].final_pose.vector())).all()

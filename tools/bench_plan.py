@@ -13,8 +13,9 @@ timed (median of 10).
 
 ``predict_candidates`` draws each candidate's numbers from a counter-based stream keyed by the candidate itself, so
 its result does not depend on the chunking: the first ``--contract`` candidates are predicted again in chunks of
-one and the largest difference is printed against the contract (1e-4 m and 1e-4 rad). ``predict`` per candidate
-draws from a ``torch.Generator``, another stream: the distance between the two is printed too.
+one and the largest difference is printed against the contract (1e-4 m and 1e-4 rad), and a goal is scored under
+their densities (the first ``log_prob``, which makes each density's importance-sampled normaliser). ``predict`` per
+candidate draws from a ``torch.Generator``, another stream: the distance between the two is printed too.
 
     .venv/bin/python tools/bench_plan.py [--candidates 256] [--chunk 64] [--pushes 100] [--observations 100]
 
@@ -96,6 +97,10 @@ if {batched}:  # the contract: the first candidates again, one by one (chunks of
     out["contract_rad"] = max(2 * float(torch.acos((a.final_pose.q * b.final_pose.q).sum().abs().clamp(max=1.0)))
                               for a, b in pairs)
     out["contract_count"] = len(pairs)
+    goal = alone.density.mode[0]  # scoring a goal: the first log_prob computes every density's normaliser
+    started = time.perf_counter()
+    alone.log_prob(goal)
+    out["score_s"] = time.perf_counter() - started
 print(json.dumps(out))
 """
 
@@ -151,6 +156,8 @@ def main() -> None:
     holds = batched["contract_m"] <= 1e-4 and batched["contract_rad"] <= 1e-4
     print(f"contract (chunks of {args.chunk} against chunks of 1, {batched['contract_count']} candidates): largest "
           f"{batched['contract_m']:.2e} m, {batched['contract_rad']:.2e} rad: {'holds' if holds else 'FAILS'}")
+    print(f"scoring a goal under those {batched['contract_count']} candidates' densities (the first log_prob, each "
+          f"density's normaliser made): {batched['score_s']:.1f} s")
     model = load_model(model_path, map_location=device)
     observed = observations(args.observations, model)
     started = time.perf_counter()
