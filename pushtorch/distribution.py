@@ -36,9 +36,16 @@ from torch.distributions import Distribution, constraints
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.kde import Evaluation, KernelBandwidth, PoseKDE, SharedKernelProduct
-from pushtorch.kde.normaliser import NO_CUTOFF, expert_log_probs, log_kernel_normaliser, log_normaliser
+from pushtorch.kde.normaliser import (
+    NO_CUTOFF,
+    expert_log_probs,
+    log_kernel_normaliser,
+    log_normaliser,
+    log_normalisers,
+)
 from pushtorch.models.experts import StackedProducts, stack_products
-from pushtorch.models.settings import as_generator
+from pushtorch.models.settings import DEFAULT_SEED, as_generator
+from pushtorch.streams import KeyedStream
 
 Tensor = torch.Tensor
 
@@ -73,6 +80,11 @@ class FinalPoseDistribution(Distribution):
             an invalid query raises :class:`~pushtorch.errors.InvalidPoseError` (a ValueError).
         normaliser_samples: proposals per expert and part of the normaliser's importance sampler (default
             :data:`NORMALISER_SAMPLES`; its cost grows linearly with them).
+        normaliser_keys: ``(*B,)`` integer keys, one per prediction (a planner's candidates: each one's key): the
+            normalisers are then estimated all at once, each from draws keyed by its prediction
+            (:func:`pushtorch.kde.normaliser.log_normalisers`); None: one after the other, each from a generator
+            seeded with :data:`~pushtorch.models.settings.DEFAULT_SEED`. Either way a prediction's normaliser is the
+            same alone and in any batch.
     """
 
     arg_constraints: dict = {}
@@ -83,7 +95,8 @@ class FinalPoseDistribution(Distribution):
                  exponent: Tensor, mode: Tensor | None, method: Evaluation | str = Evaluation.FAST,
                  normaliser_centres: se3.Pose | None = None, validate_args: bool | None = None, *,
                  kernels: str = "cut", frame: tuple[se3.Pose, se3.Pose] | None = None,
-                 log_z: Tensor | None = None, normaliser_samples: int = NORMALISER_SAMPLES) -> None:
+                 log_z: Tensor | None = None, normaliser_samples: int = NORMALISER_SAMPLES,
+                 normaliser_keys: Tensor | None = None) -> None:
         method = Evaluation.of(method)
         if isinstance(normaliser_samples, bool) or not isinstance(normaliser_samples, int) or normaliser_samples < 1:
             raise InvalidParameterError(f"normaliser_samples must be an integer >= 1, got {normaliser_samples!r}")
@@ -101,6 +114,9 @@ class FinalPoseDistribution(Distribution):
         self.exponent, self.method, self.kernels, self.frame = exponent, method, kernels, frame
         self._mode = mode
         self.normaliser_centres, self.normaliser_samples = normaliser_centres, normaliser_samples
+        if normaliser_keys is not None and (normaliser_keys.shape != batch or normaliser_keys.is_floating_point()):
+            raise InvalidParameterError(f"normaliser_keys must be integers of the batch shape {tuple(batch)}")
+        self.normaliser_keys = normaliser_keys
         self._log_z: Tensor | None = log_z
         self._log_kernel: Tensor | None = None
         self._experts: PoseKDE | None = None
@@ -133,15 +149,17 @@ class FinalPoseDistribution(Distribution):
     @staticmethod
     def from_stacked(stacked: StackedProducts, modes: se3.Pose, centres: se3.Pose | None = None,
                      method: Evaluation | str = Evaluation.FAST, validate_args: bool | None = None,
-                     normaliser_samples: int = NORMALISER_SAMPLES) -> FinalPoseDistribution:
+                     normaliser_samples: int = NORMALISER_SAMPLES,
+                     normaliser_keys: Tensor | None = None) -> FinalPoseDistribution:
         """One distribution of ``batch_shape (B,)`` over stacked products of experts
         (:class:`~pushtorch.models.experts.StackedProducts`: a planner's candidates, built batched), their annealed
-        ``modes (B,)`` and candidates ``centres (B, n)`` (the normaliser's proposal centres; None: default)."""
+        ``modes (B,)`` and candidates ``centres (B, n)`` (the normaliser's proposal centres; None: default);
+        ``normaliser_samples``, ``normaliser_keys``: as the constructor's."""
         count = stacked.log_weights.shape[1]
         mode = modes.vector().to(stacked.log_weights.dtype).reshape(count, 7)
         dist = FinalPoseDistribution(stacked.means, stacked.log_weights, stacked.density_bandwidth,
                                      stacked.trial_rounds, stacked.exponent, mode, method, centres, validate_args,
-                                     normaliser_samples=normaliser_samples)
+                                     normaliser_samples=normaliser_samples, normaliser_keys=normaliser_keys)
         if stacked.density_bandwidth != stacked.bandwidth:
             dist = dist._widened_to_mode(stacked.bandwidth)
         return dist
@@ -179,6 +197,7 @@ class FinalPoseDistribution(Distribution):
         return self._replace(means=self.means.take(index), log_weights=self.log_weights[:, index],
                              trial_rounds=self.trial_rounds[index], exponent=self.exponent[:, index],
                              mode=self._mode[index], normaliser_centres=centres,
+                             normaliser_keys=None if self.normaliser_keys is None else self.normaliser_keys[index],
                              log_z=None if self._log_z is None else self._log_z[index])
 
     def _replace(self, log_z: Tensor | None = None, **changes) -> FinalPoseDistribution:
@@ -187,7 +206,7 @@ class FinalPoseDistribution(Distribution):
                          trial_rounds=self.trial_rounds, exponent=self.exponent, mode=self._mode,
                          method=self.method, normaliser_centres=self.normaliser_centres,
                          validate_args=self._validate_args, kernels=self.kernels, frame=self.frame,
-                         normaliser_samples=self.normaliser_samples)
+                         normaliser_samples=self.normaliser_samples, normaliser_keys=self.normaliser_keys)
         return FinalPoseDistribution(**(arguments | changes), log_z=log_z)
 
     # ------------------------------------------------------------------------------------------ properties
@@ -219,6 +238,16 @@ class FinalPoseDistribution(Distribution):
     def log_normaliser(self) -> Tensor:
         """``(*B,)`` float64 ``log Z``: each expert normalised with its cut-off kernels' integrals, the
         product by importance sampling (seeded with DEFAULT_SEED; computed on first use)."""
+        if self._log_z is None and self.normaliser_keys is not None:  # all at once, each from its own keyed draws
+            flat_batch = max(1, self.batch_shape.numel())
+            centres = None if self.normaliser_centres is None else self.normaliser_centres.reshape(flat_batch, -1)
+            values = log_normalisers(self.means.reshape(flat_batch, -1),
+                                     self.log_weights.reshape(self.num_experts, flat_batch, -1), self.bandwidth,
+                                     self.trial_rounds.reshape(flat_batch, 3),
+                                     self.exponent.reshape(self.num_experts, flat_batch), centres,
+                                     KeyedStream(DEFAULT_SEED, self.normaliser_keys.reshape(-1).cpu().to(
+                                         self.means.p.device)), self.normaliser_samples)
+            self._log_z = values.reshape(self.batch_shape)
         if self._log_z is None:
             flat_batch = max(1, self.batch_shape.numel())
             log_w = self.log_weights.reshape(self.num_experts, flat_batch, -1)
@@ -380,7 +409,8 @@ class FinalPoseDistribution(Distribution):
         return self._replace(means=self.means.to(device=device, dtype=dtype), log_weights=move(self.log_weights),
                              trial_rounds=self.trial_rounds.to(device), exponent=move(self.exponent),
                              mode=None if self._mode is None else move(self._mode), normaliser_centres=centres,
-                             frame=frame, log_z=None if self._log_z is None else self._log_z.to(device))
+                             frame=frame, log_z=None if self._log_z is None else self._log_z.to(device),
+                             normaliser_keys=None if self.normaliser_keys is None else self.normaliser_keys.to(device))
 
     def with_method(self, method: Evaluation | str) -> FinalPoseDistribution:
         """The same distribution evaluated by ``method`` (an :class:`~pushtorch.kde.Evaluation` or its string)."""

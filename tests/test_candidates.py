@@ -13,6 +13,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pushtorch import se3
+from pushtorch.distribution import FinalPoseDistribution
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.kde import SharedKernelProduct
 from pushtorch.models.conditioning import Observation
@@ -192,3 +193,21 @@ def test_a_conditioned_model_and_one_over_its_kernel_budget_predict_candidates_e
                   for a, b in zip(together.predictions, alone.predictions, strict=True))
         assert gap < 1e-4
         assert torch.isfinite(together.log_prob(together.predictions[0].final_pose.vector())).all()
+
+
+def test_the_candidates_normalisers_are_made_at_once_each_from_its_own_draws(small_model, scene):
+    """The planner's normalisers: all candidates' in one batched estimate, each from draws keyed by its candidate
+    (the same value in the batch as in the candidate's own density), and each within the estimator's noise of the
+    one-at-a-time estimate with 16 times the samples (the seed spread at 64 samples is about 0.012 nats)."""
+    model = small_model("cube")
+    cloud, starts, _, _ = scene
+    actions = torch.stack([model.actions[k % 3] for k in range(len(starts))])
+    result = predict_candidates(model, cloud, starts, actions, seed=2)
+    batch = result.density
+    together = batch.log_normaliser()
+    alone = torch.stack([p.density.with_kernels("full").log_normaliser() for p in result.predictions])
+    assert together.shape == (len(starts),) and torch.allclose(together, alone, atol=1e-9)
+    reference = FinalPoseDistribution(batch.means, batch.log_weights, batch.bandwidth, batch.trial_rounds,
+                                      batch.exponent, batch.mode, batch.method, batch.normaliser_centres,
+                                      kernels=batch.kernels, normaliser_samples=1024).log_normaliser()
+    assert float((together - reference).abs().max()) < 0.06

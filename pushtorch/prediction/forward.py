@@ -488,8 +488,9 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
         generator: a ``torch.Generator`` or seed to draw ``seed`` from instead.
         kernels: the density's kernels, ``"full"`` (finite everywhere: a planner's gradients) or ``"cut"``.
         normaliser_samples: the importance samples per expert of each candidate's normaliser, made on the first
-            ``log_prob`` (:data:`PLANNER_NORMALISER_SAMPLES`; a single prediction's density takes
-            :data:`~pushtorch.distribution.NORMALISER_SAMPLES`).
+            ``log_prob`` for every candidate at once, each from draws keyed by the candidate
+            (:func:`~pushtorch.kde.normaliser.log_normalisers`; :data:`PLANNER_NORMALISER_SAMPLES`; a single
+            prediction's density takes :data:`~pushtorch.distribution.NORMALISER_SAMPLES`).
 
     Raises:
         InvalidParameterError: no candidate, actions that do not match, an action the model lacks, a chunk size
@@ -545,6 +546,7 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
     result = AnnealResult(*(_cat_poses([getattr(r, f) for r in results]) for f in ("best", "best_log_prob",
                                                                                      "candidates", "log_prob")))
     base = FinalPoseDistribution.from_stacked(concat_products(parts), result.best, result.candidates,
-                                              normaliser_samples=normaliser_samples)
+                                              normaliser_samples=normaliser_samples,
+                                              normaliser_keys=stream.keys[torch.tensor(rows, device=stream.device)])
     predictions = _CandidateList(chosen, conditions, a_idx, result, base)
     return CandidatePredictions(predictions, valid, tuple(reasons), base.with_kernels(kernels))
