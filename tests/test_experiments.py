@@ -568,6 +568,17 @@ def test_the_parts_steps_in_worker_processes_give_the_records_of_a_serial_run(ti
     assert spread == serial, f"{differ} of {len(spread)} records differ ({parts})"
 
 
+def test_the_logged_examples_come_from_the_workers_that_predicted_them(tiny_run):
+    """With task workers, a recording's examples are predicted (with their history) by the task that predicts
+    their set, kept beside it and logged from there: the submitting process reads and removes them, and
+    predicts nothing itself."""
+    _, out, _ = tiny_run
+    folder = out / "examples"
+    assert folder.is_dir() and not any(folder.iterdir())
+    paths = viz.read_entity_paths(out / "recording.rrd")
+    assert any("/friction_biasing/" in p and "/c0a0/" in p for p in paths)
+
+
 def test_a_cluster_task_receives_a_trained_model_as_its_files_path_and_a_context_without_its_recording(tiny_run):
     import pickle
 

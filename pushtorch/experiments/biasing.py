@@ -154,7 +154,8 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
         predictions, examples = predict_set(
             group_ctx, key, obj, candidates, poses, truth=truth_key, adaptive=adaptive, physics=physics,
             ensemble=ensemble, residual=residuals,
-            seed_key=f"{name}_{obj.name}", bar=group_bar, examples=group_ctx.log_examples if log and k == 0 else None,
+            seed_key=f"{name}_{obj.name}", bar=group_bar,
+            examples=group_ctx.log_examples if (log or group_ctx.keep_examples) and k == 0 else None,
         )
         truth, broken = simulate_truth(group_ctx, key, obj, predictions, conditions, samples,
                                        seed_key=f"{name}_{obj.name}")

@@ -201,6 +201,9 @@ class ExperimentContext:
         workers: simulation processes (0: all cores); shard_size: pushes per shard.
         progress: show tqdm progress bars.
         recording: an open Rerun recording, or None.
+        keep_examples: a task's context for a run that records: its prediction sets keep the examples the
+            recording logs and write them beside the set (:mod:`pushtorch.experiments.prediction_sets`), so the
+            submitting process logs them without predicting (or compiling) anything.
         log_examples: which test conditions per part and object have their predictions (every action)
             logged: ``recording.conditions``, default the first ``experiment.log_examples``.
         logged_predictions: ``(root entity path, summary)`` of every prediction :func:`log_examples` logged
@@ -228,6 +231,7 @@ class ExperimentContext:
     shard_size: int = 100
     progress: bool = True
     recording: Any = None
+    keep_examples: bool = False
     log_examples: LogConditions = field(default_factory=LogConditions)
     placement: Placement = Placement()
     test_placement: Placement | None = None

@@ -116,7 +116,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             predictions, examples = predict_set(
                 obj_ctx, key, obj, models, poses, truth=truth_key, adaptive=method == "adaptive",
                 choose=choices[method], seed_key=f"{name}_{obj_name}", memo=memo, bar=obj_bar,
-                examples=obj_ctx.log_examples if log and method == "adaptive" else None,
+                examples=obj_ctx.log_examples if (log or obj_ctx.keep_examples) and method == "adaptive" else None,
             )
             truth, broken = simulate_truth(obj_ctx, key, obj, predictions, [condition], samples,
                                            seed_key=f"{name}_{obj_name}")

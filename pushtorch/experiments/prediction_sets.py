@@ -8,8 +8,10 @@ ground truth and scores it.
 
 from __future__ import annotations
 
+import io
 import logging
 import math
+import pickle
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -29,6 +31,7 @@ from pushtorch.experiments.context import (
 )
 from pushtorch.experiments.training import engine_tag, placement_tag
 from pushtorch.features import SurfaceFeatures, compute_surface_features
+from pushtorch.io import atomic_write_bytes
 from pushtorch.models.library import ModelLibrary
 from pushtorch.models.model import PushModel
 from pushtorch.models.settings import ModelSettings
@@ -43,6 +46,7 @@ __all__ = [
     "PREDICTION_VERSION",
     "PredictionSet",
     "cache_name",
+    "examples_path",
     "observe",
     "predict_set",
     "sample_test_poses",
@@ -316,17 +320,51 @@ def predict_set(
     choice = _logged_choice(ctx, examples)
     wanted = set(choice.known_before_truth(n)) if choice is not None else set()
     chosen = Examples(choice, group.kept, group.again) if choice is not None else Examples()
+    kept_path = examples_path(ctx, key)
     if cached is not None:
         if bar is not None:
             bar.update(n * int(ctx.actions.shape[0]))
-        for i in sorted(wanted):  # the logged examples only: same seeds, same predictions
+        kept = _kept_examples(kept_path, made_from, wanted) if wanted else None
+        if kept is not None:  # kept by the task that predicted the set: nothing to predict (or compile) here
+            group.kept.extend(kept)
+        for i in sorted(wanted) if kept is None else ():  # the logged examples only: same seeds, same predictions
             _, features = observe(obj, poses.take(i), ctx.settings)
             group.predict_condition(i, features, True)
+        if ctx.recording is not None:
+            kept_path.unlink(missing_ok=True)  # logged from memory now; a rerun predicts them again
         return cached, chosen
     result = _predict_conditions(group, wanted, physics, ensemble, made_from, bar, residual)
+    if ctx.keep_examples and wanted:  # before the set: a set on disk finds its examples there too
+        buffer = io.BytesIO()
+        torch.save({"made_from": made_from, "conditions": sorted(wanted), "examples": group.kept}, buffer)
+        atomic_write_bytes(kept_path, buffer.getvalue())
     result.save(path)
     scores_path(ctx, key).unlink(missing_ok=True)  # scores of an older set must not pass for this one's
     return result, chosen
+
+
+def examples_path(ctx: ExperimentContext, key: str) -> Path:
+    """Where a task keeps a group's logged examples for the submitting process: ``<run_dir>/examples/<cache
+    name>.pt`` (every action's prediction whole, with its history and cloud; about 3.5 MB each at the quickstart's
+    sizes). The submitting process reads it when it logs them, then removes it."""
+    return contained_path(ctx.run_dir, "examples", f"{cache_name(ctx, key)}.pt",
+                          what="experiment, object or prior name")
+
+
+def _kept_examples(path: Path, made_from: str, wanted: set[int]) -> list[Example] | None:
+    """The examples a task kept at ``path`` for the set ``made_from`` and the conditions ``wanted``; None when
+    there are none, or they were kept for another set or choice, or the file does not load (then they are
+    predicted again)."""
+    if not path.is_file():
+        return None
+    try:
+        kept = torch.load(path, map_location="cpu", weights_only=False)
+    except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as exc:
+        log.warning("predicting the logged examples again: %s does not load (%s)", path, exc)
+        return None
+    if kept.get("made_from") != made_from or kept.get("conditions") != sorted(wanted):
+        return None
+    return list(kept["examples"])
 
 
 def _set_fingerprint(ctx: ExperimentContext, key: str, candidates: Sequence[PushModel], poses: se3.Pose,
@@ -363,10 +401,11 @@ def _cached_set(ctx: ExperimentContext, key: str, path: Path, made_from: str, tr
 
 
 def _logged_choice(ctx: ExperimentContext, examples: LogConditions | int | None) -> LogConditions | None:
-    """Which conditions the recording logs (an int k: the first k); None without a recording."""
+    """Which conditions the recording logs (an int k: the first k); None without a recording (a task of a run that
+    records keeps them: ``keep_examples``)."""
     if isinstance(examples, int) and not isinstance(examples, bool):
         examples = LogConditions("first", examples)
-    return examples if ctx.recording is not None else None
+    return examples if ctx.recording is not None or ctx.keep_examples else None
 
 
 @dataclass

@@ -122,7 +122,8 @@ def prefetch(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], An
         return False
     if warm is not None:
         warm_up(warm)
-    task_ctx = dataclasses.replace(ctx, workers=1, recording=None, progress=False, logged_predictions=[])
+    task_ctx = dataclasses.replace(ctx, workers=1, recording=None, progress=False, logged_predictions=[],
+                                   keep_examples=ctx.recording is not None or ctx.keep_examples)
     _STATE.clear()
     _STATE.update({i: (step, task_ctx, item) for i, item in enumerate(items)})
     start = time.perf_counter()
@@ -145,9 +146,10 @@ def _count(ctx: ExperimentContext, what: str, where: str, count: int) -> None:
 
 def _task_context(ctx: ExperimentContext) -> ExperimentContext:
     """What a remote task works with: the context without its recording and model cache, simulating in its own
-    process on the local executor."""
+    process on the local executor; it keeps the examples a recording logs (``keep_examples``)."""
     return dataclasses.replace(ctx, workers=1, executor=Executor(), recording=None, progress=False,
-                               logged_predictions=[], task_counts={}, _models={}, _slots=[0], _truth_plan=None)
+                               keep_examples=ctx.recording is not None or ctx.keep_examples, logged_predictions=[],
+                               task_counts={}, _models={}, _slots=[0], _truth_plan=None)
 
 
 def _rebuild_context(fields: dict) -> ExperimentContext:

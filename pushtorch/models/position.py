@@ -74,6 +74,10 @@ class PositionModel:
             method=method,
         )
 
+    def __getstate__(self) -> dict:
+        """Pickled without its built-on-use caches (the open3d index does not pickle; both are rebuilt on use)."""
+        return {**self.__dict__, "_search": None, "_distance_grid": None}
+
     def nearest_search(self):
         """An open3d nearest-neighbour index over the frames' points (object frame), built once."""
         if self._search is None:
