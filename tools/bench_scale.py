@@ -19,7 +19,8 @@ progress bars) with ``executor=ray``, in a fresh process and a fresh run folder 
 (``sched_setaffinity``: the submitting process and its Ray instance alike) with ``executor.num_cpus`` as many;
 ``--experiment-repeats`` times each (3), alternating. ``experiment_scaling`` is the median wall time at 1 CPU
 over the median at 2 (target >= 1.7); the serial fraction it implies (Amdahl: ``2/s - 1``) is printed beside it,
-for docs/cluster.md's extrapolation.
+for docs/cluster.md's extrapolation, and per kind of task (from each run's log) its wall time at 1 and 2 CPUs and
+the CPU time its tasks took at each: the same tasks taking longer when both CPUs are busy bounds the scaling.
 
     .venv/bin/python tools/bench_scale.py [--pushes 3000] [--train-pushes 10000 100000] [--skip-train]
         [--skip-scale] [--bandwidth-pushes 5000] [--skip-bandwidth] [--experiment-repeats 3]
@@ -35,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import resource
 import subprocess
 import sys
@@ -93,8 +95,13 @@ EXPERIMENT = ["experiment=quickstart", "experiment.progress=false", "executor=ra
               "~experiment.parts.online_adaptation"]
 
 
-def _experiment_seconds(cpus: int, folder: Path) -> float:
-    """Wall seconds of the pinned experiment in a fresh process confined to the first ``cpus`` CPUs."""
+#: A log line of tasks run on the executor: their kind, wall seconds and summed seconds of work.
+_TASK_LINE = re.compile(r"\d+ (?P<kind>.+?) as ray tasks on .*?: (?P<wall>\d+) s \((?P<work>\d+) s of work")
+
+
+def _experiment_seconds(cpus: int, folder: Path) -> tuple[float, dict[str, tuple[float, float]]]:
+    """Wall seconds of the pinned experiment in a fresh process confined to the first ``cpus`` CPUs, and per kind
+    of task its wall and summed work seconds (from the run's log)."""
     allowed = sorted(os.sched_getaffinity(0))[:cpus]
     started = time.perf_counter()
     result = subprocess.run([sys.executable, "-m", "pushtorch", *EXPERIMENT, f"executor.num_cpus={cpus}",
@@ -103,18 +110,31 @@ def _experiment_seconds(cpus: int, folder: Path) -> float:
     seconds = time.perf_counter() - started
     if result.returncode != 0:
         raise SystemExit(f"the experiment at {cpus} CPU failed: {result.stderr[-2000:]}")
-    return seconds
+    phases = {m["kind"]: (float(m["wall"]), float(m["work"]))
+              for m in _TASK_LINE.finditer((folder / "pushtorch.log").read_text())}
+    return seconds, phases
 
 
 def _experiment_scaling(repeats: int, root: Path) -> float:
-    """The pinned experiment's median wall time at 1 CPU over its median at 2 (module notes)."""
+    """The pinned experiment's median wall time at 1 CPU over its median at 2 (module notes). Per kind of task it
+    prints how its wall time scaled and how much more CPU time the same tasks took at 2 CPUs than at 1: work that
+    grows when both CPUs are busy (shared caches, memory bandwidth) bounds the scaling whatever the split."""
     import statistics
 
     seconds: dict[int, list[float]] = {1: [], 2: []}
+    phases: dict[int, list[dict[str, tuple[float, float]]]] = {1: [], 2: []}
     for k in range(repeats):
         for cpus in (1, 2):
-            seconds[cpus].append(_experiment_seconds(cpus, root / f"experiment_{cpus}_{k}"))
+            wall, kinds = _experiment_seconds(cpus, root / f"experiment_{cpus}_{k}")
+            seconds[cpus].append(wall)
+            phases[cpus].append(kinds)
             print(f"the friction-biasing part on Ray, {cpus} CPU: {seconds[cpus][-1]:.1f} s", flush=True)
+    for kind in sorted(set().union(*phases[1], *phases[2])):
+        wall = {c: statistics.median(p[kind][0] for p in phases[c] if kind in p) for c in (1, 2)}
+        work = {c: statistics.median(p[kind][1] for p in phases[c] if kind in p) for c in (1, 2)}
+        print(f"  {kind}: {wall[1]:.0f} s at 1 CPU, {wall[2]:.0f} s at 2 ({wall[1] / wall[2]:.2f}); its tasks' work "
+              f"{work[1]:.0f} s at 1 CPU, {work[2]:.0f} s at 2 (x{work[2] / work[1]:.2f}: at most "
+              f"{2 * work[1] / work[2]:.2f} from 2 CPUs)", flush=True)
     scaling = statistics.median(seconds[1]) / statistics.median(seconds[2])
     print(f"experiment: medians {statistics.median(seconds[1]):.1f} s at 1 CPU, {statistics.median(seconds[2]):.1f} s"
           f" at 2; scaling {scaling:.2f}, serial fraction {2 / scaling - 1:.3f} (Amdahl)", flush=True)
