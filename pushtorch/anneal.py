@@ -124,6 +124,18 @@ class AnnealResult:
     history: Pose | None = None
     history_log_prob: Tensor | None = None
 
+    def take(self, index) -> AnnealResult:
+        """The result of the problems at ``index`` of the first problem dim (an int: one problem, its dim dropped;
+        a tensor of indices: a subset or reordering), the history's step dim kept first."""
+        def pose(p: Pose, lead: bool = False) -> Pose:
+            return Pose.unchecked(p.p[:, index], p.q[:, index]) if lead else Pose.unchecked(p.p[index], p.q[index])
+
+        return AnnealResult(
+            best=pose(self.best), best_log_prob=self.best_log_prob[index], candidates=pose(self.candidates),
+            log_prob=self.log_prob[index], history=None if self.history is None else pose(self.history, True),
+            history_log_prob=None if self.history_log_prob is None else self.history_log_prob[:, index],
+        )
+
 
 def initial_candidates(kde: PoseKDE, n: int, generator: torch.Generator | None = None) -> Pose:
     """Annealing start points: kernel means drawn with probability equal to their weights.

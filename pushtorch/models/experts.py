@@ -324,15 +324,7 @@ def anneal_motion_densities(
     result = anneal_stacked(stack_products(densities), init, schedule, generator, record_history, polish_steps)
     out = []
     for b in range(len(densities)):
-        part = AnnealResult(
-            best=se3.Pose.unchecked(result.best.p[b], result.best.q[b]),
-            best_log_prob=result.best_log_prob[b],
-            candidates=se3.Pose.unchecked(result.candidates.p[b], result.candidates.q[b]),
-            log_prob=result.log_prob[b],
-            history=(None if result.history is None
-                     else se3.Pose.unchecked(result.history.p[:, b], result.history.q[:, b])),
-            history_log_prob=None if result.history_log_prob is None else result.history_log_prob[:, b],
-        )
+        part = result.take(b)
         out.append(MotionPrediction(part.best, part.best_log_prob, part))
     return out
 
@@ -376,17 +368,7 @@ def anneal_stacked(
     start = se3.Pose.unchecked(init.p[index], init.q[index])
     result = anneal(product, start, schedule, generator, record_history=record_history, method=Evaluation.FAST)
     result = polish_candidates(result, product.mean_shift, product.log_prob, polish_steps)
-    back = torch.argsort(index)
-    history = None if result.history is None else se3.Pose.unchecked(result.history.p[:, back],
-                                                                    result.history.q[:, back])
-    return AnnealResult(
-        best=se3.Pose.unchecked(result.best.p[back], result.best.q[back]),
-        best_log_prob=result.best_log_prob[back],
-        candidates=se3.Pose.unchecked(result.candidates.p[back], result.candidates.q[back]),
-        log_prob=result.log_prob[back],
-        history=history,
-        history_log_prob=None if result.history_log_prob is None else result.history_log_prob[:, back],
-    )
+    return result.take(torch.argsort(index))
 
 
 def candidate_products(

@@ -392,14 +392,5 @@ def optimise_query_densities(
     result = polish_candidates(result, partial(kde.mean_shift, method=Evaluation.FAST), log_prob, polish_steps)
     out = []
     for i, density in enumerate(densities):
-        history = None if result.history is None else se3.Pose.unchecked(result.history.p[:, i], result.history.q[:, i])
-        part = AnnealResult(
-            best=se3.Pose.unchecked(result.best.p[i], result.best.q[i]),
-            best_log_prob=result.best_log_prob[i],
-            candidates=se3.Pose.unchecked(result.candidates.p[i], result.candidates.q[i]),
-            log_prob=result.log_prob[i],
-            history=history,
-            history_log_prob=None if result.history_log_prob is None else result.history_log_prob[:, i],
-        )
-        out.append(_query_result(density, part))
+        out.append(_query_result(density, result.take(i)))
     return out
