@@ -237,16 +237,17 @@ class FinalPoseDistribution(Distribution):
 
     def log_normaliser(self) -> Tensor:
         """``(*B,)`` float64 ``log Z``: each expert normalised with its cut-off kernels' integrals, the
-        product by importance sampling (seeded with DEFAULT_SEED; computed on first use)."""
+        product by importance sampling (seeded with DEFAULT_SEED; with ``normaliser_keys``, all at once, each from
+        its key's draws; computed on first use)."""
         if self._log_z is None and self.normaliser_keys is not None:  # all at once, each from its own keyed draws
             flat_batch = max(1, self.batch_shape.numel())
             centres = None if self.normaliser_centres is None else self.normaliser_centres.reshape(flat_batch, -1)
+            keys = self.normaliser_keys.reshape(-1).to(self.means.p.device)
             values = log_normalisers(self.means.reshape(flat_batch, -1),
                                      self.log_weights.reshape(self.num_experts, flat_batch, -1), self.bandwidth,
                                      self.trial_rounds.reshape(flat_batch, 3),
                                      self.exponent.reshape(self.num_experts, flat_batch), centres,
-                                     KeyedStream(DEFAULT_SEED, self.normaliser_keys.reshape(-1).cpu().to(
-                                         self.means.p.device)), self.normaliser_samples)
+                                     KeyedStream(DEFAULT_SEED, keys), self.normaliser_samples)
             self._log_z = values.reshape(self.batch_shape)
         if self._log_z is None:
             flat_batch = max(1, self.batch_shape.numel())

@@ -8,10 +8,8 @@ ground truth and scores it.
 
 from __future__ import annotations
 
-import io
 import logging
 import math
-import pickle
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -29,9 +27,9 @@ from pushtorch.experiments.context import (
     save_arrays,
     stable_seed,
 )
+from pushtorch.experiments.example_files import load_examples, save_examples
 from pushtorch.experiments.training import engine_tag, placement_tag
 from pushtorch.features import SurfaceFeatures, compute_surface_features
-from pushtorch.io import atomic_write_bytes
 from pushtorch.models.library import ModelLibrary
 from pushtorch.models.model import PushModel
 from pushtorch.models.settings import ModelSettings
@@ -324,20 +322,21 @@ def predict_set(
     if cached is not None:
         if bar is not None:
             bar.update(n * int(ctx.actions.shape[0]))
-        kept = _kept_examples(kept_path, made_from, wanted) if wanted else None
+        kept = load_examples(kept_path, made_from, wanted) if wanted else None
         if kept is not None:  # kept by the task that predicted the set: nothing to predict (or compile) here
             group.kept.extend(kept)
-        for i in sorted(wanted) if kept is None else ():  # the logged examples only: same seeds, same predictions
-            _, features = observe(obj, poses.take(i), ctx.settings)
-            group.predict_condition(i, features, True)
+        elif wanted:
+            for i in sorted(wanted):  # the logged examples only: same seeds, same predictions
+                _, features = observe(obj, poses.take(i), ctx.settings)
+                group.predict_condition(i, features, True)
+            if ctx.keep_examples:  # a task of a resumed run: for the submitting process to log
+                save_examples(kept_path, made_from, wanted, group.kept)
         if ctx.recording is not None:
             kept_path.unlink(missing_ok=True)  # logged from memory now; a rerun predicts them again
         return cached, chosen
     result = _predict_conditions(group, wanted, physics, ensemble, made_from, bar, residual)
     if ctx.keep_examples and wanted:  # before the set: a set on disk finds its examples there too
-        buffer = io.BytesIO()
-        torch.save({"made_from": made_from, "conditions": sorted(wanted), "examples": group.kept}, buffer)
-        atomic_write_bytes(kept_path, buffer.getvalue())
+        save_examples(kept_path, made_from, wanted, group.kept)
     result.save(path)
     scores_path(ctx, key).unlink(missing_ok=True)  # scores of an older set must not pass for this one's
     return result, chosen
@@ -349,22 +348,6 @@ def examples_path(ctx: ExperimentContext, key: str) -> Path:
     sizes). The submitting process reads it when it logs them, then removes it."""
     return contained_path(ctx.run_dir, "examples", f"{cache_name(ctx, key)}.pt",
                           what="experiment, object or prior name")
-
-
-def _kept_examples(path: Path, made_from: str, wanted: set[int]) -> list[Example] | None:
-    """The examples a task kept at ``path`` for the set ``made_from`` and the conditions ``wanted``; None when
-    there are none, or they were kept for another set or choice, or the file does not load (then they are
-    predicted again)."""
-    if not path.is_file():
-        return None
-    try:
-        kept = torch.load(path, map_location="cpu", weights_only=False)
-    except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as exc:
-        log.warning("predicting the logged examples again: %s does not load (%s)", path, exc)
-        return None
-    if kept.get("made_from") != made_from or kept.get("conditions") != sorted(wanted):
-        return None
-    return list(kept["examples"])
 
 
 def _set_fingerprint(ctx: ExperimentContext, key: str, candidates: Sequence[PushModel], poses: se3.Pose,

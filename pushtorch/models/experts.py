@@ -247,6 +247,12 @@ class StackedProducts:
     bandwidth: KernelBandwidth
     density_bandwidth: KernelBandwidth  # the density's (MotionDensity.density_bandwidth)
 
+    def take(self, index: Tensor) -> StackedProducts:
+        """The products at ``index`` (a subset or a reordering of the problems)."""
+        return replace(self, means=se3.Pose.unchecked(self.means.p[index], self.means.q[index]),
+                       log_weights=self.log_weights[:, index], exponent=self.exponent[:, index],
+                       trial_rounds=self.trial_rounds[index])
+
 
 def stack_products(densities: list[MotionDensity]) -> StackedProducts:
     """Every density's :meth:`MotionDensity.shared_kernels`, padded and stacked: padding kernels weigh
@@ -329,13 +335,6 @@ def anneal_motion_densities(
     return out
 
 
-def _take_problems(stacked: StackedProducts, index: Tensor) -> StackedProducts:
-    """The problems at ``index`` of stacked products (a subset or a reordering)."""
-    return replace(stacked, means=se3.Pose.unchecked(stacked.means.p[index], stacked.means.q[index]),
-                   log_weights=stacked.log_weights[:, index], exponent=stacked.exponent[:, index],
-                   trial_rounds=stacked.trial_rounds[index])
-
-
 def _product(stacked: StackedProducts, validate_args: bool = True) -> SharedKernelProduct:
     return SharedKernelProduct(stacked.means, stacked.log_weights, stacked.bandwidth, stacked.trial_rounds,
                                validate_args=validate_args, expert_exponent=stacked.exponent)
@@ -364,7 +363,7 @@ def anneal_stacked(
     index = torch.tensor(order, device=init.p.device)
     if is_keyed(generator):
         generator = generator.fork().take(order)
-    product = _product(_take_problems(stacked, index), validate_args=False)  # its own normalised candidates only
+    product = _product(stacked.take(index), validate_args=False)  # its own normalised candidates only
     start = se3.Pose.unchecked(init.p[index], init.q[index])
     result = anneal(product, start, schedule, generator, record_history=record_history, method=Evaluation.FAST)
     result = polish_candidates(result, product.mean_shift, product.log_prob, polish_steps)

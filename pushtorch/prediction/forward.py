@@ -421,10 +421,7 @@ def _chunk_products(model: PushModel, conditions: list[PushCondition], a_idx: li
         starts.append(init)
         positions.extend(mine)
     back = torch.argsort(torch.tensor(positions))
-    joined = concat_products(parts)
-    joined = replace(joined, means=se3.Pose.unchecked(joined.means.p[back], joined.means.q[back]),
-                     log_weights=joined.log_weights[:, back], exponent=joined.exponent[:, back],
-                     trial_rounds=joined.trial_rounds[back])
+    joined = concat_products(parts).take(back)
     init = se3.Pose.cat(starts)
     return joined, se3.Pose.unchecked(init.p[back], init.q[back])
 
@@ -448,12 +445,10 @@ class _CandidateList(Sequence):
         i = range(len(self))[index]
         if self._conditions[i] is None:
             return None
-        row, r = self._rows[i], self._result
-        candidates = se3.Pose.unchecked(r.candidates.p[row], r.candidates.q[row])
-        final = se3.Pose.unchecked(r.best.p[row], r.best.q[row])
-        anneal = AnnealResult(final, r.best_log_prob[row], candidates, r.log_prob[row])
-        return Prediction(self._model.name, self._model.motions[self._a_idx[i]].action, self._conditions[i], final,
-                          r.best_log_prob[row], self._density[row], candidates, r.log_prob[row], anneal)
+        row = self._rows[i]
+        part = self._result.take(row)
+        return Prediction(self._model.name, self._model.motions[self._a_idx[i]].action, self._conditions[i],
+                          part.best, part.best_log_prob, self._density[row], part.candidates, part.log_prob, part)
 
 
 def _cat_poses(values: list) -> se3.Pose | torch.Tensor:
