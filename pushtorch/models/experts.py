@@ -7,6 +7,9 @@ by the contact-frame kernel ``K^c``; the experts' product is optimised by simula
 (:meth:`MotionDensity.predict`). :func:`anneal_motion_densities` anneals the products of many push
 conditions in one batch on the fast path: each kind's kernels, shared by all of its experts, are evaluated
 once per query (:class:`pushtorch.kde.SharedKernelProduct`), and the candidates are polished by mean shift.
+A planner's candidates of one cloud skip the density objects: :func:`candidate_products` builds their products
+stacked, :func:`draw_starts` and :func:`widen_stacked` give their annealing starts and trial rounds, and
+:func:`anneal_stacked` anneals them.
 How the kernels are trained, and the decisions behind their frames, are in :mod:`pushtorch.models.motion`.
 """
 
