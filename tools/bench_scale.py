@@ -96,7 +96,7 @@ EXPERIMENT = ["experiment=quickstart", "experiment.progress=false", "executor=ra
 
 
 #: A log line of tasks run on the executor: their kind, wall seconds and summed seconds of work.
-_TASK_LINE = re.compile(r"\d+ (?P<kind>.+?) as ray tasks on .*?: (?P<wall>\d+) s \((?P<work>\d+) s of work")
+_TASK_LINE = re.compile(r"\] - \d+ (?P<kind>[^\[\]]+?) as ray tasks on .*?: (?P<wall>\d+) s \((?P<work>\d+) s of work")
 
 
 def _experiment_seconds(cpus: int, folder: Path) -> tuple[float, dict[str, tuple[float, float]]]:
@@ -115,10 +115,26 @@ def _experiment_seconds(cpus: int, folder: Path) -> tuple[float, dict[str, tuple
     return seconds, phases
 
 
+def _phase_lines(phases: dict[int, list[dict[str, tuple[float, float]]]]) -> list[str]:
+    """Per kind of task found in every run: its median wall and work seconds at 1 and 2 CPUs, and the scaling the
+    work's growth allows (``2 · work₁ / work₂``)."""
+    import statistics
+
+    runs = phases[1] + phases[2]
+    lines = []
+    for kind in sorted(set.intersection(*(set(p) for p in runs))) if runs else []:
+        wall = {c: statistics.median([p[kind][0] for p in phases[c]]) for c in (1, 2)}
+        work = {c: statistics.median([p[kind][1] for p in phases[c]]) for c in (1, 2)}
+        lines.append(f"  {kind}: {wall[1]:.0f} s at 1 CPU, {wall[2]:.0f} s at 2 ({wall[1] / wall[2]:.2f}); its tasks' "
+                     f"work {work[1]:.0f} s at 1 CPU, {work[2]:.0f} s at 2 (x{work[2] / work[1]:.2f}: at most "
+                     f"{2 * work[1] / work[2]:.2f} from 2 CPUs)")
+    return lines
+
+
 def _experiment_scaling(repeats: int, root: Path) -> float:
     """The pinned experiment's median wall time at 1 CPU over its median at 2 (module notes). Per kind of task it
-    prints how its wall time scaled and how much more CPU time the same tasks took at 2 CPUs than at 1: work that
-    grows when both CPUs are busy (shared caches, memory bandwidth) bounds the scaling whatever the split."""
+    prints how its wall time scaled and how much longer the same tasks took at 2 CPUs than at 1 (each worker compiles
+    the fast path once; shared caches): work that grows with the workers bounds the scaling whatever the split."""
     import statistics
 
     seconds: dict[int, list[float]] = {1: [], 2: []}
@@ -129,12 +145,8 @@ def _experiment_scaling(repeats: int, root: Path) -> float:
             seconds[cpus].append(wall)
             phases[cpus].append(kinds)
             print(f"the friction-biasing part on Ray, {cpus} CPU: {seconds[cpus][-1]:.1f} s", flush=True)
-    for kind in sorted(set().union(*phases[1], *phases[2])):
-        wall = {c: statistics.median(p[kind][0] for p in phases[c] if kind in p) for c in (1, 2)}
-        work = {c: statistics.median(p[kind][1] for p in phases[c] if kind in p) for c in (1, 2)}
-        print(f"  {kind}: {wall[1]:.0f} s at 1 CPU, {wall[2]:.0f} s at 2 ({wall[1] / wall[2]:.2f}); its tasks' work "
-              f"{work[1]:.0f} s at 1 CPU, {work[2]:.0f} s at 2 (x{work[2] / work[1]:.2f}: at most "
-              f"{2 * work[1] / work[2]:.2f} from 2 CPUs)", flush=True)
+    for line in _phase_lines(phases):
+        print(line, flush=True)
     scaling = statistics.median(seconds[1]) / statistics.median(seconds[2])
     print(f"experiment: medians {statistics.median(seconds[1]):.1f} s at 1 CPU, {statistics.median(seconds[2]):.1f} s"
           f" at 2; scaling {scaling:.2f}, serial fraction {2 / scaling - 1:.3f} (Amdahl)", flush=True)
