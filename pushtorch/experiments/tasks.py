@@ -123,7 +123,7 @@ def prefetch(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], An
     if warm is not None:
         warm_up(warm)
     task_ctx = dataclasses.replace(ctx, workers=1, recording=None, progress=False, logged_predictions=[],
-                                   keep_examples=ctx.recording is not None or ctx.keep_examples)
+                                   keep_examples=_keeps_examples(ctx))
     _STATE.clear()
     _STATE.update({i: (step, task_ctx, item) for i, item in enumerate(items)})
     start = time.perf_counter()
@@ -144,11 +144,16 @@ def _count(ctx: ExperimentContext, what: str, where: str, count: int) -> None:
     ctx.task_counts[key] = ctx.task_counts.get(key, 0) + count
 
 
+def _keeps_examples(ctx: ExperimentContext) -> bool:
+    """Whether a task of ``ctx`` keeps the examples its recording logs (the run records, or ``ctx`` is a task's)."""
+    return ctx.recording is not None or ctx.keep_examples
+
+
 def _task_context(ctx: ExperimentContext) -> ExperimentContext:
     """What a remote task works with: the context without its recording and model cache, simulating in its own
     process on the local executor; it keeps the examples a recording logs (``keep_examples``)."""
     return dataclasses.replace(ctx, workers=1, executor=Executor(), recording=None, progress=False,
-                               keep_examples=ctx.recording is not None or ctx.keep_examples, logged_predictions=[],
+                               keep_examples=_keeps_examples(ctx), logged_predictions=[],
                                task_counts={}, _models={}, _slots=[0], _truth_plan=None)
 
 

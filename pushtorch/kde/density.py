@@ -30,7 +30,7 @@ from pushtorch.kde.method import Evaluation
 from pushtorch.kde.queries import prepare_queries, query_chunks
 from pushtorch.kde.reductions import logsumexp_last, needs_grad
 from pushtorch.kde.rounds import fit_trial_rounds
-from pushtorch.kde.sampling import sample_rotation_offsets, sample_translation_offsets
+from pushtorch.kde.sampling import sample_kernel_offsets
 from pushtorch.kde.straightforward import straightforward_active, straightforward_log_prob
 from pushtorch.se3 import Pose, check_unit_quaternion, multinomial
 
@@ -511,9 +511,8 @@ class PoseKDE:
         delta_p, delta_q, _ = self.bandwidth.delta
         beta = self._beta.double().unsqueeze(-2).expand(*index.shape, 3)
         std = self.bandwidth.p_std / torch.sqrt(beta[..., 0])
-        offset = sample_translation_offsets(std, delta_p, generator)
-        kappa = beta[..., 1] / self.bandwidth.sigma_q
-        around_identity = sample_rotation_offsets(kappa, delta_q, generator)
+        offset, around_identity = sample_kernel_offsets(std, beta[..., 1] / self.bandwidth.sigma_q, delta_p, delta_q,
+                                                        generator)
         p = mean.p + offset.to(self.dtype)
         q = pkt.quaternion_raw_multiply(mean.q.double(), around_identity)
         q = q / q.norm(dim=-1, keepdim=True)

@@ -19,7 +19,7 @@ from pushtorch import se3
 from pushtorch.errors import InvalidParameterError
 from pushtorch.kde.bandwidth import KernelBandwidth
 from pushtorch.kde.density import PoseKDE
-from pushtorch.kde.sampling import sample_rotation_offsets, sample_translation_offsets
+from pushtorch.kde.sampling import sample_kernel_offsets
 from pushtorch.streams import KeyedStream, is_keyed
 
 Tensor = torch.Tensor
@@ -163,8 +163,8 @@ def _offset_draws(p: Tensor, q: Tensor, std: Tensor, kappa: Tensor, delta_p: flo
     """Kernel draws around means ``p (B, M, 3)``, ``q (B, M, 4)`` (float64) of per-problem translation stds and
     rotation concentrations ``(B,)``, truncated at the cut-offs (:meth:`PoseKDE.sample`'s exact draws)."""
     shape = p.shape[:-1]
-    offset = sample_translation_offsets(std.unsqueeze(-1).expand(shape), delta_p, stream)
-    turn = sample_rotation_offsets(kappa.unsqueeze(-1).expand(shape), delta_q, stream)
+    offset, turn = sample_kernel_offsets(std.unsqueeze(-1).expand(shape), kappa.unsqueeze(-1).expand(shape), delta_p,
+                                         delta_q, stream)
     return p + offset, unit_quaternions(pkt.quaternion_raw_multiply(q, turn))
 
 

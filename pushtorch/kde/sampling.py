@@ -16,7 +16,7 @@ from pushtorch.streams import is_keyed
 
 Tensor = torch.Tensor
 
-__all__ = ["sample_rotation_offsets", "sample_translation_offsets"]
+__all__ = ["sample_kernel_offsets", "sample_rotation_offsets", "sample_translation_offsets"]
 
 # --------------------------------------------------------------------------------------------------
 # Samplers for one kernel factor (exact, truncated at the cut-off)
@@ -45,3 +45,11 @@ def sample_rotation_offsets(kappa: Tensor, delta_q: float, generator: torch.Gene
     """Unit quaternions ``(..., 4)`` (float64) around identity, density ∝ exp(κ|w|), cut at κ(1−|w|) < δ_q
     (:func:`pushtorch.se3.vmf_offsets`, the library's one vMF sampler)."""
     return vmf_offsets(kappa, kappa.shape, generator, torch.float64, kappa.device, delta_q)
+
+
+def sample_kernel_offsets(std: Tensor, kappa: Tensor, delta_p: float, delta_q: float,
+                          generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
+    """One draw around a kernel mean per element of ``std`` and ``kappa`` (same shape): translation offsets
+    ``(..., 3)`` and rotation offsets ``(..., 4)`` (float64, around the identity), each cut at its cut-off; the
+    translation drawn first (:meth:`pushtorch.kde.PoseKDE.sample`'s draws)."""
+    return sample_translation_offsets(std, delta_p, generator), sample_rotation_offsets(kappa, delta_q, generator)

@@ -25,7 +25,7 @@ from pushtorch import se3
 from pushtorch.anneal import AnnealResult, AnnealSchedule, anneal, polish_candidates
 from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.kde import Evaluation, KernelBandwidth, PoseKDE, ProductOfExperts, SharedKernelProduct
-from pushtorch.kde.sampling import sample_rotation_offsets, sample_translation_offsets
+from pushtorch.kde.sampling import sample_kernel_offsets
 from pushtorch.models.frames import ContactFrames
 from pushtorch.models.motion import CONTACT_DESCRIPTOR_DIM, MotionModel, contact_log_weights, expert_exponents
 from pushtorch.se3 import multinomial
@@ -451,10 +451,10 @@ def draw_starts(stacked: StackedProducts, n: int, generator: torch.Generator | N
     beta = torch.pow(torch.tensor(bandwidth.alpha_t, dtype=torch.float64, device=p.device),
                      -stacked.trial_rounds.double()).to(p.dtype).double()  # (B, 3), as PoseKDE's
     delta_p, delta_q, _ = bandwidth.delta
-    std = (bandwidth.p_std / torch.sqrt(beta[:, 0])).unsqueeze(-1).expand(count, n)
-    offset = sample_translation_offsets(std, delta_p, generator)
-    kappa = (beta[:, 1] / bandwidth.sigma_q).unsqueeze(-1).expand(count, n)
-    turn = pkt.quaternion_raw_multiply(q.double(), sample_rotation_offsets(kappa, delta_q, generator))
+    offset, around_identity = sample_kernel_offsets(
+        (bandwidth.p_std / torch.sqrt(beta[:, 0])).unsqueeze(-1).expand(count, n),
+        (beta[:, 1] / bandwidth.sigma_q).unsqueeze(-1).expand(count, n), delta_p, delta_q, generator)
+    turn = pkt.quaternion_raw_multiply(q.double(), around_identity)
     return se3.Pose.unchecked(p + offset.to(p.dtype), (turn / turn.norm(dim=-1, keepdim=True)).to(p.dtype))
 
 

@@ -500,11 +500,8 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
         raise InvalidParameterError(f"kernels must be 'full' or 'cut', got {kernels!r}")
     if isinstance(normaliser_samples, bool) or not isinstance(normaliser_samples, int) or normaliser_samples < 1:
         raise InvalidParameterError(f"normaliser_samples must be an integer >= 1, got {normaliser_samples!r}")
-    if isinstance(robot_starts, se3.Pose):
-        flat = robot_starts.reshape(-1)
-        starts = [flat.take(i) for i in range(flat.batch_shape.numel())]
-    else:
-        starts = list(robot_starts)
+    every = robot_starts.reshape(-1) if isinstance(robot_starts, se3.Pose) else None
+    starts = [every.take(i) for i in range(every.batch_shape.numel())] if every is not None else list(robot_starts)
     if not starts:
         raise InvalidParameterError("predict_candidates needs at least one candidate start")
     actions = _check_actions(actions, len(starts))
@@ -528,7 +525,7 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
     if not rows:
         return CandidatePredictions([None] * len(starts), valid, tuple(reasons), None)
     # each candidate's draws keyed by what it is (its start and action): no order, chunk or company changes them
-    every = se3.Pose.stack(starts)
+    every = se3.Pose.stack(starts) if every is None else every
     identity = torch.cat([every.p.reshape(-1, 3), every.q.reshape(-1, 4), actions.to(every.p)], -1).detach().float()
     stream = KeyedStream(int(seed), content_keys(identity.cpu()).to(chosen.device))
     parts, results = [], []
