@@ -38,6 +38,8 @@ _LAZY = {
     "train_push_model": "pushtorch.models.training",
     "train_pooled_model": "pushtorch.models.pooled",
     "load_model": "pushtorch.models.model",
+    "train_residual_model": "pushtorch.models.residual",
+    "load_residual_model": "pushtorch.models.residual",
     "ModelLibrary": "pushtorch.models.library",
     "Observation": "pushtorch.models.conditioning",
     "predict": "pushtorch.prediction",
@@ -47,8 +49,10 @@ _LAZY = {
 
 __all__ = ["Fixed", "FinalPoseDistribution", "ModelLibrary", "Normal", "Observation", "Pose", "PushtorchError",
            "Uniform", "__version__", "capture_partial_cloud", "load_model", "load_object", "load_records",
+           "load_residual_model",
            "make_actions", "object_spec", "plan_training_pushes", "predict", "predict_many", "read_push_table",
-           "run_plan", "simulate_pushes", "train_pooled_model", "train_push_model"]
+           "run_plan", "simulate_pushes", "train_pooled_model", "train_push_model",
+           "train_residual_model"]
 
 if TYPE_CHECKING:  # what type checkers and IDEs see (py.typed ships with the package)
     from pushtorch.distribution import FinalPoseDistribution
@@ -56,6 +60,7 @@ if TYPE_CHECKING:  # what type checkers and IDEs see (py.typed ships with the pa
     from pushtorch.models.library import ModelLibrary
     from pushtorch.models.model import load_model
     from pushtorch.models.pooled import train_pooled_model
+    from pushtorch.models.residual import load_residual_model, train_residual_model
     from pushtorch.models.training import train_push_model
     from pushtorch.objects import load_object
     from pushtorch.perception import capture_partial_cloud

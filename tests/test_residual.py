@@ -186,3 +186,66 @@ def test_conditioned_on_observed_pushes_the_ensemble_draws_from_the_posterior(tr
     cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=0.0))
     drawn = predict_residual(focused, cloud, model.actions[1], 0).physics
     torch.testing.assert_close(drawn, motion.manipulator.physics[2].double().expand(6, 2))
+
+
+def test_predict_predict_many_and_a_library_take_residual_models(trained, residual):
+    """The library's interface works unchanged with residual models: predict and predict_many give each condition
+    the residual prediction predict_residual gives it (predict_many's per-condition seeds as for push models), and
+    a library of residual models selects, conditions and predicts with them."""
+    from pushtorch.models.conditioning import Observation
+    from pushtorch.models.library import ConditionedLibrary, ModelLibrary
+    from pushtorch.models.push_condition import features_for
+    from pushtorch.prediction import ResidualPrediction, predict, predict_many
+    from pushtorch.sim.runner import simulate_pushes
+
+    cube, records, model = trained
+    clouds = [capture_partial_cloud(cube, cube.resting_pose(yaw=y)) for y in (0.25, -0.3)]
+    alone = predict_residual(residual, clouds[0], model.actions[2], 3)
+    through = predict(residual, clouds[0], model.actions[2], torch.Generator().manual_seed(3))
+    assert isinstance(through, ResidualPrediction)
+    torch.testing.assert_close(through.final_pose.vector(), alone.final_pose.vector(), rtol=0, atol=0)
+    torch.testing.assert_close(through.rollouts.p, alone.rollouts.p, rtol=0, atol=0)
+    many = predict_many(residual, clouds, model.actions[2], seed=7)
+    for i, got in enumerate(many):
+        want = predict_residual(residual, clouds[i], model.actions[2], 7 + i)
+        torch.testing.assert_close(got.final_pose.vector(), want.final_pose.vector(), rtol=0, atol=0)
+    two = with_ensemble(residual, 2)
+    library = ModelLibrary([two, residual])
+    features = features_for(clouds[1], model.settings, model.position)
+    chosen, distances = library.select(features)
+    assert chosen is two and distances.shape == (2,)  # equal H_r: the first
+    assert len(predict(library, clouds[1], model.actions[0], torch.Generator().manual_seed(1)).rollouts.p) == 2
+    pose = cube.resting_pose(yaw=0.1)
+    robot = place_robot_against(cube.mesh, pose, 0.1, 0.0, 0.002)
+    final = simulate_pushes(cube, robot, pose, model.actions[1].double(), mass=0.6, ground_friction=0.2).object_final
+    seen = Observation(capture_partial_cloud(cube, pose), model.actions[1], pose, final.take(0).to(torch.float32),
+                       robot)
+    conditioned = library.condition_on([seen], seed=0)
+    assert isinstance(conditioned, ConditionedLibrary) and conditioned.observed == 1
+    picked = predict(conditioned, clouds[1], model.actions[1], torch.Generator().manual_seed(2))
+    assert isinstance(picked, ResidualPrediction)
+    assert bool(torch.isfinite(picked.density.log_prob(picked.final_pose.vector())))
+
+
+def test_the_predict_app_reads_a_residual_model_file_and_records_its_rollouts_beside_its_density(residual,
+                                                                                                 tmp_path):
+    """A residual model's file given to the predict app predicts as a residual model: its rollouts and their physics
+    are in predictions.json, its displacement and nll are scored, and the recording (read back) draws the rollouts
+    beside the density."""
+    import json
+
+    from pushtorch import viz
+    from pushtorch.apps.predict import predict_from_config
+
+    path = with_ensemble(residual, 3).save(tmp_path / "cube_residual.npz")
+    cfg = {"models": [str(path)], "object": {"name": "cube"}, "yaw_deg": 15.0, "actions": [1], "truth_samples": 2,
+           "friction": {"kind": "fixed", "value": 0.3}, "mass": {"kind": "fixed", "value": 0.5}, "recording": True}
+    summary = predict_from_config(cfg, tmp_path / "p")
+    entry = json.loads((tmp_path / "p" / "predictions.json").read_text())["predictions"][0]
+    assert entry["model"] == residual.name and len(entry["rollouts"]) == 3 and len(entry["rollout_physics"]) == 3
+    assert all(math.isfinite(v) for v in entry["nll"]) and 0 <= summary["hacc_mean"] < 0.5
+    paths = viz.read_entity_paths(tmp_path / "p" / "recording.rrd")
+    root = "/world/model/prediction/action_1"
+    for entity in ("rollouts/finals", "rollouts/paths", "rollouts/start", "density/samples", "final_true"):
+        assert f"{root}/{entity}" in paths, entity
+    assert f"{root}/motion/experts" not in paths

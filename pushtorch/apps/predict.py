@@ -9,7 +9,9 @@ friction drawn from the chosen priors, and measure H_acc. Usage::
     pushtorch-predict 'models=[runs/train_cube/model.npz]' object=prism_long yaw_deg=20
     pushtorch-predict 'models=[cube.npz,cylinder.npz]' object=mesh object.path=part.stl
 
-(``python -m pushtorch.predict_cli`` is the same app.) Output in the run directory: ``predictions.json``
+A residual model's file (:meth:`pushtorch.models.residual.ResidualModel.save`) predicts as a residual model:
+its rollouts are kept in ``predictions.json`` and drawn beside its density. (``python -m pushtorch.predict_cli``
+is the same app.) Output in the run directory: ``predictions.json``
 (each action's H_acc and ``nll``, the negative log-likelihood of each ground truth under the predicted
 density, as results.json's), ``resolved_config.yaml`` and ``recording.rrd``: every prediction
 (:func:`pushtorch.viz.predictions.log_prediction`, at ``world/model/prediction/action_<j>``, its density's draws
@@ -63,12 +65,13 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
     import torch
 
     from pushtorch import se3
-    from pushtorch.evaluation.metrics import accuracy
+    from pushtorch.evaluation.metrics import accuracy, displaced
     from pushtorch.experiments.common import as_names, observe, plain, stable_seed
     from pushtorch.models.library import ModelLibrary
-    from pushtorch.models.model import load_model
+    from pushtorch.models.residual import load_any_model
     from pushtorch.objects import load_object
     from pushtorch.prediction import predict
+    from pushtorch.prediction.residual import ResidualPrediction
     from pushtorch.sim.priors import prior_from_config
     from pushtorch.sim.runner import simulate_pushes
     from pushtorch.sim.settings import settings_from_config
@@ -94,7 +97,7 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
         raise InvalidParameterError("no model: set models=[<model.npz>, ...]")
     if samples < 0:
         raise InvalidParameterError(f"truth_samples must be >= 0, got {samples}")
-    models = [load_model(p) for p in paths]
+    models = [load_any_model(p) for p in paths]
     _, features = observe(obj, truth_initial, models[0].settings)
     chosen, distances = (models[0], None) if len(models) == 1 else ModelLibrary(models).select(features)
     wanted = c.get("actions", "all")
@@ -136,7 +139,11 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
                     sim, duration=float(c.get("duration", 4.0)),
                 )
                 finals = se3.Pose.unchecked(records.object_final.p.float(), records.object_final.q.float())
-                acc = accuracy(prediction.final_pose.expand(samples), finals, obj)
+                if isinstance(prediction, ResidualPrediction):  # its body's frame is not the object's
+                    moved = displaced(prediction.start, prediction.final_pose, truth_initial)
+                else:
+                    moved = prediction.final_pose
+                acc = accuracy(moved.expand(samples), finals, obj)
                 entry["truth_final"] = [_pose_dict(finals.take(k)) for k in range(samples)]
                 entry["nll"] = [round(float(v), 4) for v in _nll(prediction, finals, truth_initial, obj,
                                                                    stable_seed(seed, i, "likelihood"))]
@@ -145,6 +152,10 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
                 entry["tipped_or_left_ground"] = (records.tipped | records.left_ground).tolist()
                 entry["accuracy"] = _accuracy_dict(acc)
                 truth_final = finals.take(0)
+            if isinstance(prediction, ResidualPrediction):
+                entry["rollouts"] = [_pose_dict(prediction.rollouts.take(k)) for k in range(len(prediction.physics))]
+                entry["rollout_physics"] = [[round(v, 6) for v in row] for row in prediction.physics.tolist()]
+                entry["rollouts_thrown"] = prediction.thrown
             results.append(entry)
             if rec is not None:
                 from pushtorch.viz.predictions import log_prediction
@@ -183,7 +194,10 @@ def _nll(prediction, finals, truth_initial, obj, seed: int):
     import torch
 
     from pushtorch.evaluation.likelihood import motion_product_density, nll
+    from pushtorch.prediction.residual import ResidualPrediction
 
+    if isinstance(prediction, ResidualPrediction):  # a normalised mixture over its body's final pose
+        return nll(prediction.density, finals, truth_initial, prediction.start, obj.symmetry)
     density = motion_product_density(prediction.motion_density, torch.Generator().manual_seed(seed),
                                      prediction.candidates)
     return nll(density, finals, truth_initial, prediction.condition.object_pose, obj.symmetry)
@@ -204,7 +218,9 @@ def _summary_markdown(object_name: str, model: str, paths: list[str], distances,
         action = ", ".join(f"{v:.3f}" for v in entry["action"])
         lines.append(f"| {entry['action_index']} | ({action}) | {numbers} | {entry.get('touched', '–')} |")
     lines += ["", "Means over the ground-truth samples. H_acc: the predicted final pose against the true one as it "
-              "is (in the frame the model estimated). nll: the negative log-likelihood of the true final pose "
+              "is (in the frame the model estimated; a residual model's: the displacement its cloud body's rollouts "
+              "predict, applied to the true start, its rollouts at `.../rollouts`). nll: the negative "
+              "log-likelihood of the true final pose "
               "under the predicted density, the true motion applied to the estimated start (displacement "
               "sense, nearest symmetric copy; `pushtorch.evaluation.likelihood.nll`, the score of results.json's "
               "`nll_mean`).",

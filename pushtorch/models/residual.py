@@ -37,7 +37,7 @@ from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, ModelError, RecordFormatError
 from pushtorch.kde import KernelBandwidth
 from pushtorch.kde.normaliser import log_rotation_normaliser
-from pushtorch.models.model import PushModel, model_from_parts, read_model_file, write_model_file
+from pushtorch.models.model import PushModel, load_model, model_from_parts, read_model_file, write_model_file
 from pushtorch.objects import ObjectModel
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
@@ -46,7 +46,7 @@ from pushtorch.sim.settings import SimSettings
 Tensor = torch.Tensor
 
 __all__ = ["DEFAULT_ENSEMBLE", "RESIDUAL_LADDER", "ResidualModel", "choose_bandwidth", "corrected", "engine_version",
-           "load_residual_model", "residual_of", "train_residual_model", "with_ensemble"]
+           "load_any_model", "load_residual_model", "residual_of", "train_residual_model", "with_ensemble"]
 
 #: Rollouts per prediction unless the model says otherwise: the largest power of two whose prediction stays within
 #: 3× a pushtorch prediction (tools/bench_residual.py on an Intel Xeon, 2 cores: 0.38 s at 4 rollouts against
@@ -114,6 +114,40 @@ class ResidualModel:
 
     def action_index(self, action) -> int:
         return self.model.action_index(action)
+
+    # what a prediction and a library read of a model: the push model's own (selection by H_r, the cloud's
+    # features, conditioning's evidence), so residual models sit in a ModelLibrary as push models do
+    @property
+    def settings(self):
+        return self.model.settings
+
+    @property
+    def position(self):
+        return self.model.position
+
+    @property
+    def contact(self):
+        return self.model.contact
+
+    @property
+    def motions(self):
+        return self.model.motions
+
+    @property
+    def motion_kernels(self):
+        return self.model.motion_kernels
+
+    @property
+    def physics_posterior(self):
+        return self.model.physics_posterior
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.model.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.model.device
 
     def condition_on(self, observations, seed: int | None = None, prior: tuple | None = None,
                      bandwidth=None) -> ResidualModel:
@@ -270,9 +304,23 @@ def load_residual_model(path, dtype: torch.dtype = torch.float32, other_engine: 
             a file of another engine version, unless ``other_engine``.
     """
     header, arrays = read_model_file(path)
-    spec = header.get("residual")
-    if not isinstance(spec, dict):
+    if not isinstance(header.get("residual"), dict):
         raise RecordFormatError(f"{path} is a push model without residuals: load it with load_model")
+    return _residual_from_parts(path, header, arrays, dtype, other_engine)
+
+
+def load_any_model(path, dtype: torch.dtype = torch.float32, other_engine: bool = False) -> PushModel | ResidualModel:
+    """A model file as what it holds: a :class:`ResidualModel` where it has residuals
+    (:func:`load_residual_model`), else the :class:`PushModel` (:func:`~pushtorch.models.model.load_model`).
+    What the predict app reads its ``models`` with."""
+    header, arrays = read_model_file(path)
+    if isinstance(header.get("residual"), dict):
+        return _residual_from_parts(path, header, arrays, dtype, other_engine)
+    return load_model(path, dtype)  # its own checks and messages
+
+
+def _residual_from_parts(path, header: dict, arrays: dict, dtype: torch.dtype, other_engine: bool) -> ResidualModel:
+    spec = header["residual"]
     try:
         sim = SimSettings(**spec["sim"])
         installed = engine_version(sim.engine)

@@ -36,6 +36,7 @@ from pushtorch.prediction.forward import (
     transfer_bandwidth,
     transfer_distance,
 )
+from pushtorch.prediction.residual import ResidualPrediction, predict_residual
 
 __all__ = [
     "CandidatePredictions",
@@ -45,6 +46,7 @@ __all__ = [
     "OCCLUDED_STEP",
     "Prediction",
     "PushCondition",
+    "ResidualPrediction",
     "START_CLEARANCE",
     "clear_robot_start",
     "clearance_points",
@@ -57,6 +59,7 @@ __all__ = [
     "predict",
     "predict_candidates",
     "predict_many",
+    "predict_residual",
     "query_bandwidth",
     "transfer_bandwidth",
     "transfer_distance",

@@ -55,8 +55,10 @@ from pushtorch.models.push_condition import (
     generate_push_condition,
     push_conditions,
 )
+from pushtorch.models.residual import ResidualModel
 from pushtorch.models.settings import as_generator, check_action
 from pushtorch.perception import PointCloud
+from pushtorch.prediction.residual import ResidualPrediction, predict_residual
 from pushtorch.streams import KeyedStream, content_keys
 
 __all__ = [
@@ -154,18 +156,22 @@ def _check_actions(actions, count: int) -> torch.Tensor:
 
 
 def predict(
-    model: PushModel | ModelLibrary,
+    model: PushModel | ResidualModel | ModelLibrary,
     cloud: PointCloud | SurfaceFeatures,
     action,
     generator: torch.Generator | None = None,
     record_history: bool = False,
     method: Evaluation | str = Evaluation.FAST,
     robot_start: se3.Pose | None = None,
-) -> Prediction:
+) -> Prediction | ResidualPrediction:
     """Predict where the object in ``cloud`` ends up after ``action`` (paper, Motion Model, Eq. poe).
 
     Args:
-        model: a trained model, or a library to select from by ``H_r``.
+        model: a trained model, or a library to select from by ``H_r``. A residual model
+            (:class:`~pushtorch.models.residual.ResidualModel`, or a library of them) gives a
+            :class:`~pushtorch.prediction.residual.ResidualPrediction`
+            (:func:`~pushtorch.prediction.residual.predict_residual`: the same push condition, its rollouts
+            and their corrected density; ``record_history`` and ``method`` do not apply to it).
         cloud: the object's single-shot cloud (or its surface features), world frame.
         action: ``(2,)`` (ẋ m/s, θ̇ rad/s), one of the model's actions.
         generator: seeded generator (or an int seed): the same seed (and method) gives the same prediction.
@@ -253,7 +259,7 @@ def transfer_bandwidth(model: PushModel, condition: PushCondition, a: int, densi
 
 
 def predict_many(
-    model: PushModel | ModelLibrary,
+    model: PushModel | ResidualModel | ModelLibrary,
     clouds: list[PointCloud | SurfaceFeatures],
     actions,
     seed: int = 0,
@@ -262,7 +268,7 @@ def predict_many(
     method: Evaluation | str = Evaluation.FAST,
     batch_size: int = 1,
     robot_starts: list[se3.Pose | None] | None = None,
-) -> list[Prediction]:
+) -> list[Prediction | ResidualPrediction]:
     """Predict several conditions (one cloud and action each).
 
     With ``generator`` None, batch ``k`` (conditions ``k·batch_size …``) draws from its own generator
@@ -278,7 +284,9 @@ def predict_many(
         actions: ``(2,)`` for all or ``(len(clouds), 2)``.
         seed: base seed when no generator is given; generator: one generator for every batch.
         record_history, method: as :func:`predict`.
-        batch_size: conditions annealed together (fast method only; the dense method runs one by one).
+        batch_size: conditions annealed together (fast method only; the dense method runs one by one). A
+            residual model predicts each condition alone (its ensemble's rollouts are its batch), drawing from
+            the batch's generator in condition order.
         robot_starts: None (the model places the robot) or one entry per cloud: a start pose as
             :func:`predict`'s ``robot_start``, or None for the model's own.
 
@@ -318,7 +326,7 @@ def predict_many(
 
 
 def _predict_batch(
-    model: PushModel | ModelLibrary,
+    model: PushModel | ResidualModel | ModelLibrary,
     clouds: list[PointCloud | SurfaceFeatures],
     actions: torch.Tensor,
     generator: torch.Generator | None,
@@ -336,6 +344,10 @@ def _predict_batch(
     share = _predict_fast if method is Evaluation.FAST else _predict_dense
     for m in distinct:
         rows = [i for i, c in enumerate(chosen) if c is m]
+        if isinstance(m, ResidualModel):  # its rollouts are batched per prediction, from the cloud as given
+            for i in rows:
+                out[i] = predict_residual(m, clouds[i], actions[i], generator, robot_start=starts[i])
+            continue
         a_idx = [m.action_index(actions[i]) for i in rows]
         predictions = share(m, [features[i] for i in rows], a_idx, generator, record_history, [starts[i] for i in rows])
         for i, prediction in zip(rows, predictions, strict=True):

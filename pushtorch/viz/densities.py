@@ -35,6 +35,7 @@ import torch
 
 from pushtorch import se3
 from pushtorch.errors import ModelError
+from pushtorch.prediction.residual import ResidualPrediction
 from pushtorch.viz.core import log_frames, log_points
 from pushtorch.viz.helpers import TRUE_FINAL_COLOUR, check_limits, one_pose, range_colors
 
@@ -63,12 +64,15 @@ DENSITY_SEED = 0
 
 def density_truth(prediction, truth_final: se3.Pose, truth_initial: se3.Pose | None = None) -> se3.Pose:
     """The truth where the prediction's density is: the true motion ``B1 ∘ B0⁻¹`` applied to the estimated
-    start ``B̂0`` (``truth_final`` as it is if ``truth_initial`` is None), Pose ``()``.
+    start ``B̂0`` (a residual prediction's: its cloud body's start; ``truth_final`` as it is if ``truth_initial``
+    is None), Pose ``()``.
 
     The density is over the final pose given the *estimated* start, so this is the pose whose
     ``prediction.density.log_prob`` scores the truth (README's library example).
     """
-    estimate = one_pose(prediction.condition.object_pose)
+    # a residual model's density is over its cloud body's pose, from the body's start
+    estimate = one_pose(prediction.start if isinstance(prediction, ResidualPrediction)
+                        else prediction.condition.object_pose)
     final = one_pose(truth_final, estimate.p)
     if truth_initial is None:
         return final

@@ -33,7 +33,14 @@ the push started); everything else is static.
                                           its annealing record as ``prediction.anneal`` (see below)
 ``<root>/motion/best_log_prob``           *(t)* the motion annealing's series, as ``robot_query/best_log_prob``
 ``<root>/motion/final_candidates``        the annealed final-pose candidates, coloured by log-likelihood
-``<root>/final_predicted``                predicted final pose (transform); ``/mesh``, ``/axes``
+``<root>/rollouts/start``                 a residual model's prediction
+                                          (:class:`~pushtorch.prediction.residual.ResidualPrediction`)
+                                          in place of ``motion/*``: the cloud body's start (axis triad)
+``<root>/rollouts/finals``                each simulator rollout's final body position, coloured by its
+                                          friction; ``final_frames`` their axis triads, ``paths`` arrows from
+                                          the start to each
+``<root>/final_predicted``                predicted final pose (transform); ``/mesh``, ``/axes`` (a residual
+                                          prediction's: its mode's displacement applied to the estimate)
 ``<root>/initial_true``                   true initial pose, if given; ``/mesh``, ``/axes``
 ``<root>/final_true``                     true final pose, if given; ``/mesh``, ``/axes``
 ``<root>/initial_error``                  line from the estimated to the true initial centre, if given
@@ -76,6 +83,8 @@ import torch
 
 from pushtorch import se3
 from pushtorch.anneal import AnnealResult
+from pushtorch.evaluation.metrics import displaced
+from pushtorch.prediction.residual import ResidualPrediction
 from pushtorch.viz.annealing import log_anneal_history, log_anneal_series
 from pushtorch.viz.bodies import log_collision_parts, log_posed_mesh, log_robot, mesh_of
 from pushtorch.viz.core import entity_name, log_arrows, log_frames, log_line_strip, log_points
@@ -95,6 +104,7 @@ _ERROR_COLOUR = (230, 30, 30, 255)
 _CLOUD_COLOUR = (150, 150, 150, 255)
 _MANIPULATOR_COLOUR = (240, 60, 160, 255)
 _ENVIRONMENT_COLOUR = (40, 200, 200, 255)
+_ROLLOUT_COLOUR = (120, 220, 90, 255)
 
 
 def log_prediction(
@@ -170,29 +180,14 @@ def log_prediction(
 
     log_posed_mesh(rec, f"{root}/initial_estimate", condition.object_pose, mesh, _ESTIMATE_COLOUR)
 
-    experts = prediction.motion_density.experts
-    means = experts.means.p.reshape(-1, 3)
-    expert_index = torch.arange(experts.batch_shape.numel(), device=means.device).repeat_interleave(
-        experts.num_kernels
-    )
-    real = torch.isfinite(experts.log_weights.reshape(-1)).nonzero().squeeze(-1)  # -inf marks padding
-    real = real[subsample(real.shape[0], max_points, real.device)]
-    from matplotlib import colormaps
-
-    palette = (np.asarray(colormaps["tab10"].colors)[:, :3] * 255).astype(np.uint8)
-    log_points(rec, f"{root}/motion/experts", means[real],
-               colors=palette[expert_index[real].cpu().numpy() % len(palette)], radii=0.002, static=True)
-    motion_anneal = getattr(prediction, "anneal", None)
-    if isinstance(motion_anneal, AnnealResult):
-        log_anneal_history(rec, f"{root}/motion/candidates", motion_anneal, max_points)
-        log_anneal_series(rec, f"{root}/motion/best_log_prob", motion_anneal)
-    candidates = prediction.candidates.p.reshape(-1, 3)
-    shown = subsample(candidates.shape[0], max_points, candidates.device)
-    log_points(rec, f"{root}/motion/final_candidates", candidates[shown],
-               colors=range_colors(prediction.candidate_log_prob.reshape(-1)[shown]), radii=0.004,
-               static=True)
-
-    log_posed_mesh(rec, f"{root}/final_predicted", prediction.final_pose, mesh, _PREDICTED_COLOUR)
+    if isinstance(prediction, ResidualPrediction):
+        _log_rollouts(rec, f"{root}/rollouts", prediction, max_frames)
+        # the density is over the cloud body's pose: its displacement, applied to the estimate, places the mesh
+        final = displaced(prediction.start, prediction.final_pose, condition.object_pose)
+    else:
+        _log_motion(rec, f"{root}/motion", prediction, max_points)
+        final = prediction.final_pose
+    log_posed_mesh(rec, f"{root}/final_predicted", final, mesh, _PREDICTED_COLOUR)
     if truth_initial is not None:
         log_posed_mesh(rec, f"{root}/initial_true", truth_initial, mesh, _TRUE_INITIAL_COLOUR)
         estimate = condition.object_pose.p.reshape(3)
@@ -201,7 +196,7 @@ def log_prediction(
                        static=True)
     if truth_final is not None:
         log_posed_mesh(rec, f"{root}/final_true", truth_final, mesh, TRUE_FINAL_COLOUR)
-        predicted = prediction.final_pose.p.reshape(3)
+        predicted = final.p.reshape(3)
         truth = truth_final.p.reshape(3).to(predicted)
         log_line_strip(rec, f"{root}/final_error", torch.stack([predicted, truth]), color=_ERROR_COLOUR,
                        static=True)
@@ -214,3 +209,42 @@ def log_prediction(
         truth = None if truth_final is None else density_truth(prediction, truth_final, truth_initial)
         log_density(rec, root, density, truth, max_points, max_frames)
     return root
+
+
+def _log_motion(rec: rr.RecordingStream, root: str, prediction, max_points: int) -> None:
+    """A pushtorch prediction's experts' kernel means, its motion annealing and its final candidates."""
+    experts = prediction.motion_density.experts
+    means = experts.means.p.reshape(-1, 3)
+    expert_index = torch.arange(experts.batch_shape.numel(), device=means.device).repeat_interleave(
+        experts.num_kernels
+    )
+    real = torch.isfinite(experts.log_weights.reshape(-1)).nonzero().squeeze(-1)  # -inf marks padding
+    real = real[subsample(real.shape[0], max_points, real.device)]
+    from matplotlib import colormaps
+
+    palette = (np.asarray(colormaps["tab10"].colors)[:, :3] * 255).astype(np.uint8)
+    log_points(rec, f"{root}/experts", means[real],
+               colors=palette[expert_index[real].cpu().numpy() % len(palette)], radii=0.002, static=True)
+    motion_anneal = getattr(prediction, "anneal", None)
+    if isinstance(motion_anneal, AnnealResult):
+        log_anneal_history(rec, f"{root}/candidates", motion_anneal, max_points)
+        log_anneal_series(rec, f"{root}/best_log_prob", motion_anneal)
+    candidates = prediction.candidates.p.reshape(-1, 3)
+    shown = subsample(candidates.shape[0], max_points, candidates.device)
+    log_points(rec, f"{root}/final_candidates", candidates[shown],
+               colors=range_colors(prediction.candidate_log_prob.reshape(-1)[shown]), radii=0.004,
+               static=True)
+
+
+def _log_rollouts(rec: rr.RecordingStream, root: str, prediction: ResidualPrediction, max_frames: int) -> None:
+    """A residual prediction's simulator rollouts beside its density: the cloud body's start, each rollout's
+    final pose (points coloured by the rollout's friction, and axis triads) and a line from the start to each."""
+    start = prediction.start.p.reshape(3)
+    finals = prediction.rollouts
+    log_frames(rec, f"{root}/start", prediction.start.reshape(-1), length=0.05, static=True)
+    log_points(rec, f"{root}/finals", finals.p, colors=range_colors(prediction.physics[:, 0]), radii=0.006,
+               static=True)
+    shown = subsample(finals.p.shape[0], max_frames, finals.p.device)
+    log_frames(rec, f"{root}/final_frames", finals.take(shown), length=0.04, static=True)
+    log_arrows(rec, f"{root}/paths", start.expand_as(finals.p), finals.p - start.to(finals.p),
+               colors=_ROLLOUT_COLOUR, static=True)
