@@ -249,3 +249,49 @@ def test_the_predict_app_reads_a_residual_model_file_and_records_its_rollouts_be
     for entity in ("rollouts/finals", "rollouts/paths", "rollouts/start", "density/samples", "final_true"):
         assert f"{root}/{entity}" in paths, entity
     assert f"{root}/motion/experts" not in paths
+
+
+def test_a_pooled_residual_takes_every_shapes_pushes_holds_one_out_and_widens_across_them(cube_pushes_of, tmp_path):
+    """A residual model of a pooled model: each kernel's residual is its own shape's push (records given in another
+    order are refused by their physics), a shape held out leaves only the other's kernels, the widening is chosen
+    on held-out shapes' pushes, and the file keeps the shapes and the widening (the same prediction back)."""
+    import dataclasses
+
+    from pushtorch.errors import InvalidParameterError
+    from pushtorch.evaluation.transfer import RESIDUAL_WIDENINGS, choose_residual_widening
+    from pushtorch.models.pooled import train_pooled_model
+    from pushtorch.models.residual import load_residual_model
+    from pushtorch.sim import Normal, load_records, object_spec, plan_training_pushes, run_plan
+
+    cube, cube_records = cube_pushes_of(6, 1)
+    cylinder = load_object("cylinder")
+    plan = plan_training_pushes(cylinder, make_actions(3), 6, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=2)
+    run_plan(object_spec(cylinder), plan, tmp_path / "cylinder", workers=1, progress=False)
+    shapes, records = [cube, cylinder], [cube_records, load_records(tmp_path / "cylinder")]
+    pooled = train_pooled_model(shapes, records, dataclasses.replace(SETTINGS, bandwidth_folds=0),
+                                generator=torch.Generator().manual_seed(0))
+    residual = train_residual_model(pooled, shapes, records, SimSettings(), ensemble=2)
+    assert residual.shape_names == ["cube", "cylinder"]
+    for of, kernels, motion in zip(residual.shapes, residual.residuals, pooled.motions, strict=True):
+        assert of.shape == (len(kernels.p),) and set(of.tolist()) == {0, 1}
+        assert len(motion.manipulator) == len(of)
+    with pytest.raises(InvalidParameterError, match="friction and mass differ|kernels come from"):
+        train_residual_model(pooled, shapes[::-1], records[::-1], SimSettings())
+    held = residual.without_shape(0)
+    for of, kernels, motion in zip(held.shapes, held.residuals, held.model.motions, strict=True):
+        assert set(of.tolist()) == {1} and len(kernels.p) == len(motion.manipulator) == len(of)
+    with pytest.raises(InvalidParameterError):
+        residual.without_shape(2)
+    widened = choose_residual_widening(residual, shapes, records, pushes_per_shape=2,
+                                       generator=torch.Generator().manual_seed(0))
+    assert widened.widening in RESIDUAL_WIDENINGS and widened.meta["widening"]["pushes"] > 0
+    assert len(widened.meta["widening"]["nll"]) == len(RESIDUAL_WIDENINGS)
+    back = load_residual_model(widened.save(tmp_path / "pooled_residual.npz"))
+    assert (back.widening, back.shape_names) == (widened.widening, widened.shape_names)
+    assert all(torch.equal(a, b) for a, b in zip(back.shapes, widened.shapes, strict=True))
+    cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=0.4))
+    one, two = (predict_residual(m, cloud, pooled.actions[1], 4) for m in (widened, back))
+    torch.testing.assert_close(one.final_pose.vector(), two.final_pose.vector(), rtol=0, atol=0)
+    assert one.widened_by == pytest.approx(math.sqrt(1 + widened.widening * one.contact_distance2))
+    with pytest.raises(InvalidParameterError):  # one object's residual has no shape to hold out
+        choose_residual_widening(dataclasses.replace(residual, shapes=None), shapes, records)

@@ -14,6 +14,12 @@ shapes are pooled, and a sample of the held-out shape's own training pushes is p
 cloud at the push's robot start; the pair with the lowest mean negative log-likelihood of those pushes' true
 outcomes (displacement sense, :func:`pushtorch.evaluation.likelihood.nll`) is kept. The same predictions serve
 every pair: only the motion bandwidth of the scored density changes.
+
+A pooled residual model (:mod:`pushtorch.models.residual`) widens its residual kernels the same way, by
+``sqrt(1 + κ·d²)`` (its base widths are chosen on its own pushes, leave one push out), and
+:func:`choose_residual_widening` chooses its ``κ`` the same way: each shape held out in turn
+(:meth:`~pushtorch.models.residual.ResidualModel.without_shape`), its pushes predicted and rolled out once, every
+``κ`` scored on the same rollouts.
 """
 
 from __future__ import annotations
@@ -32,13 +38,16 @@ from pushtorch.models.model import PushModel
 from pushtorch.models.pooled import ShapeParts, pool_parts
 from pushtorch.objects import ObjectModel
 
-__all__ = ["SCALES", "WIDENINGS", "choose_widening"]
+__all__ = ["RESIDUAL_WIDENINGS", "SCALES", "WIDENINGS", "choose_residual_widening", "choose_widening"]
 
 log = logging.getLogger(__name__)
 
 #: The grids searched: the base scale ``s0`` and the widening per squared contact distance ``κ``.
 SCALES = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
 WIDENINGS = (0.0, 0.1, 0.3, 1.0, 3.0)
+#: The residual model's grid of ``κ``: corrections learnt on other shapes may be far off (measured on the engine
+#: gap's cube and cylinder, each one's residuals scored on the other's pushes: best at 10 and 30)
+RESIDUAL_WIDENINGS = (0.0, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
 #: Importance samples per expert of each scored density's normaliser in the search (the scores' default is 64): a
 #: quarter of the cost; the search compares means over many pushes, not single scores
 SEARCH_SAMPLES = 16
@@ -121,3 +130,65 @@ def choose_widening(model: PushModel, objects: list[ObjectModel], records: list,
         "grid": [list(g) for g in grid], "nll": mean.tolist(), "pushes": int(table.shape[0]), "skipped": skipped,
     }
     return replace(model, settings=replace(model.settings, transfer_scale=s0, transfer_widening=kappa), meta=meta)
+
+
+def choose_residual_widening(residual, objects: list[ObjectModel], records: list, pushes_per_shape: int = 6,
+                             generator: torch.Generator | None = None, widenings=RESIDUAL_WIDENINGS):
+    """The pooled ``residual`` model with its ``widening`` chosen by leave-one-shape-out likelihood (module
+    docstring); the search is kept in ``meta["widening"]``.
+
+    Args:
+        residual: a pooled :class:`~pushtorch.models.residual.ResidualModel`; objects, records: its training
+            shapes and their push records, in its order (``residual.shape_names``).
+        pushes_per_shape: held-out pushes predicted per shape (drawn among its valid pushes).
+
+    Raises:
+        InvalidParameterError: a residual model of one object, shapes that are not its own, or no held-out
+            push that could be predicted.
+    """
+    from pushtorch.perception import capture_partial_cloud
+    from pushtorch.prediction.residual import predict_residual, rescaled
+
+    if residual.shapes is None or [o.name for o in objects] != list(residual.shape_names) or len(objects) < 2:
+        raise InvalidParameterError("choosing the residual's widening holds one of its pooled training shapes out: "
+                                    f"it needs the model's own shapes ({residual.shape_names}), at least two, got "
+                                    f"{[o.name for o in objects]}")
+    if isinstance(pushes_per_shape, bool) or int(pushes_per_shape) != pushes_per_shape or pushes_per_shape < 1:
+        raise InvalidParameterError(f"widening_pushes must be a whole number >= 1, got {pushes_per_shape!r}")
+    generator = generator or torch.Generator().manual_seed(0)
+    grid = [float(k) for k in widenings]
+    base = replace(residual, widening=0.0)
+    scores, skipped = [], 0
+    for s, (obj, shape_records) in enumerate(zip(objects, records, strict=True)):
+        try:
+            held_out = base.without_shape(s)
+        except InvalidParameterError:  # the only shape of some action: nothing to hold it out against
+            skipped += 1
+            continue
+        valid = shape_records.take(shape_records.valid)
+        for i in torch.randperm(len(valid), generator=generator)[:pushes_per_shape].tolist():
+            push = valid.take(torch.tensor([i]))
+            start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
+            robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
+            cloud = capture_partial_cloud(obj, start, voxel_size=residual.settings.voxel_size)
+            try:
+                prediction = predict_residual(held_out, cloud, push.action[0].float(), generator, robot_start=robot)
+            except (ModelError, InvalidPoseError):  # no body, or the bumper meets no observed feature there
+                skipped += 1
+                continue
+            truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
+            d2 = prediction.contact_distance2
+            scores.append(torch.tensor([float(nll(rescaled(prediction, math.sqrt(1.0 + k * d2)), truth, start,
+                                                  prediction.start, obj.symmetry)[0]) for k in grid],
+                                       dtype=torch.float64))
+    if not scores:
+        raise InvalidParameterError("no held-out push of any training shape could be predicted to choose the "
+                                    "residual's widening")
+    mean = torch.stack(scores).mean(0)
+    best = int(mean.argmin())
+    log.info("residual widening: kappa=%g (held-out nll %.2f against %.2f unwidened, %d pushes)", grid[best],
+             float(mean[best]), float(mean[grid.index(0.0)]) if 0.0 in grid else math.nan, len(scores))
+    meta = dict(residual.meta)
+    meta["widening"] = {"chosen": grid[best], "grid": grid, "nll": mean.tolist(), "pushes": len(scores),
+                        "skipped": skipped}
+    return replace(residual, widening=grid[best], meta=meta)

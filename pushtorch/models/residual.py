@@ -94,6 +94,12 @@ class ResidualModel:
         sim: the rollout engine and its settings; engine_version: that engine's version string at training.
         ensemble: rollouts per prediction.
         meta: how the residuals and widths were chosen (scores, rollouts that failed).
+        shapes: a pooled model's, per action ``(J,)`` the training shape (index into ``shape_names``) of each
+            residual kernel's push; None for one object's.
+        shape_names: the training objects, in the order the residuals were taken.
+        widening: ``κ``, the residual kernels' stds are widened by ``sqrt(1 + κ·d²)`` where the prediction's
+            manipulator contact is ``d`` contact-kernel stds from every training contact (0: never;
+            :func:`pushtorch.evaluation.transfer.choose_residual_widening` chooses it across training shapes).
     """
 
     model: PushModel
@@ -103,6 +109,9 @@ class ResidualModel:
     engine_version: str
     ensemble: int = DEFAULT_ENSEMBLE
     meta: dict = field(default_factory=dict)
+    shapes: list[Tensor] | None = None
+    shape_names: list[str] = field(default_factory=list)
+    widening: float = 0.0
 
     @property
     def name(self) -> str:
@@ -149,6 +158,29 @@ class ResidualModel:
     def device(self) -> torch.device:
         return self.model.device
 
+    def without_shape(self, shape: int) -> ResidualModel:
+        """This pooled model without the kernels of training shape ``shape`` (its residuals and its push model's
+        manipulator kernels; the contact and position models are kept: a prediction from a given robot start
+        uses the position model only to name the body's frame). What holds a shape out to choose the widening.
+
+        Raises:
+            InvalidParameterError: a model of one object, a shape it does not have, or an action only that shape
+                had kernels of."""
+        if self.shapes is None or not 0 <= shape < len(self.shape_names):
+            raise InvalidParameterError(f"shape {shape} is not one of this model's pooled training shapes "
+                                        f"({self.shape_names})")
+        motions, residuals = [], []
+        for motion, residual, of in zip(self.model.motions, self.residuals, self.shapes, strict=True):
+            keep = (of != shape).nonzero().reshape(-1)
+            if not len(keep):
+                raise InvalidParameterError(f"only {self.shape_names[shape]} was pushed with action "
+                                            f"{motion.action.tolist()}: holding it out leaves no kernel")
+            motions.append(dataclasses.replace(motion, manipulator=motion.manipulator.take(keep.to(
+                motion.manipulator.r.device))))
+            residuals.append(residual.take(keep))
+        return dataclasses.replace(self, model=dataclasses.replace(self.model, motions=motions), residuals=residuals,
+                                   shapes=[of[of != shape] for of in self.shapes])
+
     def condition_on(self, observations, seed: int | None = None, prior: tuple | None = None,
                      bandwidth=None) -> ResidualModel:
         """This model with its push model conditioned on observed pushes
@@ -164,10 +196,12 @@ class ResidualModel:
         arrays = {}
         for a, r in enumerate(self.residuals):
             arrays[f"residual{a}.p"], arrays[f"residual{a}.q"] = r.p, r.q
+            if self.shapes is not None:
+                arrays[f"residual{a}.shape"] = self.shapes[a]
         header = {"residual": {"engine": self.sim.engine, "engine_version": self.engine_version,
                                "sim": dataclasses.asdict(self.sim), "ensemble": self.ensemble,
                                "p_std": self.bandwidth.p_std, "rot_std": self.bandwidth.rot_std,
-                               "meta": self.meta}}
+                               "widening": self.widening, "shape_names": self.shape_names, "meta": self.meta}}
         return write_model_file(path, *self.model.file_parts(arrays, header))
 
 
@@ -226,14 +260,17 @@ def _training_body(obj: ObjectModel, pose: se3.Pose, voxel_size: float) -> tuple
     return cloud_body(cloud.points, pose)
 
 
-def train_residual_model(model: PushModel, obj: ObjectModel, records, sim: SimSettings | None = None,
-                         ensemble: int = DEFAULT_ENSEMBLE,
+def train_residual_model(model: PushModel, obj: ObjectModel | list[ObjectModel], records,
+                         sim: SimSettings | None = None, ensemble: int = DEFAULT_ENSEMBLE,
                          body_of: Callable[[ObjectModel, se3.Pose], tuple[ObjectModel, se3.Pose]] | None = None
                          ) -> ResidualModel:
     """The residual model of ``model``, trained on the same push ``records`` of ``obj`` (module docstring).
 
     Args:
-        model: trained on ``records`` by this pushtorch (its kernels know their pushes).
+        model: trained on ``records`` by this pushtorch (its kernels know their pushes): one object's model
+            (:func:`~pushtorch.models.training.train_push_model`) or a pooled one
+            (:func:`~pushtorch.models.pooled.train_pooled_model`, ``obj`` and ``records`` then its lists of shapes
+            and their records, in its order).
         records: the :class:`~pushtorch.sim.records.PushRecords` the model was trained on.
         sim: the simulator the residual is taken against (default pybullet's settings).
         ensemble: rollouts per prediction.
@@ -241,48 +278,64 @@ def train_residual_model(model: PushModel, obj: ObjectModel, records, sim: SimSe
             body a single-shot cloud at the push's start builds (the true mesh: ``lambda o, p: (o, p)``).
 
     Raises:
-        InvalidParameterError: an ensemble < 1, kernels that do not know their pushes (a loaded model), or
-            records without friction and mass.
+        InvalidParameterError: an ensemble < 1, kernels that do not know their pushes (a loaded model), records
+            without friction and mass, or records that are not the model's (other actions, other pushes).
     """
     sim = sim or SimSettings()
     if isinstance(ensemble, bool) or int(ensemble) != ensemble or ensemble < 1:
         raise InvalidParameterError(f"the ensemble needs at least one rollout, got {ensemble!r}")
+    objects = list(obj) if isinstance(obj, list | tuple) else [obj]
+    sets = list(records) if isinstance(records, list | tuple) else [records]
+    if len(objects) != len(sets) or not objects:
+        raise InvalidParameterError(f"{len(objects)} training objects but {len(sets)} sets of push records")
     body_of = body_of or (lambda o, pose: _training_body(o, pose, model.settings.voxel_size))
-    valid = records.take(records.valid)
-    if not bool(torch.isfinite(valid.ground_friction).all() and torch.isfinite(valid.mass).all()):
-        raise InvalidParameterError("the residual model rolls each training push out at its own friction and mass, "
-                                    "and these records have none (a push table without 'mass' and "
-                                    "'ground_friction' columns)")
-    indices = torch.unique(valid.action_index).tolist()  # the model's actions, in its order (fit_object_parts)
-    if len(indices) != len(model.motions):
-        raise InvalidParameterError(f"the records have {len(indices)} actions with valid pushes, the model "
-                                    f"{len(model.motions)}: train the residual on the model's own records")
-    residuals, pushes, rollouts = [], [], 0
-    for a, motion in zip(indices, model.motions, strict=True):
+    valid = [r.take(r.valid) for r in sets]
+    for o, v in zip(objects, valid, strict=True):
+        if not bool(torch.isfinite(v.ground_friction).all() and torch.isfinite(v.mass).all()):
+            raise InvalidParameterError(f"the residual model rolls each training push of {o.name} out at its own "
+                                        "friction and mass, and these records have none (a push table without "
+                                        "'mass' and 'ground_friction' columns)")
+    residuals, pushes, shapes, rollouts = [], [], [], 0
+    for motion in model.motions:
         push = motion.manipulator.push
         if push is None:
             raise InvalidParameterError("a residual model needs a model trained in this session (its kernels know "
                                         "their pushes), not a loaded one")
-        sel = valid.take(valid.action_index == a)
-        action = sel.action[0].double()
-        per_push = []
-        for i in range(len(sel)):  # each push has its own body: one rollout each
-            b0, b1 = sel.object_initial.take(i), sel.object_final.take(i)
-            r0 = sel.robot_start.take(i)
-            body, start = body_of(obj, b0)
-            final = rollout_ensemble(body, start, r0, action, sel.ground_friction[i:i + 1],
-                                     sel.mass[i:i + 1], sim).object_final.take(0)
-            world = se3.compose(se3.compose(b1, se3.inverse(b0)), se3.Pose.unchecked(start.p.double(),
-                                                                                     start.q.double()))
-            per_push.append(residual_of(r0, final, world))
-            rollouts += 1
-        stacked = se3.Pose.stack(per_push)
-        kernels = stacked.take(push.cpu())
+        per_push, physics, shape_of = [], [], []
+        action = motion.action.detach().double().cpu()
+        for s, (o, v) in enumerate(zip(objects, valid, strict=True)):
+            sel = v.take((v.action.double() - action).abs().amax(-1) <= 1e-6)  # the pushes of this action
+            for i in range(len(sel)):  # each push has its own body: one rollout each
+                b0, b1 = sel.object_initial.take(i), sel.object_final.take(i)
+                r0 = sel.robot_start.take(i)
+                body, start = body_of(o, b0)
+                final = rollout_ensemble(body, start, r0, action, sel.ground_friction[i:i + 1],
+                                         sel.mass[i:i + 1], sim).object_final.take(0)
+                world = se3.compose(se3.compose(b1, se3.inverse(b0)), se3.Pose.unchecked(start.p.double(),
+                                                                                         start.q.double()))
+                per_push.append(residual_of(r0, final, world))
+                rollouts += 1
+            physics.append(torch.stack([sel.ground_friction.double(), sel.mass.double()], -1))
+            shape_of.append(torch.full((len(sel),), s, dtype=torch.int64))
+        index = push.cpu()
+        if not per_push or int(index.max()) >= len(per_push):
+            raise InvalidParameterError(f"the records hold {len(per_push)} pushes of action {action.tolist()}, the "
+                                        f"model's kernels come from {int(index.max()) + 1}: train the residual on the "
+                                        "model's own records")
+        if motion.manipulator.physics is not None:  # each kernel's push is the one it says it is
+            mine = torch.cat(physics)[index]
+            if not torch.allclose(mine, motion.manipulator.physics.detach().double().cpu(), rtol=1e-5, atol=1e-6):
+                raise InvalidParameterError("the records' pushes are not the ones the model's kernels came from "
+                                            "(their friction and mass differ): train the residual on the model's "
+                                            "own records, in its order of shapes")
+        kernels = se3.Pose.stack(per_push).take(index)
         residuals.append(se3.Pose.unchecked(kernels.p.to(model.dtype), kernels.q.to(model.dtype)))
-        pushes.append(push.cpu())
+        pushes.append(index)
+        shapes.append(torch.cat(shape_of)[index])
     bandwidth, chosen = choose_bandwidth(residuals, pushes, model.settings)
     return ResidualModel(model, residuals, bandwidth, sim, engine_version(sim.engine), int(ensemble),
-                         {"bandwidth": chosen, "training_rollouts": rollouts})
+                         {"bandwidth": chosen, "training_rollouts": rollouts},
+                         shapes=shapes if len(objects) > 1 else None, shape_names=[o.name for o in objects])
 
 
 def with_ensemble(model: ResidualModel, ensemble: int) -> ResidualModel:
@@ -337,8 +390,17 @@ def _residual_from_parts(path, header: dict, arrays: dict, dtype: torch.dtype, o
                 raise ValueError("the residuals do not match the manipulator kernels")
         bandwidth = KernelBandwidth(float(spec["p_std"]), float(spec["rot_std"]),
                                     cutoff_std=(math.inf, math.inf, math.inf), alpha_t=model.settings.alpha_t)
+        shapes = None
+        if "residual0.shape" in arrays:
+            shapes = [torch.from_numpy(arrays[f"residual{a}.shape"]).to(torch.int64) for a in range(len(residuals))]
+            if any(s.shape != (len(r.p),) for s, r in zip(shapes, residuals, strict=True)):
+                raise ValueError("the residual kernels' shapes do not match the kernels")
+        widening = float(spec.get("widening", 0.0))
+        if not math.isfinite(widening) or widening < 0:
+            raise ValueError(f"a widening of {widening}")
         return ResidualModel(model, residuals, bandwidth, sim, str(spec["engine_version"]), int(spec["ensemble"]),
-                             dict(spec.get("meta") or {}))
+                             dict(spec.get("meta") or {}), shapes, [str(n) for n in spec.get("shape_names", [])],
+                             widening)
     except RecordFormatError:
         raise
     except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError, InvalidParameterError) as exc:

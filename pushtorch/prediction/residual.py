@@ -5,8 +5,10 @@ contact, as one normalised density over the final pose (beyond the paper; its §
 The density is a mixture: ``Σ_i Σ_j (w_j / N) K(B1 | D_j · S_i)`` over the ``N`` rollouts ``S_i`` and the
 residual kernels ``D_j`` (:func:`pushtorch.models.residual.corrected`), ``w_j`` the normalised contact weight
 ``K^c`` of kernel ``j``'s training contact against this push's manipulator contact (the paper's Eq.
-contact_frame_probability, as its motion kernels are weighed). Its mode is the mixture's highest kernel
-centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one expert with exponent 1, so
+contact_frame_probability, as its motion kernels are weighed). The kernels' stds are the model's, widened by
+``sqrt(1 + κ·d²)`` where this contact is ``d`` contact-kernel stds from the nearest training contact (``κ`` the
+model's ``widening``, chosen across training shapes; 0 for a model of one object). Its mode is the mixture's
+highest kernel centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one expert with exponent 1, so
 ``log_prob``, ``sample`` and the coverage work as for pushtorch's own prediction.
 """
 
@@ -24,14 +26,14 @@ from pushtorch.errors import ModelError
 from pushtorch.kde import Evaluation
 from pushtorch.kde.normaliser import NO_CUTOFF
 from pushtorch.models.clearance import check_start
-from pushtorch.models.motion import contact_log_weights
+from pushtorch.models.motion import contact_distances, contact_log_weights
 from pushtorch.models.push_condition import PushCondition, features_for, push_conditions
 from pushtorch.models.residual import ResidualModel, corrected
 from pushtorch.models.settings import as_generator
 from pushtorch.perception import PointCloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
 
-__all__ = ["ResidualPrediction", "predict_residual"]
+__all__ = ["ResidualPrediction", "predict_residual", "rescaled"]
 
 
 @dataclass
@@ -56,6 +58,11 @@ class ResidualPrediction:
     physics: torch.Tensor
     thrown: int
     residual_weights: torch.Tensor = field(repr=False)  # (J,) the residual kernels' normalised log weights
+    #: ``d²``: the squared distance, in contact-kernel stds, from this push's manipulator contact to the nearest
+    #: training contact of the action (:func:`~pushtorch.models.motion.contact_distances`)
+    contact_distance2: float = 0.0
+    #: ``sqrt(1 + κ·d²)``, the factor the residual kernels' stds were widened by (1: the model does not widen)
+    widened_by: float = 1.0
 
 
 def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Generator | int | None = None,
@@ -116,16 +123,32 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     keep = torch.isfinite(log_weights[0])  # kernels no contact reaches weigh nothing
     means = means.take(keep.nonzero().reshape(-1))
     log_weights = log_weights[:, keep]
-    bandwidth = dataclasses.replace(residual.bandwidth, cutoff_std=NO_CUTOFF)
-
-    def mixture(mode: torch.Tensor | None) -> FinalPoseDistribution:
-        return FinalPoseDistribution(means, log_weights, bandwidth, torch.zeros(3, dtype=torch.int64),
-                                     torch.ones(1, dtype=dtype), mode, Evaluation.DENSE, means, kernels="full")
-
+    d2 = float(contact_distances(condition.manipulator_frame, motion.manipulator, condition.robot_start,
+                                 model.settings.contact_bandwidth, condition.contact_patch).amin())
+    scale = math.sqrt(1.0 + residual.widening * d2)  # corrections learnt far from this contact are less sure
+    bandwidth = dataclasses.replace(residual.bandwidth, p_std=residual.bandwidth.p_std * scale,
+                                    rot_std=residual.bandwidth.rot_std * scale, cutoff_std=NO_CUTOFF)
     # the mode: the kernel centre of highest density
-    best = int(mixture(None).unnormalised_log_prob(means.vector().unsqueeze(-2)).reshape(-1).argmax())
+    best = int(_mixture(means, log_weights, bandwidth, None).unnormalised_log_prob(
+        means.vector().unsqueeze(-2)).reshape(-1).argmax())
     mode = means.take(best)
-    density = mixture(mode.vector())
+    density = _mixture(means, log_weights, bandwidth, mode.vector())
     thrown = int((~records.valid).sum())
     return ResidualPrediction(residual.name, motion.action, condition, body_start.to(dtype), mode, density,
-                              se3.Pose.unchecked(finals.p.to(dtype), finals.q.to(dtype)), drawn, thrown, log_w)
+                              se3.Pose.unchecked(finals.p.to(dtype), finals.q.to(dtype)), drawn, thrown, log_w, d2,
+                              scale)
+
+
+def _mixture(means: se3.Pose, log_weights: torch.Tensor, bandwidth, mode: torch.Tensor | None) -> FinalPoseDistribution:
+    """The residual density: one expert of exponent 1, every kernel in full (no cut-off)."""
+    return FinalPoseDistribution(means, log_weights, bandwidth, torch.zeros(3, dtype=torch.int64),
+                                 torch.ones(1, dtype=means.p.dtype), mode, Evaluation.DENSE, means, kernels="full")
+
+
+def rescaled(prediction: ResidualPrediction, factor: float) -> FinalPoseDistribution:
+    """``prediction``'s density with its kernels' stds times ``factor`` (same kernels, weights and mode): what
+    scoring a widening on held-out pushes needs without rolling them out again."""
+    density = prediction.density
+    bandwidth = dataclasses.replace(density.bandwidth, p_std=density.bandwidth.p_std * factor,
+                                    rot_std=density.bandwidth.rot_std * factor)
+    return _mixture(density.means, density.log_weights, bandwidth, prediction.final_pose.vector())
