@@ -387,7 +387,8 @@ def test_tiny_quickstart_writes_tidy_results(tiny_run):
     # coverage: a share in [0, 1] for every method with a density, none for a point prediction or a frame record
     for r in [r for r in every if r.get("metric") == "displacement"]:
         dense = r["task"] == "selection" or r["method"] in (  # a selection method is pushtorch with some model
-            "pushtorch", "mean_motion", "pushtorch_shapes", "pushtorch_library", "physics_ensemble")
+            "pushtorch", "mean_motion", "pushtorch_shapes", "pushtorch_library", "physics_ensemble",
+            "pushtorch_residual")
         for key in ("coverage_50", "coverage_90"):
             assert (0.0 <= r[key] <= 1.0) if dense else r[key] is None, (r["method"], key, r[key])
         if dense:
@@ -395,7 +396,8 @@ def test_tiny_quickstart_writes_tidy_results(tiny_run):
     transfer = [r for r in records if r["task"] == "transfer"]
     assert {(r["object"], r["method"], r["model"]) for r in transfer} == {
         (o, m, model) for o in ("prism_thin", "polygon_1000") for m, model in (
-            ("pushtorch_shapes", "shapes"), ("pushtorch_library", "library"), ("pushtorch", "cube+cylinder"),
+            ("pushtorch_shapes", "shapes"), ("pushtorch_residual", "shapes"), ("pushtorch_library", "library"),
+            ("pushtorch", "cube+cylinder"),
             ("mean_motion", "shapes"), ("nearest_push", "shapes"), ("physics_from_cloud", "shapes"),
             ("physics_ensemble", "shapes"), ("oracle_physics", "shapes"), ("mean_motion", "cube+cylinder"),
             ("nearest_push", "cube+cylinder"))}
@@ -403,6 +405,9 @@ def test_tiny_quickstart_writes_tidy_results(tiny_run):
     # the pooled model trained on generated shapes below the held-out seeds, never on a test object
     trained = {p.name.split("_general")[0] for p in (out / "data").iterdir()}
     assert {"polygon_1", "superellipse_2"} <= trained and "polygon_1000" not in trained
+    # the pooled model's residual model, its widening chosen across the training shapes, kept beside it
+    assert any(p.name.startswith("shapes_") and p.name.endswith("_mujoco_residual_vs_pybullet.npz")
+               for p in (out / "models").iterdir())
     shapes_meta = results["model_bandwidths"]
     assert any(name.startswith("shapes_") for name in shapes_meta)
     online = [r for r in results["records"] if r["task"] == "online"]
@@ -530,7 +535,7 @@ def test_the_pybullet_world_runs_beside_the_mujoco_one_in_one_folder(tiny_run, t
     run = tmp_path / "run"
     shutil.copytree(out, run)
     before = {p.name: p.stat().st_mtime_ns for p in (run / "models").iterdir()}
-    assert before and all(name.endswith("_mujoco.npz") for name in before)
+    assert before and all(name.endswith(("_mujoco.npz", "_mujoco_residual_vs_pybullet.npz")) for name in before)
     pybullet_cfg = _compose([*TINY, "world=pybullet", "~experiment.parts.model_selection",
                              "~experiment.parts.pose_estimation", "~experiment.parts.mass_biasing",
                              "~experiment.parts.online_adaptation"])
@@ -539,7 +544,7 @@ def test_the_pybullet_world_runs_beside_the_mujoco_one_in_one_folder(tiny_run, t
     assert results["world"] == {"engine": "pybullet"} and results["physics"] == {"engine": "mujoco"}
     assert {p.name: p.stat().st_mtime_ns for p in (run / "models").iterdir() if p.name in before} == before
     pybullet_models = sorted(p.name for p in (run / "models").iterdir() if p.name not in before)
-    assert pybullet_models and not any(name.endswith("_mujoco.npz") for name in pybullet_models)
+    assert pybullet_models and not any("_mujoco" in name.split("_residual_vs_")[0] for name in pybullet_models)
     manifests = [json.loads((p / "manifest.json").read_text()) for p in (run / "data").iterdir()
                  if not p.name.endswith("_mujoco")]
     assert manifests and all(m["settings"].get("engine", "pybullet") == "pybullet" for m in manifests)

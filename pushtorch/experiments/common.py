@@ -62,6 +62,7 @@ from pushtorch.experiments.scoring import (  # noqa: F401
 from pushtorch.experiments.training import (  # noqa: F401
     train_model,
     train_pooled,
+    train_pooled_residual,
     training_records,
 )
 
@@ -99,6 +100,7 @@ __all__ = [
     "summarise",
     "train_model",
     "train_pooled",
+    "train_pooled_residual",
     "training_records",
     "truth_fingerprint",
 ]

@@ -14,6 +14,9 @@ Predictors, on the same test poses and seeds (records ``task: "transfer"``, ``mo
 * ``pushtorch_shapes``: the pooled model (:mod:`pushtorch.models.pooled`), with its ``mean_motion`` and
   ``nearest_push`` fit on the same pushes, ``physics_from_cloud``, ``physics_ensemble`` (the cloud's body rolled
   out ``ensemble`` times under the training prior, a density) and ``oracle_physics`` (the true mesh: an oracle);
+  with ``residual: true``, ``pushtorch_residual``: the pooled model's residual model (its residuals taken on every
+  shape's pushes, its widening chosen across them, :func:`~pushtorch.experiments.training.train_pooled_residual`),
+  from the pooled model's robot start;
 * ``pushtorch_library``: the same shapes' per-shape models, one chosen per cloud by ``H_r`` (paper, §Model
   Selection);
 * ``pushtorch``: the paper's two-object model (``training_object_of``; held-out shapes by ``H_r``), with its own
@@ -48,10 +51,12 @@ from pushtorch.experiments.common import (
     summarise,
     train_model,
     train_pooled,
+    train_pooled_residual,
     truth_fingerprint,
 )
 from pushtorch.experiments.statistics import sample_entry
 from pushtorch.experiments.suite import run_suite
+from pushtorch.models.residual import DEFAULT_ENSEMBLE
 from pushtorch.objects import catalogue_names, load_object
 from pushtorch.objects.shapes import held_out_shapes, resolve_training_objects
 
@@ -90,7 +95,9 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
         part: ``name``, ``objects``, ``held_out`` (how many held-out shapes join the test set),
             ``training_object_of`` (the paper model's), ``conditions``, ``test_conditions``, ``truth_samples``,
             ``yaw_range_deg``, ``ensemble`` (physics_ensemble's rollouts), ``widening_pushes`` (held-out pushes
-            per shape that choose the widening), ``library`` (false: leave ``pushtorch_library`` out).
+            per shape that choose the widening), ``library`` (false: leave ``pushtorch_library`` out),
+            ``residual`` (true: the pooled model's residual model too, ``pushtorch_residual``, with
+            ``residual_ensemble`` rollouts per prediction).
         model_cfg: ``friction``, ``mass`` (the training prior's names), ``training_objects``, ``training_pushes``
             (default: as many as the paper model's), ``samples_per_action`` (the paper model's).
 
@@ -118,6 +125,10 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     samples = int(part["truth_samples"])
 
     pooled = train_pooled(shape_ctx, shapes, friction, mass, int(part.get("widening_pushes", 6)))
+    residual = None
+    if part.get("residual"):  # pushtorch_residual: the pooled model's residual model, widened across the shapes
+        residual = train_pooled_residual(shape_ctx, shapes, friction, mass, int(part.get("widening_pushes", 6)),
+                                         int(part.get("residual_ensemble") or DEFAULT_ENSEMBLE))
     library = [train_model(shape_ctx, s, friction, mass) for s in shapes] if "library" in groups else []
     paper = {t: train_model(ctx, load_object(t), friction, mass) for t in paper_names}
     friction_prior, mass_prior = ctx.prior("friction", friction), ctx.prior("mass", mass)
@@ -147,7 +158,8 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             predictions, _ = predict_set(
                 shape_ctx if group != "paper" else ctx, key, obj, candidates, poses, truth=truth_key,
                 adaptive=adaptive, physics=physics if group == "shapes" else None,
-                ensemble=ensemble if group == "shapes" else None, seed_key=seed_key, bar=bar)
+                ensemble=ensemble if group == "shapes" else None, seed_key=seed_key, bar=bar,
+                residual={pooled.name: residual} if group == "shapes" and residual is not None else None)
             truth, broken = simulate_truth(ctx, key, obj, predictions, conditions, samples, seed_key=seed_key)
             scores = likelihood_scores(ctx, key, obj, predictions, truth, truth_key)
             methods = predictions.methods()
@@ -157,7 +169,9 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
                                "thrown": int(broken[c].sum()), "pushes": broken[c].numel(),
                                "invalid_starts": predictions.invalid_starts if c == 0 else 0,
                                "starts": predictions.backoff.numel() if c == 0 else 0})
-                for method in ("pushtorch", *baselines):
+                shown_methods = ("pushtorch", *baselines, *(("pushtorch_residual",) if "pushtorch_residual" in methods
+                                                             else ()))
+                for method in shown_methods:
                     start, final = methods[method]
                     acc = compare_displacement(start, final, predictions.truth_initial, truth.take(c), obj)
                     inside = scores.get(f"coverage:{method}")

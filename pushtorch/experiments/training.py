@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import torch
@@ -171,7 +171,7 @@ def train_models(ctx: ExperimentContext, keys) -> dict[tuple[str, str, str], Pus
 def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str, ensemble: int):
     """The residual model (:mod:`pushtorch.models.residual`) of :func:`train_model`'s model, its residuals taken
     against the physics engine (``ctx.physics``: the peers' simulator, never the world's unless configured so),
-    cached as ``<run_dir>/models/<key>_residual_<engine>.npz``.
+    cached as ``<run_dir>/models/<key>_residual_vs_<engine>.npz``.
 
     A push model read from its file no longer knows which push each kernel came from, so a residual not yet
     cached trains the push model again from the same cached pushes and seed (the same model, bit for bit)."""
@@ -179,8 +179,7 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
 
     model = train_model(ctx, obj, friction, mass)
     key = _model_key(obj.name, friction, mass)
-    path = contained_path(ctx.run_dir, "models", f"{key}{_cache_tag(ctx)}_residual_{ctx.physics.engine}.npz",
-                          what="object or prior name")
+    path = _residual_path(ctx, key)
     if path.is_file():
         try:
             cached = load_residual_model(path)
@@ -200,6 +199,12 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
     residual = train_residual_model(fresh, obj, records, ctx.physics, ensemble)
     residual.save(path)
     return saved_as(residual, _read_residual, str(path), int(ensemble))
+
+
+def _residual_path(ctx: ExperimentContext, key: str) -> Path:
+    """Where a residual model of the model ``key`` is cached: beside it, named by the engine it corrects."""
+    return contained_path(ctx.run_dir, "models", f"{key}{_cache_tag(ctx)}_residual_vs_{ctx.physics.engine}.npz",
+                          what="object or prior name")
 
 
 def _read_residual(path: str, ensemble: int):
@@ -244,3 +249,41 @@ def train_pooled(ctx: ExperimentContext, shapes: list[ObjectModel], friction: st
         model.save(path)
     ctx._models[cache_key] = saved_as(model, load_model, str(path))
     return model
+
+
+def train_pooled_residual(ctx: ExperimentContext, shapes: list[ObjectModel], friction: str, mass: str,
+                          widening_pushes: int, ensemble: int, name: str = "shapes"):
+    """The residual model (:mod:`pushtorch.models.residual`) of :func:`train_pooled`'s model, its residuals taken
+    against the physics engine on every shape's training pushes and its widening chosen across the shapes
+    (:func:`pushtorch.evaluation.transfer.choose_residual_widening`), cached as
+    ``<run_dir>/models/<key>_residual_vs_<engine>.npz``. A pooled model read from its file is fitted again from the
+    same pushes and seed to recover which push each kernel came from (the same kernels, checked)."""
+    from pushtorch.evaluation.transfer import choose_residual_widening
+    from pushtorch.models.pooled import train_pooled_model
+    from pushtorch.models.residual import load_residual_model, train_residual_model, with_ensemble
+
+    model = train_pooled(ctx, shapes, friction, mass, widening_pushes, name)
+    key = _model_key(name, friction, mass)
+    path = _residual_path(ctx, key)
+    if path.is_file():
+        try:
+            cached = load_residual_model(path)
+            if cached.sim == ctx.physics and cached.model.meta == model.meta \
+                    and cached.model.settings == model.settings and cached.shape_names == [s.name for s in shapes]:
+                return saved_as(with_ensemble(cached, ensemble), _read_residual, str(path), int(ensemble))
+        except RecordFormatError as exc:
+            log.warning("retraining the residual of %s: %s", key, exc)
+    records = [training_records(ctx, s, friction, mass, progress=False) for s in shapes]
+    if any(m.manipulator.push is None for m in model.motions):  # read from its file: fit its kernels again
+        generator = torch.Generator().manual_seed(stable_seed(ctx.seed, "fit", key))
+        fresh = train_pooled_model(shapes, records, ctx.settings, name=key, generator=generator)
+        if not all(torch.equal(a.manipulator.m.p, b.manipulator.m.p.to(a.manipulator.m.p))
+                   for a, b in zip(fresh.motions, model.motions, strict=True)):
+            raise RecordFormatError(f"the pooled model {key} fitted again differs from its file: delete {path.parent}")
+        model = replace(model, motions=fresh.motions)
+    log.info("training the residual of %s against %s on %d shapes", key, ctx.physics.engine, len(shapes))
+    residual = train_residual_model(model, shapes, records, ctx.physics, ensemble)
+    residual = choose_residual_widening(residual, shapes, records, widening_pushes,
+                                        torch.Generator().manual_seed(stable_seed(ctx.seed, "residual_widening", key)))
+    residual.save(path)
+    return saved_as(residual, _read_residual, str(path), int(ensemble))

@@ -18,10 +18,11 @@ from pushtorch.experiments.tables import method_label, ordered, primary, select,
 __all__ = ["TRANSFER_ORDER", "coverage_figure", "transfer_findings", "transfer_section"]
 
 #: The methods' order in tables and figures.
-TRANSFER_ORDER = ("pushtorch_shapes", "pushtorch_library", "pushtorch", "mean_motion", "nearest_push",
-                  "physics_from_cloud", "physics_ensemble", "oracle_physics")
+TRANSFER_ORDER = ("pushtorch_shapes", "pushtorch_residual", "pushtorch_library", "pushtorch", "mean_motion",
+                  "nearest_push", "physics_from_cloud", "physics_ensemble", "oracle_physics")
 #: Methods with a density of their own (coverage is theirs only).
-DENSITY_METHODS = ("pushtorch_shapes", "pushtorch_library", "pushtorch", "mean_motion", "physics_ensemble")
+DENSITY_METHODS = ("pushtorch_shapes", "pushtorch_residual", "pushtorch_library", "pushtorch", "mean_motion",
+                   "physics_ensemble")
 
 
 def _transfer(records: Iterable[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
