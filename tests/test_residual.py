@@ -122,6 +122,32 @@ def test_an_ensemble_rolled_out_in_one_call_is_its_single_rollouts():
         torch.testing.assert_close(alone.q[0], together.q[i], rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("engine", ["pybullet", "mujoco"])
+def test_an_ensemble_split_over_a_rollout_pool_is_the_same_ensemble(engine):
+    """Inside a RolloutPool, rollout_ensemble splits the ensemble over worker processes (a body per task): the
+    same records in the same order, bit for bit, as one after another here; the pool is gone after the block."""
+    from pushtorch.sim.bodies import RolloutPool, active_rollout_pool
+
+    cylinder = load_object("cylinder")
+    pose = cylinder.resting_pose(yaw=-0.3).to(torch.float64)
+    body, start = cloud_body(capture_partial_cloud(cylinder, pose).points, pose)
+    robot = place_robot_against(cylinder.mesh, pose, -0.1, 0.0, 0.002)
+    action = make_actions(3)[0]
+    friction = torch.tensor([0.15, 0.3, 0.45, 0.6, 0.9], dtype=torch.float64)
+    mass = torch.tensor([0.3, 0.5, 0.8, 1.2, 2.0], dtype=torch.float64)
+    settings = SimSettings(engine=engine)
+    here = rollout_ensemble(body, start, robot, action, friction, mass, settings)
+    with RolloutPool(2) as pool:
+        assert active_rollout_pool() is pool
+        split = rollout_ensemble(body, start, robot, action, friction, mass, settings)
+    assert active_rollout_pool() is None
+    for name in ("object_final", "robot_start", "object_initial"):
+        torch.testing.assert_close(getattr(split, name).p, getattr(here, name).p, rtol=0, atol=0)
+        torch.testing.assert_close(getattr(split, name).q, getattr(here, name).q, rtol=0, atol=0)
+    assert torch.equal(split.touched, here.touched) and torch.equal(split.mass, here.mass)
+    assert float((here.object_final.p - pose.p).norm(dim=-1).min()) > 0.05  # every rollout pushed the body
+
+
 def test_a_cloud_with_no_body_is_refused_with_a_clear_error(trained, residual):
     cube, records, model = trained
     g = torch.Generator().manual_seed(0)
@@ -205,6 +231,11 @@ def test_predict_predict_many_and_a_library_take_residual_models(trained, residu
     assert isinstance(through, ResidualPrediction)
     torch.testing.assert_close(through.final_pose.vector(), alone.final_pose.vector(), rtol=0, atol=0)
     torch.testing.assert_close(through.rollouts.p, alone.rollouts.p, rtol=0, atol=0)
+    from pushtorch.sim.bodies import RolloutPool
+
+    with RolloutPool(2):  # its rollouts split over two workers: the same prediction
+        pooled = predict(residual, clouds[0], model.actions[2], torch.Generator().manual_seed(3))
+    torch.testing.assert_close(pooled.density.means.p, alone.density.means.p, rtol=0, atol=0)
     many = predict_many(residual, clouds, model.actions[2], seed=7)
     for i, got in enumerate(many):
         want = predict_residual(residual, clouds[i], model.actions[2], 7 + i)

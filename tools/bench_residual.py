@@ -8,10 +8,13 @@ test conditions (the cube at a random yaw in [−45°, 45°], the actions in tur
 robot start is then given to the residual model (``--ensemble`` rollouts) and to ``physics_ensemble`` at 100
 rollouts, each timed on its own after one warm-up of each.
 
+With ``--pool k`` (default 2) the same conditions are predicted again with every ensemble's rollouts split over
+``k`` worker processes (:class:`pushtorch.sim.bodies.RolloutPool`), on a line of their own.
+
 The last line is exactly ``residual_p50_s=<..> pushtorch_p50_s=<..> ensemble100_p50_s=<..> ensemble=<N>``; the
 line before it gives the host's CPU and the ratio residual / pushtorch (the gate: at most 3).
 
-    .venv/bin/python tools/bench_residual.py [--conditions 12] [--ensemble 4] [--pushes 60]
+    .venv/bin/python tools/bench_residual.py [--conditions 12] [--ensemble 4] [--pushes 60] [--pool 2]
 """
 
 from __future__ import annotations
@@ -74,6 +77,9 @@ def main() -> None:
                         help="the residual model's rollouts per prediction")
     parser.add_argument("--pushes", type=int, default=60, help="training pushes per action")
     parser.add_argument("--cache", default="runs/bench_residual")
+    parser.add_argument("--pool", type=int, default=2,
+                        help="also time the residual and the ensemble with their rollouts split over this many "
+                             "worker processes (pushtorch.sim.bodies.RolloutPool; 0: not)")
     args = parser.parse_args()
     folder = Path(args.cache)
     folder.mkdir(parents=True, exist_ok=True)
@@ -86,6 +92,7 @@ def main() -> None:
     yaws = torch.empty(args.conditions + 1).uniform_(-math.pi / 4, math.pi / 4,
                                                       generator=torch.Generator().manual_seed(1))
     times = {"residual": [], "pushtorch": [], "ensemble100": []}
+    conditions = []
     for i, yaw in enumerate(yaws.tolist()):
         pose = cube.resting_pose(yaw=yaw)
         cloud = capture_partial_cloud(cube, pose, voxel_size=model.settings.voxel_size)
@@ -101,6 +108,7 @@ def main() -> None:
         physics_ensemble_prediction(cloud.points, prediction.condition.object_pose, start, action,
                                     Normal(0.3, 0.05), Normal(0.5, 0.025), 100, torch.Generator().manual_seed(i))
         ensemble_s = time.perf_counter() - started
+        conditions.append((cloud, action, prediction))
         if i == 0:
             continue  # the warm-up
         times["pushtorch"].append(pushtorch_s)
@@ -109,6 +117,27 @@ def main() -> None:
         print(f"condition {i}: pushtorch {pushtorch_s:.2f} s, residual {residual_s:.2f} s, "
               f"ensemble100 {ensemble_s:.2f} s", flush=True)
     p50 = {k: statistics.median(v) for k, v in times.items()}
+    if args.pool:
+        from pushtorch.sim.bodies import RolloutPool
+
+        pooled = {"residual": [], "ensemble100": []}
+        with RolloutPool(args.pool):
+            for i, (cloud, action, prediction) in enumerate(conditions):
+                start = prediction.condition.robot_start
+                started = time.perf_counter()
+                predict_residual(residual, cloud, action, i, robot_start=start)
+                residual_s = time.perf_counter() - started
+                started = time.perf_counter()
+                physics_ensemble_prediction(cloud.points, prediction.condition.object_pose, start, action,
+                                            Normal(0.3, 0.05), Normal(0.5, 0.025), 100,
+                                            torch.Generator().manual_seed(i))
+                if i:  # the first warms the workers up
+                    pooled["residual"].append(residual_s)
+                    pooled["ensemble100"].append(time.perf_counter() - started)
+        print(f"rollouts over {args.pool} worker processes: residual_p50_s="
+              f"{statistics.median(pooled['residual']):.3f} ensemble100_p50_s="
+              f"{statistics.median(pooled['ensemble100']):.3f} (here, one after another: {p50['residual']:.3f}, "
+              f"{p50['ensemble100']:.3f})")
     print(f"cpu: {cpu_name()}; torch threads {torch.get_num_threads()}; residual / pushtorch "
           f"{p50['residual'] / p50['pushtorch']:.2f}")
     print(f"residual_p50_s={p50['residual']:.3f} pushtorch_p50_s={p50['pushtorch']:.3f} "

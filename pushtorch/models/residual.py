@@ -48,9 +48,10 @@ Tensor = torch.Tensor
 __all__ = ["DEFAULT_ENSEMBLE", "RESIDUAL_LADDER", "ResidualModel", "choose_bandwidth", "corrected", "engine_version",
            "load_any_model", "load_residual_model", "residual_of", "train_residual_model", "with_ensemble"]
 
-#: Rollouts per prediction unless the model says otherwise: the largest power of two whose prediction stays within
-#: 3× a pushtorch prediction (tools/bench_residual.py on an Intel Xeon, 2 cores: 0.38 s at 4 rollouts against
-#: pushtorch's 0.16 s; 1.11 s at 16). Not yet chosen by held-out likelihood.
+#: Rollouts per prediction unless the model says otherwise, chosen by held-out likelihood on generated training
+#: shapes among the sizes within 3× a pushtorch prediction (tools/residual_ensemble.py on an Intel Xeon, 2 cores:
+#: nll −17.31 / −18.26 / −18.83 at 2 / 4 / 8 rollouts, 2.0 / 3.0 / 5.0 × pushtorch's time; 2 is 0.95 nats worse
+#: than 4, paired SE 0.71). tools/bench_residual.py: 0.35 s at 4 against pushtorch's 0.15 s.
 DEFAULT_ENSEMBLE = 4
 #: The residual kernels' stds tried, position (m) × rotation (rad): the pair of highest leave-one-push-out
 #: likelihood of the training residuals is kept.

@@ -1,0 +1,123 @@
+"""How the residual model transfers to shapes it was not trained on: the measurements behind docs/method.md's
+"The residual model" (Many shapes) and the shape-transfer target of its finding.
+
+``distance <run>``: for a run folder of the engine gap (``python -m pushtorch experiment=engine_gap``; residual
+models of the cube and the cylinder, and their training pushes), (1) each training object's residual model
+scores ``--pushes`` of the *other* object's training pushes, predicted from their robot starts, at every widening
+``κ`` of :data:`pushtorch.evaluation.transfer.RESIDUAL_WIDENINGS` (what a leave-one-shape-out choice across the
+two would choose); (2) the squared contact distance ``d²`` (:func:`pushtorch.prediction.transfer_distance`) of
+each catalogue object's pushes, from the robot start its training object's model chooses at six random yaws: a
+diagnosis of what a widening by contact distance could tell apart, never a choice of anything.
+
+``target <run>``: for a shape-transfer run (``experiment=quickstart_transfer``), per object the H_acc of
+``pushtorch_residual``, ``pushtorch_shapes`` and ``physics_from_cloud`` with the paired SE of the residual against
+the better of the two, its nll and 90 % coverage. The last line is exactly ``objects=<n> residual_le_best=<k>``
+(the issue's target: ≤ the better + 2 paired SE on at least 3 of 4).
+
+    .venv/bin/python tools/residual_transfer.py distance runs/engine_gap [--pushes 15]
+    .venv/bin/python tools/residual_transfer.py target runs/quickstart_transfer
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pushtorch import se3
+from pushtorch.evaluation.likelihood import nll
+from pushtorch.evaluation.transfer import RESIDUAL_WIDENINGS
+from pushtorch.experiments.figures import FIGURE_DATA, read_figure_data
+from pushtorch.models.residual import load_residual_model
+from pushtorch.objects import load_object
+from pushtorch.perception import capture_partial_cloud
+from pushtorch.prediction import transfer_distance
+from pushtorch.prediction.residual import predict_residual, rescaled
+from pushtorch.sim.records import load_records
+
+TRAINING_OF = {"cube": "cube", "prism_thin": "cube", "prism_long": "cube", "cylinder": "cylinder",
+               "cylinder_wide": "cylinder", "hybrid": "cylinder"}
+
+
+def _one(pattern: str) -> str:
+    found = sorted(glob.glob(pattern))
+    if not found:
+        raise SystemExit(f"nothing matches {pattern}: is this the right run folder?")
+    return found[0]
+
+
+def distance(run: Path, pushes: int) -> None:
+    models = {o: load_residual_model(_one(f"{run}/models/{o}_*_residual_vs_*.npz")) for o in ("cube", "cylinder")}
+    generator = torch.Generator().manual_seed(0)
+    for name, other in (("cube", "cylinder"), ("cylinder", "cube")):
+        residual, obj = models[name], load_object(other)
+        records = load_records(_one(f"{run}/data/{other}_*"))
+        valid = records.take(records.valid)
+        rows = []
+        for i in torch.randperm(len(valid), generator=generator)[:pushes].tolist():
+            push = valid.take(torch.tensor([i]))
+            start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
+            robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
+            cloud = capture_partial_cloud(obj, start, voxel_size=residual.settings.voxel_size)
+            prediction = predict_residual(residual, cloud, push.action[0].float(), i, robot_start=robot)
+            truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
+            d2 = prediction.contact_distance2
+            rows.append([float(nll(rescaled(prediction, math.sqrt(1 + k * d2)), truth, start, prediction.start,
+                                   obj.symmetry)[0]) for k in RESIDUAL_WIDENINGS])
+        mean = np.asarray(rows).mean(0)
+        print(f"{name}'s residuals on {len(rows)} {other} pushes: held-out nll by kappa "
+              + ", ".join(f"{k:g}: {v:.2f}" for k, v in zip(RESIDUAL_WIDENINGS, mean, strict=True))
+              + f"; best kappa {RESIDUAL_WIDENINGS[int(mean.argmin())]:g}")
+    for obj_name, trained in TRAINING_OF.items():
+        residual, obj = models[trained], load_object(obj_name)
+        values = []
+        for k in range(6):
+            yaw = float(torch.empty(()).uniform_(-math.pi / 4, math.pi / 4, generator=generator))
+            cloud = capture_partial_cloud(obj, obj.resting_pose(yaw=yaw), voxel_size=residual.settings.voxel_size)
+            for a in range(len(residual.actions)):
+                prediction = predict_residual(residual, cloud, residual.actions[a], 3 * k + a)
+                values.append(float(transfer_distance(residual.model, prediction.condition, a)))
+        q10, median, q90 = np.quantile(values, [0.1, 0.5, 0.9])
+        print(f"{obj_name:14s} ({trained}'s model) d2 median {median:.2f} (10 % {q10:.2f}, 90 % {q90:.2f})")
+
+
+def target(run: Path) -> None:
+    records = [r for r in json.loads((run / "results.json").read_text())["records"]
+               if r.get("metric") == "displacement" and r.get("task") == "transfer"]
+    samples: dict[tuple[str, str], list[np.ndarray]] = {}
+    for e in read_figure_data(run / FIGURE_DATA)["hacc_samples"]:
+        samples.setdefault((e["object"], e["method"]), []).append(np.asarray(e["hacc"], dtype=np.float64).reshape(-1))
+    held, objects = 0, sorted({r["object"] for r in records if r["method"] == "pushtorch_residual"})
+    for obj in objects:
+        h = {m: np.concatenate(samples[(obj, m)]) for m in ("pushtorch_residual", "pushtorch_shapes",
+                                                             "physics_from_cloud")}
+        best = min(("pushtorch_shapes", "physics_from_cloud"), key=lambda m: h[m].mean())
+        diff = h["pushtorch_residual"] - h[best]
+        se = float(diff.std(ddof=1) / math.sqrt(len(diff)))
+        ok = h["pushtorch_residual"].mean() <= h[best].mean() + 2 * se
+        held += ok
+        mine = [r for r in records if r["object"] == obj and r["method"] == "pushtorch_residual"]
+        nll_mean = np.mean([r["nll_mean"] for r in mine])
+        coverage = np.mean([r["coverage_90"] for r in mine])
+        print(f"{obj:14s} residual {h['pushtorch_residual'].mean():.3f}  shapes {h['pushtorch_shapes'].mean():.3f}  "
+              f"physics {h['physics_from_cloud'].mean():.3f}  paired SE vs {best} {se:.4f}  nll {nll_mean:.1f}  "
+              f"cov90 {coverage:.2f}  n={len(diff)}  {'held' if ok else 'not held'}")
+    print(f"objects={len(objects)} residual_le_best={held}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("what", choices=("distance", "target"))
+    parser.add_argument("run", type=Path)
+    parser.add_argument("--pushes", type=int, default=15)
+    args = parser.parse_args()
+    distance(args.run, args.pushes) if args.what == "distance" else target(args.run)
+
+
+if __name__ == "__main__":
+    main()
