@@ -87,6 +87,26 @@ def test_a_residual_carries_a_rollout_to_the_world_and_depends_on_no_frame_but_t
     assert float(se3.quat_distance(moved.q, d.q).max()) < 1e-9
 
 
+@given(poses(1), poses(1), poses(1), st.floats(-math.pi, math.pi), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0))
+def test_a_rollouts_outcome_is_the_same_wherever_the_push_happened(robot, start, final, yaw, dx, dy):
+    """For any poses: moving robot, start and end together by a planar motion leaves the outcome; the turn is
+    wrapped into (−π, π]; an outcome resembles itself most."""
+    from pushtorch.models.residual import outcome_log_affinity, rollout_outcome
+
+    move = se3.from_xy_yaw(dx, dy, yaw).to(torch.float64)
+    here = rollout_outcome(robot, start, final)
+    there = rollout_outcome(se3.compose(move, robot), se3.compose(move, start), se3.compose(move, final))
+    # (the move is made in float32: 1e-6 is its rounding)
+    torch.testing.assert_close(there[..., :2], here[..., :2], atol=1e-6, rtol=0)
+    turn = torch.atan2(torch.sin(there[..., 2] - here[..., 2]), torch.cos(there[..., 2] - here[..., 2]))
+    assert float(turn.abs().max()) < 1e-6 and float(here[..., 2].abs().max()) <= math.pi
+    many = torch.cat([here.reshape(-1, 3), here.reshape(-1, 3) + torch.tensor([[0.05, -0.02, 0.3]],
+                                                                              dtype=torch.float64)])
+    affinity = outcome_log_affinity(many, many, 0.5)
+    assert torch.equal(affinity.argmax(1), torch.arange(2))
+    assert torch.equal(outcome_log_affinity(many, many, math.inf), torch.zeros(2, 2, dtype=torch.float64))
+
+
 def test_the_residual_density_is_normalised_with_its_mode_inside(trained, residual):
     cube, records, model = trained
     pose = cube.resting_pose(yaw=0.3)
@@ -170,6 +190,8 @@ def test_a_residual_model_file_round_trips_and_refuses_another_engine_version(tr
     path = residual.save(tmp_path / "cube_residual.npz")
     back = load_residual_model(path)
     assert (back.ensemble, back.sim, back.engine_version) == (3, residual.sim, residual.engine_version)
+    assert back.outcome_width == residual.outcome_width
+    assert all(torch.equal(a, b) for a, b in zip(back.outcomes, residual.outcomes, strict=True))
     for a, b in zip(back.residuals, residual.residuals, strict=True):
         torch.testing.assert_close(a.p, b.p, rtol=0, atol=0)
     cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=-0.2))
@@ -326,3 +348,27 @@ def test_a_pooled_residual_takes_every_shapes_pushes_holds_one_out_and_widens_ac
     assert one.widened_by == pytest.approx(math.sqrt(1 + widened.widening * one.contact_distance2))
     with pytest.raises(InvalidParameterError):  # one object's residual has no shape to hold out
         choose_residual_widening(dataclasses.replace(residual, shapes=None), shapes, records)
+
+
+def test_rollouts_pair_with_the_kernels_whose_training_rollout_did_the_same(trained, residual):
+    """Each kernel keeps what its training rollout did and the width that pairs a prediction's rollouts with them
+    was chosen by leave-one-push-out likelihood (the score of the unpaired kernels is one of the candidates); an
+    infinite width is the unpaired density, bit for bit, and a narrow one moves the weight onto the kernels whose
+    rollout did what the prediction's did."""
+    import dataclasses
+
+    from pushtorch.models.residual import OUTCOME_LADDER
+
+    cube, records, model = trained
+    assert residual.outcome_width in OUTCOME_LADDER
+    assert all(o.shape == (len(r.p), 3) for o, r in zip(residual.outcomes, residual.residuals, strict=True))
+    chosen = residual.meta["bandwidth"]
+    assert chosen["score"] >= chosen["score_unpaired"]
+    cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=-0.25))
+    unpaired = dataclasses.replace(residual, outcome_width=math.inf)
+    one = predict_residual(unpaired, cloud, model.actions[0], 6)
+    two = predict_residual(dataclasses.replace(residual, outcomes=None), cloud, model.actions[0], 6)
+    torch.testing.assert_close(one.density.log_weights, two.density.log_weights, rtol=0, atol=0)
+    narrow = predict_residual(dataclasses.replace(residual, outcome_width=0.25), cloud, model.actions[0], 6)
+    assert not torch.equal(narrow.density.log_weights, one.density.log_weights)
+    assert abs(float(narrow.density.log_weights.exp().sum()) - 1.0) < 1e-5

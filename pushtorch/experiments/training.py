@@ -183,7 +183,7 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
     if path.is_file():
         try:
             cached = load_residual_model(path)
-            if cached.sim == ctx.physics and cached.model.name == model.name \
+            if cached.sim == ctx.physics and cached.model.name == model.name and cached.outcomes is not None \
                     and cached.model.settings == model.settings and cached.model.meta == model.meta:
                 return saved_as(with_ensemble(cached, ensemble), _read_residual, str(path), int(ensemble))
         except RecordFormatError as exc:
@@ -268,7 +268,7 @@ def train_pooled_residual(ctx: ExperimentContext, shapes: list[ObjectModel], fri
     if path.is_file():
         try:
             cached = load_residual_model(path)
-            if cached.sim == ctx.physics and cached.model.meta == model.meta \
+            if cached.sim == ctx.physics and cached.model.meta == model.meta and cached.outcomes is not None \
                     and cached.model.settings == model.settings and cached.shape_names == [s.name for s in shapes]:
                 return saved_as(with_ensemble(cached, ensemble), _read_residual, str(path), int(ensemble))
         except RecordFormatError as exc:

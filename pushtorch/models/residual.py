@@ -45,8 +45,9 @@ from pushtorch.sim.settings import SimSettings
 
 Tensor = torch.Tensor
 
-__all__ = ["DEFAULT_ENSEMBLE", "RESIDUAL_LADDER", "ResidualModel", "choose_bandwidth", "corrected", "engine_version",
-           "load_any_model", "load_residual_model", "residual_of", "train_residual_model", "with_ensemble"]
+__all__ = ["DEFAULT_ENSEMBLE", "OUTCOME_LADDER", "RESIDUAL_LADDER", "ResidualModel", "choose_bandwidth", "corrected",
+           "engine_version", "load_any_model", "load_residual_model", "outcome_log_affinity", "residual_of",
+           "rollout_outcome", "train_residual_model", "with_ensemble"]
 
 #: Rollouts per prediction unless the model says otherwise, chosen by held-out likelihood on generated training
 #: shapes among the sizes within 3× a pushtorch prediction (tools/residual_ensemble.py on an Intel Xeon, 2 cores:
@@ -57,7 +58,37 @@ DEFAULT_ENSEMBLE = 4
 #: likelihood of the training residuals is kept.
 RESIDUAL_LADDER = ((0.0025, 0.005, 0.01, 0.02, 0.04, 0.08), (0.005, 0.01, 0.02, 0.04, 0.08, 0.16))
 
+#: The widths tried for pairing residual kernels with a rollout by its outcome, in the training outcomes' stds
+#: (``inf``: every kernel weighs alike whatever the rollout did): chosen with the kernels' stds, leave one push out.
+OUTCOME_LADDER = (0.25, 0.5, 1.0, 2.0, 4.0, math.inf)
+
 _IDENTITY_Q = torch.tensor([1.0, 0.0, 0.0, 0.0])
+
+
+def rollout_outcome(robot_start: se3.Pose, start: se3.Pose, final: se3.Pose) -> Tensor:
+    """``(..., 3)`` float64 what a rollout did, in the robot's start frame: the body's displacement ``(dx, dy)``
+    (m) and its turn (rad, wrapped to (−π, π]) from ``start`` to ``final`` (batch dims broadcast)."""
+    s0 = se3.relative(se3.Pose.unchecked(robot_start.p.double(), robot_start.q.double()),
+                      se3.Pose.unchecked(start.p.double(), start.q.double()))
+    s1 = se3.relative(se3.Pose.unchecked(robot_start.p.double(), robot_start.q.double()),
+                      se3.Pose.unchecked(final.p.double(), final.q.double()))
+    p0, p1 = torch.broadcast_tensors(s0.p, s1.p)
+    turn = se3.yaw_of(s1.q) - se3.yaw_of(s0.q)
+    turn = torch.atan2(torch.sin(turn), torch.cos(turn))
+    return torch.cat([(p1 - p0)[..., :2], turn.unsqueeze(-1).expand(*p1.shape[:-1], 1)], -1)
+
+
+def outcome_log_affinity(queries: Tensor, kernels: Tensor, width: float) -> Tensor:
+    """``(Q, J)`` float64 log of how much each training rollout's outcome ``kernels (J, 3)`` resembles each of
+    ``queries (Q, 3)`` (:func:`rollout_outcome`): a Gaussian of ``width`` stds of the training outcomes per
+    component, up to a constant; 0 everywhere for an infinite width."""
+    q, k = queries.double(), kernels.double()
+    if math.isinf(width):
+        return torch.zeros(q.shape[0], k.shape[0], dtype=torch.float64, device=k.device)
+    scale = k.std(0).clamp_min(1e-9) if k.shape[0] > 1 else torch.ones(3, dtype=torch.float64, device=k.device)
+    d = q.unsqueeze(1) - k.unsqueeze(0)
+    d[..., 2] = torch.atan2(torch.sin(d[..., 2]), torch.cos(d[..., 2]))
+    return -((d / scale) ** 2).sum(-1) / (2.0 * width**2)
 
 
 def _centre(pose: se3.Pose) -> se3.Pose:
@@ -101,6 +132,10 @@ class ResidualModel:
         widening: ``κ``, the residual kernels' stds are widened by ``sqrt(1 + κ·d²)`` where the prediction's
             manipulator contact is ``d`` contact-kernel stds from every training contact (0: never;
             :func:`pushtorch.evaluation.transfer.choose_residual_widening` chooses it across training shapes).
+        outcomes: per action ``(J, 3)`` what each kernel's training rollout did (:func:`rollout_outcome`), or
+            None (a file written before rollouts were kept: every kernel then weighs alike for every rollout).
+        outcome_width: ``h``, how closely a prediction's rollout pairs with the kernels whose training rollout
+            did the same (:func:`outcome_log_affinity`; ``inf``: not at all), chosen with the stds.
     """
 
     model: PushModel
@@ -113,6 +148,8 @@ class ResidualModel:
     shapes: list[Tensor] | None = None
     shape_names: list[str] = field(default_factory=list)
     widening: float = 0.0
+    outcomes: list[Tensor] | None = None
+    outcome_width: float = math.inf
 
     @property
     def name(self) -> str:
@@ -179,8 +216,10 @@ class ResidualModel:
             motions.append(dataclasses.replace(motion, manipulator=motion.manipulator.take(keep.to(
                 motion.manipulator.r.device))))
             residuals.append(residual.take(keep))
+        outcomes = None if self.outcomes is None else [o[of != shape] for o, of in zip(self.outcomes, self.shapes,
+                                                                                         strict=True)]
         return dataclasses.replace(self, model=dataclasses.replace(self.model, motions=motions), residuals=residuals,
-                                   shapes=[of[of != shape] for of in self.shapes])
+                                   shapes=[of[of != shape] for of in self.shapes], outcomes=outcomes)
 
     def condition_on(self, observations, seed: int | None = None, prior: tuple | None = None,
                      bandwidth=None) -> ResidualModel:
@@ -199,10 +238,14 @@ class ResidualModel:
             arrays[f"residual{a}.p"], arrays[f"residual{a}.q"] = r.p, r.q
             if self.shapes is not None:
                 arrays[f"residual{a}.shape"] = self.shapes[a]
+            if self.outcomes is not None:
+                arrays[f"residual{a}.outcome"] = self.outcomes[a]
         header = {"residual": {"engine": self.sim.engine, "engine_version": self.engine_version,
                                "sim": dataclasses.asdict(self.sim), "ensemble": self.ensemble,
                                "p_std": self.bandwidth.p_std, "rot_std": self.bandwidth.rot_std,
-                               "widening": self.widening, "shape_names": self.shape_names, "meta": self.meta}}
+                               "widening": self.widening, "shape_names": self.shape_names,
+                               "outcome_width": None if math.isinf(self.outcome_width) else self.outcome_width,
+                               "meta": self.meta}}
         return write_model_file(path, *self.model.file_parts(arrays, header))
 
 
@@ -228,31 +271,46 @@ def _log_kernels(residuals: se3.Pose, p_std: float, rot_std: float) -> Tensor:
     return -d2 / (2 * p_std**2) - dq / sigma_q - log_norm
 
 
-def choose_bandwidth(residuals: list[se3.Pose], push: list[Tensor], settings) -> tuple[KernelBandwidth, dict]:
-    """The residual kernels' stds of highest leave-one-push-out likelihood: each training push's residual
-    scored under the other pushes' kernels, equally weighted, summed over actions (nats per push)."""
+def choose_bandwidth(residuals: list[se3.Pose], push: list[Tensor], settings,
+                     outcomes: list[Tensor] | None = None) -> tuple[KernelBandwidth, float, dict]:
+    """The residual kernels' stds, and the width ``h`` that pairs them with a rollout by its outcome, of highest
+    leave-one-push-out likelihood: each training push's residual scored under the other pushes' kernels, each
+    weighed by how alike its training rollout's outcome is to the held-out push's (:func:`outcome_log_affinity`;
+    equally at ``h = inf``, the only width without ``outcomes``), summed over actions (nats per push)."""
+    widths = OUTCOME_LADDER if outcomes is not None else (math.inf,)
     best, scores = None, {}
     for p_std in RESIDUAL_LADDER[0]:
         for rot_std in RESIDUAL_LADDER[1]:
-            total, count = 0.0, 0
-            for r, k in zip(residuals, push, strict=True):
-                if len(r.p) < 2:
-                    continue
-                log_k = _log_kernels(r, p_std, rot_std)
-                log_k = log_k.masked_fill(k.unsqueeze(1) == k.unsqueeze(0), -math.inf)  # its own push held out
-                held = torch.logsumexp(log_k, 1) - torch.log(torch.isfinite(log_k).sum(1).clamp_min(1).double())
-                keep = torch.isfinite(held)
-                total += float(held[keep].sum())
-                count += int(keep.sum())
-            if count:
-                scores[(p_std, rot_std)] = total / count
-                if best is None or scores[(p_std, rot_std)] > scores[best]:
-                    best = (p_std, rot_std)
+            kernels = [_log_kernels(r, p_std, rot_std) for r in residuals]
+            for width in widths:
+                total, count = 0.0, 0
+                for a, (log_k, k) in enumerate(zip(kernels, push, strict=True)):
+                    if len(k) < 2:
+                        continue
+                    own = k.unsqueeze(1) == k.unsqueeze(0)  # its own push held out
+                    if outcomes is None:
+                        affinity = torch.zeros_like(log_k)
+                    else:
+                        affinity = outcome_log_affinity(outcomes[a], outcomes[a], width)
+                    affinity = affinity.masked_fill(own, -math.inf)
+                    log_v = affinity - torch.logsumexp(affinity, 1, keepdim=True)
+                    held = torch.logsumexp(log_k.masked_fill(own, -math.inf) + log_v, 1)
+                    keep = torch.isfinite(held)
+                    total += float(held[keep].sum())
+                    count += int(keep.sum())
+                if count:
+                    scores[(p_std, rot_std, width)] = total / count
+                    if best is None or scores[(p_std, rot_std, width)] > scores[best]:
+                        best = (p_std, rot_std, width)
     if best is None:
         raise ModelError("too few training pushes to choose the residual kernels' width (two per action at least)")
     bandwidth = KernelBandwidth(best[0], best[1], cutoff_std=(math.inf, math.inf, math.inf),
                                 alpha_t=settings.alpha_t)
-    return bandwidth, {"p_std": best[0], "rot_std": best[1], "score": round(scores[best], 3)}
+    unpaired = scores.get((best[0], best[1], math.inf))
+    return bandwidth, best[2], {"p_std": best[0], "rot_std": best[1],
+                                "outcome_width": None if math.isinf(best[2]) else best[2],
+                                "score": round(scores[best], 3),
+                                "score_unpaired": None if unpaired is None else round(unpaired, 3)}
 
 
 def _training_body(obj: ObjectModel, pose: se3.Pose, voxel_size: float) -> tuple[ObjectModel, se3.Pose]:
@@ -296,13 +354,13 @@ def train_residual_model(model: PushModel, obj: ObjectModel | list[ObjectModel],
             raise InvalidParameterError(f"the residual model rolls each training push of {o.name} out at its own "
                                         "friction and mass, and these records have none (a push table without "
                                         "'mass' and 'ground_friction' columns)")
-    residuals, pushes, shapes, rollouts = [], [], [], 0
+    residuals, pushes, shapes, outcomes, rollouts = [], [], [], [], 0
     for motion in model.motions:
         push = motion.manipulator.push
         if push is None:
             raise InvalidParameterError("a residual model needs a model trained in this session (its kernels know "
                                         "their pushes), not a loaded one")
-        per_push, physics, shape_of = [], [], []
+        per_push, physics, shape_of, did = [], [], [], []
         action = motion.action.detach().double().cpu()
         for s, (o, v) in enumerate(zip(objects, valid, strict=True)):
             sel = v.take((v.action.double() - action).abs().amax(-1) <= 1e-6)  # the pushes of this action
@@ -315,6 +373,7 @@ def train_residual_model(model: PushModel, obj: ObjectModel | list[ObjectModel],
                 world = se3.compose(se3.compose(b1, se3.inverse(b0)), se3.Pose.unchecked(start.p.double(),
                                                                                          start.q.double()))
                 per_push.append(residual_of(r0, final, world))
+                did.append(rollout_outcome(r0, start, final))
                 rollouts += 1
             physics.append(torch.stack([sel.ground_friction.double(), sel.mass.double()], -1))
             shape_of.append(torch.full((len(sel),), s, dtype=torch.int64))
@@ -333,10 +392,12 @@ def train_residual_model(model: PushModel, obj: ObjectModel | list[ObjectModel],
         residuals.append(se3.Pose.unchecked(kernels.p.to(model.dtype), kernels.q.to(model.dtype)))
         pushes.append(index)
         shapes.append(torch.cat(shape_of)[index])
-    bandwidth, chosen = choose_bandwidth(residuals, pushes, model.settings)
+        outcomes.append(torch.stack(did)[index])
+    bandwidth, width, chosen = choose_bandwidth(residuals, pushes, model.settings, outcomes)
     return ResidualModel(model, residuals, bandwidth, sim, engine_version(sim.engine), int(ensemble),
                          {"bandwidth": chosen, "training_rollouts": rollouts},
-                         shapes=shapes if len(objects) > 1 else None, shape_names=[o.name for o in objects])
+                         shapes=shapes if len(objects) > 1 else None, shape_names=[o.name for o in objects],
+                         outcomes=outcomes, outcome_width=width)
 
 
 def with_ensemble(model: ResidualModel, ensemble: int) -> ResidualModel:
@@ -399,9 +460,17 @@ def _residual_from_parts(path, header: dict, arrays: dict, dtype: torch.dtype, o
         widening = float(spec.get("widening", 0.0))
         if not math.isfinite(widening) or widening < 0:
             raise ValueError(f"a widening of {widening}")
+        outcomes = None
+        if "residual0.outcome" in arrays:
+            outcomes = [torch.from_numpy(arrays[f"residual{a}.outcome"]).double() for a in range(len(residuals))]
+            if any(o.shape != (len(r.p), 3) for o, r in zip(outcomes, residuals, strict=True)):
+                raise ValueError("the residual kernels' rollout outcomes do not match the kernels")
+        width = math.inf if spec.get("outcome_width") is None else float(spec["outcome_width"])
+        if not width > 0:
+            raise ValueError(f"an outcome width of {width}")
         return ResidualModel(model, residuals, bandwidth, sim, str(spec["engine_version"]), int(spec["ensemble"]),
                              dict(spec.get("meta") or {}), shapes, [str(n) for n in spec.get("shape_names", [])],
-                             widening)
+                             widening, outcomes, width if outcomes is not None else math.inf)
     except RecordFormatError:
         raise
     except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError, InvalidParameterError) as exc:

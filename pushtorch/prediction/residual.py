@@ -2,14 +2,17 @@
 ensemble of friction and mass, each rollout corrected by the training pushes' residuals weighed by local
 contact, as one normalised density over the final pose (beyond the paper; its §Conclusions and future work).
 
-The density is a mixture: ``Σ_i Σ_j (w_j / N) K(B1 | D_j · S_i)`` over the ``N`` rollouts ``S_i`` and the
-residual kernels ``D_j`` (:func:`pushtorch.models.residual.corrected`), ``w_j`` the normalised contact weight
-``K^c`` of kernel ``j``'s training contact against this push's manipulator contact (the paper's Eq.
-contact_frame_probability, as its motion kernels are weighed). The kernels' stds are the model's, widened by
-``sqrt(1 + κ·d²)`` where this contact is ``d`` contact-kernel stds from the nearest training contact (``κ`` the
-model's ``widening``, chosen across training shapes; 0 for a model of one object). Its mode is the mixture's
-highest kernel centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one expert with exponent 1, so
-``log_prob``, ``sample`` and the coverage work as for pushtorch's own prediction.
+The density is a mixture: ``Σ_i Σ_j (w_ij / N) K(B1 | D_j · S_i)`` over the ``N`` rollouts ``S_i`` and the
+residual kernels ``D_j`` (:func:`pushtorch.models.residual.corrected`), ``w_ij ∝ w_j · A_h(o_i, o_j)``
+normalised over ``j``: ``w_j`` the normalised contact weight ``K^c`` of kernel ``j``'s training contact against
+this push's manipulator contact (the paper's Eq. contact_frame_probability, as its motion kernels are weighed),
+``A_h`` how alike rollout ``i``'s outcome is to kernel ``j``'s training rollout's
+(:func:`pushtorch.models.residual.outcome_log_affinity`; 1 at the model's ``outcome_width = inf``): a correction
+learnt where the simulator did one thing is applied where it does the same. The kernels' stds are the model's,
+widened by ``sqrt(1 + κ·d²)`` where this contact is ``d`` contact-kernel stds from the nearest training contact
+(``κ`` the model's ``widening``, chosen across training shapes; 0 for a model of one object). Its mode is the
+mixture's highest kernel centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one expert
+with exponent 1, so ``log_prob``, ``sample`` and the coverage work as for pushtorch's own prediction.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from pushtorch.kde.normaliser import NO_CUTOFF
 from pushtorch.models.clearance import check_start
 from pushtorch.models.motion import contact_distances, contact_log_weights
 from pushtorch.models.push_condition import PushCondition, features_for, push_conditions
-from pushtorch.models.residual import ResidualModel, corrected
+from pushtorch.models.residual import ResidualModel, corrected, outcome_log_affinity, rollout_outcome
 from pushtorch.models.settings import as_generator
 from pushtorch.perception import PointCloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
@@ -119,7 +122,13 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     means = corrected(robot, se3.Pose.unchecked(finals.p.unsqueeze(1), finals.q.unsqueeze(1)),
                       se3.Pose.unchecked(kernels.p.double().unsqueeze(0), kernels.q.double().unsqueeze(0)))
     means = se3.Pose.unchecked(means.p.reshape(-1, 3).to(dtype), se3.quat_normalize(means.q.reshape(-1, 4)).to(dtype))
-    log_weights = (log_w.unsqueeze(0) - math.log(n)).expand(n, -1).reshape(1, -1).to(dtype)
+    log_v = log_w.unsqueeze(0).expand(n, -1)  # (N, J) each rollout's residual kernels
+    if residual.outcomes is not None and not math.isinf(residual.outcome_width):
+        # each rollout leans on the kernels whose training rollout did what it did
+        did = rollout_outcome(condition.robot_start, body_start, finals)
+        log_v = log_v + outcome_log_affinity(did, residual.outcomes[a].to(did), residual.outcome_width)
+        log_v = log_v - torch.logsumexp(log_v, 1, keepdim=True)
+    log_weights = (log_v - math.log(n)).reshape(1, -1).to(dtype)
     keep = torch.isfinite(log_weights[0])  # kernels no contact reaches weigh nothing
     means = means.take(keep.nonzero().reshape(-1))
     log_weights = log_weights[:, keep]
