@@ -354,16 +354,31 @@ def train_residual_model(model: PushModel, obj: ObjectModel | list[ObjectModel],
             raise InvalidParameterError(f"the residual model rolls each training push of {o.name} out at its own "
                                         "friction and mass, and these records have none (a push table without "
                                         "'mass' and 'ground_friction' columns)")
-    residuals, pushes, shapes, outcomes, rollouts = [], [], [], [], 0
+    chosen_pushes = []  # every action's pushes, each shape's in turn, checked against the kernels before any rollout
     for motion in model.motions:
         push = motion.manipulator.push
         if push is None:
             raise InvalidParameterError("a residual model needs a model trained in this session (its kernels know "
                                         "their pushes), not a loaded one")
-        per_push, physics, shape_of, did = [], [], [], []
         action = motion.action.detach().double().cpu()
-        for s, (o, v) in enumerate(zip(objects, valid, strict=True)):
-            sel = v.take((v.action.double() - action).abs().amax(-1) <= 1e-6)  # the pushes of this action
+        sets = [(s, o, v.take((v.action.double() - action).abs().amax(-1) <= 1e-6))
+                for s, (o, v) in enumerate(zip(objects, valid, strict=True))]
+        count, index = sum(len(sel) for *_, sel in sets), push.cpu()
+        if not count or int(index.max()) >= count:
+            raise InvalidParameterError(f"the records hold {count} pushes of action {action.tolist()}, the model's "
+                                        f"kernels come from {int(index.max()) + 1}: train the residual on the "
+                                        "model's own records")
+        physics = torch.cat([torch.stack([sel.ground_friction.double(), sel.mass.double()], -1) for *_, sel in sets])
+        if motion.manipulator.physics is not None and not torch.allclose(  # each kernel's push is the one it says
+                physics[index], motion.manipulator.physics.detach().double().cpu(), rtol=1e-5, atol=1e-6):
+            raise InvalidParameterError("the records' pushes are not the ones the model's kernels came from (their "
+                                        "friction and mass differ): train the residual on the model's own records, "
+                                        "in its order of shapes")
+        chosen_pushes.append((action, index, sets))
+    residuals, pushes, shapes, outcomes, rollouts = [], [], [], [], 0
+    for action, index, sets in chosen_pushes:
+        per_push, shape_of, did = [], [], []
+        for s, o, sel in sets:
             for i in range(len(sel)):  # each push has its own body: one rollout each
                 b0, b1 = sel.object_initial.take(i), sel.object_final.take(i)
                 r0 = sel.robot_start.take(i)
@@ -375,19 +390,7 @@ def train_residual_model(model: PushModel, obj: ObjectModel | list[ObjectModel],
                 per_push.append(residual_of(r0, final, world))
                 did.append(rollout_outcome(r0, start, final))
                 rollouts += 1
-            physics.append(torch.stack([sel.ground_friction.double(), sel.mass.double()], -1))
             shape_of.append(torch.full((len(sel),), s, dtype=torch.int64))
-        index = push.cpu()
-        if not per_push or int(index.max()) >= len(per_push):
-            raise InvalidParameterError(f"the records hold {len(per_push)} pushes of action {action.tolist()}, the "
-                                        f"model's kernels come from {int(index.max()) + 1}: train the residual on the "
-                                        "model's own records")
-        if motion.manipulator.physics is not None:  # each kernel's push is the one it says it is
-            mine = torch.cat(physics)[index]
-            if not torch.allclose(mine, motion.manipulator.physics.detach().double().cpu(), rtol=1e-5, atol=1e-6):
-                raise InvalidParameterError("the records' pushes are not the ones the model's kernels came from "
-                                            "(their friction and mass differ): train the residual on the model's "
-                                            "own records, in its order of shapes")
         kernels = se3.Pose.stack(per_push).take(index)
         residuals.append(se3.Pose.unchecked(kernels.p.to(model.dtype), kernels.q.to(model.dtype)))
         pushes.append(index)
