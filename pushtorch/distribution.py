@@ -76,8 +76,11 @@ class FinalPoseDistribution(Distribution):
         method: :attr:`Evaluation.FAST` or :attr:`Evaluation.DENSE`, or its string (module docstring).
         normaliser_centres: ``(*B, C)`` poses where the product's modes are (the annealed candidates);
             they guide the importance sampler of the normaliser.
-        validate_args: torch's convention (default: ``torch.distributions.Distribution``'s global setting);
-            an invalid query raises :class:`~pushtorch.errors.InvalidPoseError` (a ValueError).
+        validate_args: check every query (torch's convention); an invalid one raises
+            :class:`~pushtorch.errors.InvalidPoseError` (a ValueError). Default True, whatever
+            ``torch.distributions.Distribution``'s global default is: torch.compile turns that off for the whole
+            process once it first runs (``torch._dynamo``'s patches), and a compiled prediction must not stop
+            refusing bad queries; ``False`` skips the checks.
         normaliser_samples: proposals per expert and part of the normaliser's importance sampler (default
             :data:`NORMALISER_SAMPLES`; its cost grows linearly with them).
         normaliser_keys: ``(*B,)`` integer keys, one per prediction (a planner's candidates: each one's key): the
@@ -121,7 +124,8 @@ class FinalPoseDistribution(Distribution):
         self._log_kernel: Tensor | None = None
         self._experts: PoseKDE | None = None
         self._product: SharedKernelProduct | None = None
-        super().__init__(batch_shape=batch, event_shape=torch.Size([7]), validate_args=validate_args)
+        super().__init__(batch_shape=batch, event_shape=torch.Size([7]),
+                         validate_args=True if validate_args is None else validate_args)
 
     @staticmethod
     def from_motion_densities(densities, modes: se3.Pose, centres: list[se3.Pose] | None = None,

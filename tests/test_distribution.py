@@ -172,6 +172,26 @@ def test_bad_values_are_refused_by_torch_convention(predictions):
     assert density.log_prob(torch.tensor([1.0, 2, 3, 1, 0, 0, 0])) == -math.inf
 
 
+def test_bad_values_are_refused_after_torch_compile_turned_torchs_own_checks_off(small_model):
+    """torch.compile turns torch.distributions' argument checks off for the whole process when it first runs; a
+    density made after that still refuses a misshaped query by name instead of failing inside its arithmetic."""
+    from pushtorch import capture_partial_cloud, load_object
+    from pushtorch.prediction import predict
+
+    before = torch.distributions.Distribution._validate_args
+    try:
+        torch.compile(lambda x: x * 2, backend="eager")(torch.ones(2))
+        model = small_model("cube")
+        cube = load_object("cube")
+        density = predict(model, capture_partial_cloud(cube, cube.resting_pose(yaw=0.3)), model.actions[0], 0).density
+        with pytest.raises(InvalidPoseError, match="7"):
+            density.log_prob(torch.zeros(4, 6))
+        with pytest.raises(InvalidPoseError, match="unit"):
+            density.log_prob(torch.zeros(4, 7))
+    finally:
+        torch.distributions.Distribution.set_default_validate_args(before)
+
+
 def test_sample_shapes_follow_torch_distributions(predictions):
     """An empty sample shape gives an empty tensor, a negative one is refused, and there is no rsample: as
     torch.distributions.Normal does."""
