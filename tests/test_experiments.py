@@ -538,7 +538,7 @@ def test_the_pybullet_world_runs_beside_the_mujoco_one_in_one_folder(tiny_run, t
     assert before and all(name.endswith(("_mujoco.npz", "_mujoco_residual_vs_pybullet.npz")) for name in before)
     pybullet_cfg = _compose([*TINY, "world=pybullet", "~experiment.parts.model_selection",
                              "~experiment.parts.pose_estimation", "~experiment.parts.mass_biasing",
-                             "~experiment.parts.online_adaptation"])
+                             "~experiment.parts.online_adaptation", "~experiment.parts.shape_transfer"])
     quickstart.run(pybullet_cfg, run)
     results = json.loads((run / "results.json").read_text())
     assert results["world"] == {"engine": "pybullet"} and results["physics"] == {"engine": "mujoco"}
