@@ -74,6 +74,8 @@ def test_paper_experiments_default_to_the_full_protocol():
         assert list(cfg.model[bias]) == ["general", "low", "medium", "high"]
         assert list(exp.conditions[bias]) == ["low", "medium", "high"]
         assert (exp.test_conditions, exp.truth_samples, len(exp.objects)) == (100, 3, 6)
+        # the density peers: physics_ensemble and the residual model, at one cost of rollouts
+        assert exp.residual is True and exp.ensemble == exp.residual_ensemble == 4
         assert cfg.priors[bias].low.mean == 0.1 and cfg.priors[other].paper_default.std > 0
         training_objects = set(exp.training_object_of.values())
         training_pushes += len(training_objects) * 4 * exp.actions.count * cfg.model.samples_per_action
@@ -799,8 +801,8 @@ def test_full_paper_protocol(tmp_path):
     assert result.returncode == 0
     expected_n = {"selection": 50 * 3 * 4, "pose": 100, "prediction": 100 * 3 * 3}
     checks = []
-    for name, count in (("model_selection", 6), ("pose_estimation", 6), ("friction_biasing", 6 * 4 * 3 * 6),
-                        ("mass_biasing", 6 * 4 * 3 * 6)):  # objects x models x conditions x methods
+    for name, count in (("model_selection", 6), ("pose_estimation", 6), ("friction_biasing", 6 * 4 * 3 * 8),
+                        ("mass_biasing", 6 * 4 * 3 * 8)):  # objects x models x conditions x methods
         records = primary(json.loads((out / name / "results.json").read_text())["records"])
         assert len(records) == count
         for r in records:
