@@ -36,6 +36,18 @@ def trained(cube_pushes_of):
     return cube, records, model
 
 
+def _observed_push(cube, model):
+    """One real pybullet push of the cube (friction 0.2, mass 0.6, action 1) as an observation."""
+    from pushtorch.models.conditioning import Observation
+    from pushtorch.sim.runner import simulate_pushes
+
+    pose = cube.resting_pose(yaw=0.1)
+    robot = place_robot_against(cube.mesh, pose, 0.1, 0.0, 0.002)
+    final = simulate_pushes(cube, robot, pose, model.actions[1].double(), mass=0.6, ground_friction=0.2).object_final
+    return Observation(capture_partial_cloud(cube, pose), model.actions[1], pose, final.take(0).to(torch.float32),
+                       robot)
+
+
 @pytest.fixture(scope="module")
 def residual(trained):
     """The small model's residual model against pybullet on its training pushes' cloud bodies (4 rollouts)."""
@@ -213,16 +225,9 @@ def test_conditioned_on_observed_pushes_the_ensemble_draws_from_the_posterior(tr
     posterior weights (here all weight on one kernel: every draw is its push's physics)."""
     import dataclasses
 
-    from pushtorch.models.conditioning import Observation
-    from pushtorch.sim.runner import simulate_pushes
-
     cube, records, model = trained
     residual = with_ensemble(residual, 6)
-    pose = cube.resting_pose(yaw=0.1)
-    robot = place_robot_against(cube.mesh, pose, 0.1, 0.0, 0.002)
-    final = simulate_pushes(cube, robot, pose, model.actions[1].double(), mass=0.6, ground_friction=0.2).object_final
-    seen = Observation(capture_partial_cloud(cube, pose), model.actions[1], pose, final.take(0).to(torch.float32),
-                       robot)
+    seen = _observed_push(cube, model)
     conditioned = residual.condition_on([seen], seed=0)
     assert conditioned.model.physics_posterior.observed == 1 and residual.model.physics_posterior is None
     motion = model.motions[1]
@@ -240,11 +245,9 @@ def test_predict_predict_many_and_a_library_take_residual_models(trained, residu
     """The library's interface works unchanged with residual models: predict and predict_many give each condition
     the residual prediction predict_residual gives it (predict_many's per-condition seeds as for push models), and
     a library of residual models selects, conditions and predicts with them."""
-    from pushtorch.models.conditioning import Observation
     from pushtorch.models.library import ConditionedLibrary, ModelLibrary
     from pushtorch.models.push_condition import features_for
     from pushtorch.prediction import ResidualPrediction, predict, predict_many
-    from pushtorch.sim.runner import simulate_pushes
 
     cube, records, model = trained
     clouds = [capture_partial_cloud(cube, cube.resting_pose(yaw=y)) for y in (0.25, -0.3)]
@@ -263,11 +266,7 @@ def test_predict_predict_many_and_a_library_take_residual_models(trained, residu
     chosen, distances = library.select(features)
     assert chosen is two and distances.shape == (2,)  # equal H_r: the first
     assert len(predict(library, clouds[1], model.actions[0], torch.Generator().manual_seed(1)).rollouts.p) == 2
-    pose = cube.resting_pose(yaw=0.1)
-    robot = place_robot_against(cube.mesh, pose, 0.1, 0.0, 0.002)
-    final = simulate_pushes(cube, robot, pose, model.actions[1].double(), mass=0.6, ground_friction=0.2).object_final
-    seen = Observation(capture_partial_cloud(cube, pose), model.actions[1], pose, final.take(0).to(torch.float32),
-                       robot)
+    seen = _observed_push(cube, model)
     conditioned = library.condition_on([seen], seed=0)
     assert isinstance(conditioned, ConditionedLibrary) and conditioned.observed == 1
     picked = predict(conditioned, clouds[1], model.actions[1], torch.Generator().manual_seed(2))

@@ -70,6 +70,18 @@ def residual_model(pushes: int, folder: Path, ensemble: int):
     return residual
 
 
+def time_peers(residual, cloud, action, prediction, i: int) -> tuple[float, float]:
+    """Seconds of a residual prediction and of a 100-rollout physics ensemble from ``prediction``'s robot start."""
+    start = prediction.condition.robot_start
+    started = time.perf_counter()
+    predict_residual(residual, cloud, action, i, robot_start=start)
+    residual_s = time.perf_counter() - started
+    started = time.perf_counter()
+    physics_ensemble_prediction(cloud.points, prediction.condition.object_pose, start, action,
+                                Normal(0.3, 0.05), Normal(0.5, 0.025), 100, torch.Generator().manual_seed(i))
+    return residual_s, time.perf_counter() - started
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--conditions", type=int, default=12)
@@ -100,14 +112,7 @@ def main() -> None:
         started = time.perf_counter()
         prediction = predict(model, cloud, action, i)
         pushtorch_s = time.perf_counter() - started
-        start = prediction.condition.robot_start
-        started = time.perf_counter()
-        predict_residual(residual, cloud, action, i, robot_start=start)
-        residual_s = time.perf_counter() - started
-        started = time.perf_counter()
-        physics_ensemble_prediction(cloud.points, prediction.condition.object_pose, start, action,
-                                    Normal(0.3, 0.05), Normal(0.5, 0.025), 100, torch.Generator().manual_seed(i))
-        ensemble_s = time.perf_counter() - started
+        residual_s, ensemble_s = time_peers(residual, cloud, action, prediction, i)
         conditions.append((cloud, action, prediction))
         if i == 0:
             continue  # the warm-up
@@ -123,17 +128,10 @@ def main() -> None:
         pooled = {"residual": [], "ensemble100": []}
         with RolloutPool(args.pool):
             for i, (cloud, action, prediction) in enumerate(conditions):
-                start = prediction.condition.robot_start
-                started = time.perf_counter()
-                predict_residual(residual, cloud, action, i, robot_start=start)
-                residual_s = time.perf_counter() - started
-                started = time.perf_counter()
-                physics_ensemble_prediction(cloud.points, prediction.condition.object_pose, start, action,
-                                            Normal(0.3, 0.05), Normal(0.5, 0.025), 100,
-                                            torch.Generator().manual_seed(i))
+                residual_s, ensemble_s = time_peers(residual, cloud, action, prediction, i)
                 if i:  # the first warms the workers up
                     pooled["residual"].append(residual_s)
-                    pooled["ensemble100"].append(time.perf_counter() - started)
+                    pooled["ensemble100"].append(ensemble_s)
         print(f"rollouts over {args.pool} worker processes: residual_p50_s="
               f"{statistics.median(pooled['residual']):.3f} ensemble100_p50_s="
               f"{statistics.median(pooled['ensemble100']):.3f} (here, one after another: {p50['residual']:.3f}, "
