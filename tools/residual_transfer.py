@@ -9,12 +9,18 @@ two would choose); (2) the squared contact distance ``d²`` (:func:`pushtorch.pr
 each catalogue object's pushes, from the robot start its training object's model chooses at six random yaws: a
 diagnosis of what a widening by contact distance could tell apart, never a choice of anything.
 
+``weights <run>``: for a shape-transfer run (``experiment=quickstart_transfer``), the pooled residual model's
+mean correction per training shape and action (translation cm / turn rad), and for each transfer object at three
+yaws the four training shapes whose kernels weigh most in its predictions (their share of the contact weight):
+where each test object borrows its corrections from.
+
 ``target <run>``: for a shape-transfer run (``experiment=quickstart_transfer``), per object the H_acc of
 ``pushtorch_residual``, ``pushtorch_shapes`` and ``physics_from_cloud`` with the paired SE of the residual against
 the better of the two, its nll and 90 % coverage. The last line is exactly ``objects=<n> residual_le_best=<k>``
 (the issue's target: ≤ the better + 2 paired SE on at least 3 of 4).
 
     .venv/bin/python tools/residual_transfer.py distance runs/engine_gap [--pushes 15]
+    .venv/bin/python tools/residual_transfer.py weights runs/quickstart_transfer
     .venv/bin/python tools/residual_transfer.py target runs/quickstart_transfer
 """
 
@@ -86,6 +92,33 @@ def distance(run: Path, pushes: int) -> None:
         print(f"{obj_name:14s} ({trained}'s model) d2 median {median:.2f} (10 % {q10:.2f}, 90 % {q90:.2f})")
 
 
+def weights(run: Path) -> None:
+    residual = load_residual_model(_one(f"{run}/models/shapes_*_residual_vs_*.npz"))
+    if residual.shapes is None:
+        raise SystemExit(f"{run}'s shapes residual model is not a pooled one")
+    names = residual.shape_names
+    for a, (kernels, of) in enumerate(zip(residual.residuals, residual.shapes, strict=True)):
+        cells = []
+        for s, name in enumerate(names):
+            mine = of == s
+            if bool(mine.any()):
+                slide = float(kernels.p[mine][:, :2].norm(dim=-1).mean()) * 100
+                turn = float(se3.yaw_of(kernels.q[mine]).abs().mean())
+                cells.append(f"{name} {slide:.1f}/{turn:.2f}")
+        print(f"action {a} mean correction (cm/rad): " + ", ".join(cells))
+    for obj_name in ("prism_thin", "prism_long", "cylinder_wide", "hybrid"):
+        obj = load_object(obj_name)
+        for k, yaw in enumerate((-0.4, 0.0, 0.4)):
+            cloud = capture_partial_cloud(obj, obj.resting_pose(yaw=yaw), voxel_size=residual.settings.voxel_size)
+            for a in range(len(residual.actions)):
+                prediction = predict_residual(residual, cloud, residual.actions[a], 3 * k + a)
+                share = prediction.residual_weights.exp()
+                by_shape = sorted(((float(share[residual.shapes[a] == s].sum()), n) for s, n in enumerate(names)),
+                                  reverse=True)[:4]
+                print(f"{obj_name:14s} yaw {yaw:+.1f} action {a}: d2 {prediction.contact_distance2:.2f}; "
+                      + ", ".join(f"{n} {w:.2f}" for w, n in by_shape))
+
+
 def target(run: Path) -> None:
     records = [r for r in json.loads((run / "results.json").read_text())["records"]
                if r.get("metric") == "displacement" and r.get("task") == "transfer"]
@@ -112,11 +145,14 @@ def target(run: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("what", choices=("distance", "target"))
+    parser.add_argument("what", choices=("distance", "weights", "target"))
     parser.add_argument("run", type=Path)
     parser.add_argument("--pushes", type=int, default=15)
     args = parser.parse_args()
-    distance(args.run, args.pushes) if args.what == "distance" else target(args.run)
+    if args.what == "distance":
+        distance(args.run, args.pushes)
+    else:
+        (weights if args.what == "weights" else target)(args.run)
 
 
 if __name__ == "__main__":
