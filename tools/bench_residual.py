@@ -8,6 +8,7 @@ test conditions (the cube at a random yaw in [−45°, 45°], the actions in tur
 robot start is then given to the residual model (``--ensemble`` rollouts) and to ``physics_ensemble`` at 100
 rollouts, each timed on its own after one warm-up of each.
 
+It also prints what one pybullet rollout and its world cost (ensembles of 1 and 4 of each condition's cloud body).
 With ``--pool k`` (default 2) the same conditions are predicted again with every ensemble's rollouts split over
 ``k`` worker processes (:class:`pushtorch.sim.bodies.RolloutPool`), on a line of their own.
 
@@ -82,6 +83,25 @@ def time_peers(residual, cloud, action, prediction, i: int) -> tuple[float, floa
     return residual_s, time.perf_counter() - started
 
 
+def rollout_cost(conditions) -> tuple[float, float]:
+    """The p50 seconds of one rollout and of building its world: ensembles of 1 and 4 of each condition's cloud
+    body from its robot start, ``t1 = world + rollout`` and ``t4 = world + 4 rollouts``."""
+    from pushtorch.sim.bodies import cloud_body, rollout_ensemble
+
+    per_rollout, world = [], []
+    for cloud, action, prediction in conditions[1:]:
+        body, start = cloud_body(cloud.points, prediction.condition.object_pose)
+        spent = []
+        for n in (1, 4):
+            started = time.perf_counter()
+            rollout_ensemble(body, start, prediction.condition.robot_start, action, torch.full((n,), 0.3),
+                             torch.full((n,), 0.5))
+            spent.append(time.perf_counter() - started)
+        per_rollout.append((spent[1] - spent[0]) / 3)
+        world.append(spent[0] - per_rollout[-1])
+    return statistics.median(per_rollout), statistics.median(world)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--conditions", type=int, default=12)
@@ -122,6 +142,8 @@ def main() -> None:
         print(f"condition {i}: pushtorch {pushtorch_s:.2f} s, residual {residual_s:.2f} s, "
               f"ensemble100 {ensemble_s:.2f} s", flush=True)
     p50 = {k: statistics.median(v) for k, v in times.items()}
+    rollout_s, world_s = rollout_cost(conditions)
+    print(f"one pybullet rollout of a 4 s push: {rollout_s:.3f} s; building its world: {world_s:.3f} s")
     if args.pool:
         from pushtorch.sim.bodies import RolloutPool
 

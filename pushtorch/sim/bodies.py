@@ -120,8 +120,7 @@ class RolloutPool:
     Use as a context manager: inside it, every :func:`rollout_ensemble` of this thread splits its ensemble into
     one contiguous chunk per worker (no more chunks than rollouts) and gathers them in order. Outside it, or for
     an ensemble of one, rollouts run here. The pool is worth its transfers where rollouts are many and cores
-    free: a pybullet rollout of a 4 s push costs about 0.075 s and a world about 0.03 s (measured by
-    ``tools/bench_residual.py``).
+    free (``tools/bench_residual.py`` prints a rollout's and a world's cost on this host, and the pool's gain).
 
     Args:
         workers: processes (0: this job's share of the cores, :func:`pushtorch.parallel.core_share`).
@@ -134,7 +133,7 @@ class RolloutPool:
     def __init__(self, workers: int = 0, start_method: str | None = None) -> None:
         from pushtorch.parallel import core_share
 
-        if isinstance(workers, bool) or int(workers) != workers or workers < 0:
+        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
             raise InvalidParameterError(f"workers must be a whole number >= 1 (or 0 for this job's cores), got "
                                         f"{workers!r}")
         self.workers = int(workers) or core_share()
