@@ -228,6 +228,23 @@ def test_same_plan_gives_identical_records_in_any_order(name):
     assert np.array_equal(backwards["object_final_p"][::-1], first.object_final.p.numpy())
 
 
+def test_worlds_share_their_hull_files_and_leave_no_folder_behind():
+    """A world's convex hulls are OBJ files written once per content under <temp>/pushtorch-shapes, shared by
+    every world; an unclosed world (a killed worker's) leaves no folder of its own in the temp folder."""
+    import tempfile
+    from pathlib import Path
+
+    temp = Path(tempfile.gettempdir())
+    before = set(temp.glob("pushtorch-shape-*"))
+    spec = object_spec(load_object("hybrid"))  # convex hulls beside boxes
+    first, second = PushWorld(spec), PushWorld(spec)
+    shared = sorted((temp / "pushtorch-shapes").glob("*.obj"))
+    second.close()
+    del first  # never closed
+    assert set(temp.glob("pushtorch-shape-*")) == before
+    assert shared and all(path.is_file() and path.read_text().startswith("v ") for path in shared)
+
+
 def test_make_actions_reads_the_angle_range_in_degrees_per_second():
     actions = make_actions(3)
     assert actions.shape == (3, 2)

@@ -38,9 +38,9 @@ nowhere else in the simulator. :func:`pushtorch.sim.engines.make_world` builds t
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
-import shutil
 import tempfile
 
 import numpy as np
@@ -64,6 +64,19 @@ MAX_COMPOUND_CHILDREN = 16
 #: indeterminate solutions the solver's order settles on.
 GROUND_STIFFNESS_PER_KG, GROUND_DAMPING_PER_KG = 19200.0, 80.0
 
+
+
+def _hull_file(text: str) -> str:
+    """The path of an OBJ file holding ``text``, written once per content (``PushWorld._shape_arguments``)."""
+    folder = os.path.join(tempfile.gettempdir(), "pushtorch-shapes")
+    path = os.path.join(folder, hashlib.sha256(text.encode()).hexdigest()[:32] + ".obj")
+    if not os.path.isfile(path):
+        os.makedirs(folder, exist_ok=True)
+        fd, partial = tempfile.mkstemp(dir=folder, suffix=".part")
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(partial, path)  # another process writing the same content at once writes the same bytes
+    return path
 
 class PushWorld:
     """One pybullet DIRECT client holding the ground, the robot and one object.
@@ -137,8 +150,7 @@ class PushWorld:
                               physicsClientId=cid)
         if s.robot == "p3dx":  # the base carries the robot's mass, which the wheels' traction depends on
             pb.changeDynamics(self.robot, BASE_LINK_INDEX, mass=s.drive.robot_mass, physicsClientId=cid)
-        self._shape_folder = tempfile.mkdtemp(prefix="pushtorch-shape-")
-        self._shape_args = self._shape_arguments(self._shape_folder)
+        self._shape_args = self._shape_arguments()
         self._object_shape = -1
         self.object = -1
         # rotation of the principal (inertial) frame in the object frame, and its inverse
@@ -146,23 +158,24 @@ class PushWorld:
 
     # --- object ---------------------------------------------------------------------------------
 
-    def _shape_arguments(self, folder: str) -> dict:
+    def _shape_arguments(self) -> dict:
         """The arguments of ``createCollisionShapeArray`` for the object: one compound collision shape, exact
-        boxes as box primitives, other pieces as convex hulls (written as OBJ files into ``folder``) standing
-        on a ring of small spheres (:func:`object_pieces`). Made once per world; :meth:`_create_object_shape`
-        builds a fresh shape from them for every push.
+        boxes as box primitives, other pieces as convex hulls standing on a ring of small spheres
+        (:func:`object_pieces`). Made once per world; :meth:`_create_object_shape` builds a fresh shape from
+        them for every push. pybullet reads a hull from an OBJ file: each is written once per content, under
+        ``<temp>/pushtorch-shapes/`` by the hash of its text (atomically), and shared by every world and process
+        that meets the same piece, so that no world leaves a folder behind when its process ends unclosed (a
+        pool or cluster worker that is killed).
         """
         pb = self.pb
         types, half_extents, files, positions, radii = [], [], [], [], []
         geom = {"box": pb.GEOM_BOX, "hull": pb.GEOM_MESH, "sphere": pb.GEOM_SPHERE}
-        for i, piece in enumerate(object_pieces(self.spec, MAX_COMPOUND_CHILDREN)):
+        for piece in object_pieces(self.spec, MAX_COMPOUND_CHILDREN):
             path = ""
             if piece.kind == "hull":
-                path = os.path.join(folder, f"part{i}.obj")
                 # pybullet builds a dynamic mesh's convex hull from the vertices its faces reference
-                with open(path, "w") as f:
-                    f.write("".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in piece.vertices))
-                    f.write("".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in piece.faces))
+                path = _hull_file("".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in piece.vertices)
+                                  + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in piece.faces))
             types.append(geom[piece.kind])
             half_extents.append([float(v) for v in piece.size] if piece.kind == "box" else [0.0, 0.0, 0.0])
             files.append(path)
@@ -325,7 +338,6 @@ class PushWorld:
                 self.pb.disconnect(physicsClientId=self.client)
             finally:
                 self._closed = True
-                shutil.rmtree(self._shape_folder, ignore_errors=True)
 
     def __enter__(self) -> PushWorld:
         return self
