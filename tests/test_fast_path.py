@@ -680,3 +680,58 @@ def test_a_warm_fused_function_does_not_recompile_for_other_sizes_strides_or_gra
             value = evaluate(*args)
         torch.testing.assert_close(value, dense_sums(*args), rtol=1e-5, atol=1e-6)
     assert counters["stats"]["unique_graphs"] == graphs
+
+
+_LOAD_SHARED = """
+import sys, torch
+from torch._dynamo.utils import counters
+import pushtorch.kde.fused as fused
+from pushtorch.kde.kernel_sums import dense_sums
+fused.declare_long_run()
+fused._shared_folder.append(__import__("pathlib").Path(sys.argv[1]))
+fused.share_compiled()
+args = torch.load(sys.argv[2])
+evaluate = fused.fused_function("test_shared_dense_sums", dense_sums, "cpu")
+value = evaluate(*args)
+loaded = counters["stats"]["unique_graphs"]
+wide = evaluate(*[a.double() if isinstance(a, torch.Tensor) else a for a in args])  # its guards refuse float64
+torch.save({"value": value, "loaded_graphs": loaded, "graphs": counters["stats"]["unique_graphs"],
+            "wide": wide}, sys.argv[3])
+"""
+
+
+def test_a_shared_compiled_function_loads_in_another_process_and_gives_the_same_values(tmp_path, monkeypatch):
+    """share_compiled: a fused function compiled ahead of time and saved here is loaded by a fresh process,
+    which traces nothing for it and gets the in-process compilation's values bit for bit; a call its guards
+    refuse (float64) is compiled in that process and is right too."""
+    import shutil
+    import subprocess
+    import sys
+
+    import pushtorch.kde.fused as fused
+    from pushtorch.kde.kernel_sums import dense_sums
+
+    if not any(shutil.which(cc) for cc in ("g++", "c++", "clang++")):
+        pytest.skip("no C++ compiler for torch.compile")
+    monkeypatch.setenv("PUSHTORCH_COMPILE", "1")
+    for name, empty in (("_shared", {}), ("_shared_variants", {}), ("_not_shared", set()),
+                        ("_shared_folder", [tmp_path / "shared"]), ("_compiled_functions", {})):
+        monkeypatch.setattr(fused, name, empty)
+    g = torch.Generator().manual_seed(0)
+    args = (torch.randn(3, 7, 41, generator=g), torch.randn(3, 8, 150, generator=g),
+            torch.rand(3, 2, generator=g) + 1, 3.0, 2.0)
+    assert fused.share_compiled(produce=True) == tmp_path / "shared"
+    made = fused.fused_function("test_shared_dense_sums", dense_sums, "cpu")(*args)
+    assert len(list((tmp_path / "shared").glob("test_shared_dense_sums.*.bin"))) == 1
+    monkeypatch.setattr(fused, "_shared", {})  # this process compiles in-process again: the reference
+    monkeypatch.setattr(fused, "_compiled_functions", {})
+    reference = fused.fused_function("test_shared_dense_sums", dense_sums, "cpu")(*args)
+    assert torch.equal(made, reference)
+    torch.save(args, tmp_path / "args.pt")
+    subprocess.run([sys.executable, "-c", _LOAD_SHARED, str(tmp_path / "shared"), str(tmp_path / "args.pt"),
+                    str(tmp_path / "out.pt")], check=True, timeout=300)
+    out = torch.load(tmp_path / "out.pt")
+    assert out["loaded_graphs"] == 0 and out["graphs"] == 1  # loaded, not traced; float64 traced there
+    assert torch.equal(out["value"], reference)
+    torch.testing.assert_close(out["wide"], dense_sums(*[a.double() if isinstance(a, torch.Tensor) else a
+                                                         for a in args]))

@@ -19,6 +19,8 @@ is read again there (:func:`saved_as`), and an experiment context travels
 as the task's context (no recording, no model cache, the local executor with one worker), wherever a step holds
 one. A task compiles the fast path exactly when the submitting process does, so that its records are those of
 a local run on the same host and thread count; on nodes with other CPUs floats may differ in their last bits.
+Tasks that predict share the submitter's compiled functions (:func:`share_with_tasks`): saved once per code
+version and machine kind, each task loads them instead of tracing them again, with the same generated code.
 Each task says where it ran; the counts per kind and host are kept in the context (``task_counts``) and written
 to results.json (``tasks``).
 """
@@ -39,7 +41,7 @@ from pushtorch.experiments.context import ExperimentContext
 from pushtorch.sim.executors import Executor, run_remote_tasks, task_host
 from pushtorch.sim.tasks import run_tasks, task_workers
 
-__all__ = ["models_by_path", "prefetch", "saved_as", "saved_models", "warm_up"]
+__all__ = ["models_by_path", "prefetch", "saved_as", "saved_models", "share_with_tasks", "warm_up"]
 
 log = logging.getLogger("pushtorch.experiments")
 
@@ -85,16 +87,22 @@ def warm_up(model) -> None:
     again (torch.compile traces per process: seconds each on a small host). Nothing to do where the fast path
     runs eagerly (:func:`pushtorch.kde.fast_path_compiled`)."""
     from pushtorch.kde import fast_path_compiled
+
+    if _WARM or not fast_path_compiled(model.motions[0].action.device):
+        return
+    _predict_a_cube(model)
+    _WARM.append(True)
+
+
+def _predict_a_cube(model) -> None:
+    """One prediction of a cube with ``model``: what compiles the fast path's fused functions."""
     from pushtorch.objects import load_object
     from pushtorch.perception import capture_partial_cloud
     from pushtorch.prediction import predict
 
-    if _WARM or not fast_path_compiled(model.motions[0].action.device):
-        return
     cube = load_object("cube")
     predict(model, capture_partial_cloud(cube, cube.resting_pose(yaw=0.3), voxel_size=model.settings.voxel_size),
             model.actions[0])
-    _WARM.append(True)
 
 
 def prefetch(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], Any], items: Sequence[Any],
@@ -116,7 +124,7 @@ def prefetch(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], An
     if not items:
         return False
     if ctx.executor.kind != "local":
-        _run_remote(ctx, step, items, on_done, what)
+        _run_remote(ctx, step, items, on_done, what, warm)
         return True
     if task_workers(len(items), ctx.workers) <= 1:
         return False
@@ -192,28 +200,59 @@ def models_by_path() -> Iterator[None]:
 
 
 def _remote_task(step: Callable[[ExperimentContext, Any], Any], ctx: ExperimentContext, item: Any,
-                 compiled: bool) -> tuple[float, str]:
+                 compiled: bool, shared: bool) -> tuple[float, str]:
     """One task on a cluster's worker: ``step(ctx, item)`` on one torch thread, compiled as its submitter
-    compiles; returns its seconds and where it ran."""
+    compiles (with ``shared``, by the compiled functions it shares); returns its seconds and where it ran."""
     import torch
+
+    from pushtorch.kde import share_compiled
 
     start = time.perf_counter()
     torch.set_num_threads(1)
     os.environ["PUSHTORCH_COMPILE"] = "1" if compiled else "0"
+    if shared:
+        share_compiled()
     step(ctx, item)
     return time.perf_counter() - start, task_host()
 
 
+def share_with_tasks(model) -> None:
+    """Share this process's compiled fast path with the tasks it submits (:func:`pushtorch.kde.share_compiled`):
+    where this code has not been compiled ahead of time on this machine kind, one prediction of a cube with
+    ``model`` on one torch thread, as a task predicts, compiles and saves what a prediction needs (once: about
+    30 s on a 2-core CPU); a task then loads them (about 2 s) instead of compiling them (about 11 s)."""
+    import torch
+
+    from pushtorch.kde import share_compiled
+
+    folder = share_compiled(produce=True)
+    if not (folder / _SHARED_READY).is_file():
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)  # as a task runs: Inductor's code, and so its guards, depend on the threads
+        try:
+            _predict_a_cube(model)
+        finally:
+            torch.set_num_threads(threads)
+        (folder / _SHARED_READY).write_text("a prediction's fused functions are saved here\n")
+
+
+_SHARED_READY = "ready"
+
+
 def _run_remote(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], Any], items: list,
-                on_done: Callable[[Any], None] | None, what: str) -> None:
+                on_done: Callable[[Any], None] | None, what: str, warm=None) -> None:
     """Every item as a task of the context's Ray or Slurm executor (module notes)."""
     from pushtorch.kde import fast_path_compiled
 
     compiled = fast_path_compiled("cpu")
+    shared = compiled and warm is not None
+    if shared:
+        share_with_tasks(warm)
     start = time.perf_counter()
     with models_by_path():
         task_ctx = _task_context(ctx)
-        results = run_remote_tasks(ctx.executor, _remote_task, [(step, task_ctx, item, compiled) for item in items],
+        results = run_remote_tasks(ctx.executor, _remote_task,
+                                   [(step, task_ctx, item, compiled, shared) for item in items],
                                    ctx.run_dir / ".submitit" / "tasks",
                                    on_done=None if on_done is None else (lambda index, _: on_done(items[index])))
     hosts: dict[str, int] = {}

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -158,11 +159,15 @@ def train_models(ctx: ExperimentContext, keys) -> dict[tuple[str, str, str], Pus
     # a run smaller than a shard simulates in this process (training_records), in one world at a time: no threads
     shards = ctx.samples_per_action * int(ctx.actions.shape[0]) >= ctx.shard_size
     if ctx.executor.kind != "local" and keys and shards:
+        start = time.perf_counter()
         connect(ctx.executor)  # once, before the threads submit
+        connected = time.perf_counter()
         with ThreadPoolExecutor(max_workers=len(keys), thread_name_prefix="pushtorch-training-pushes") as pool:
             runs = [pool.submit(training_records, ctx, load_object(t), f, m, False) for t, f, m in keys]
             for run in runs:
                 run.result()  # a run's error, raised here
+        log.info("the training pushes of %d models as %s shards: %.0f s (%.0f s connecting)", len(keys),
+                 ctx.executor.kind, time.perf_counter() - start, connected - start)
     prefetch(ctx, lambda task_ctx, tfm: train_model(task_ctx, load_object(tfm[0]), *tfm[1:]), keys,
              what="models trained")
     return {(t, f, m): train_model(ctx, load_object(t), f, m) for t, f, m in keys}

@@ -62,7 +62,13 @@ from pushtorch.kde.bandwidth import (
 )
 from pushtorch.kde.density import PoseKDE
 from pushtorch.kde.fast_index import FAST_DENSE_KERNELS, FAST_LEAF_SIZE
-from pushtorch.kde.fused import declare_long_run, fast_path_compiled, fused_function
+from pushtorch.kde.fused import (
+    declare_long_run,
+    fast_path_compiled,
+    fused_function,
+    share_compiled,
+    shared_compiled_folder,
+)
 from pushtorch.kde.method import Evaluation
 from pushtorch.kde.products import ProductOfExperts, SharedKernelProduct, product_log_prob
 from pushtorch.kde.straightforward import straightforward_evaluation
@@ -88,6 +94,8 @@ __all__ = [
     "fused_function",
     "product_log_prob",
     "rotation_distance",
+    "share_compiled",
+    "shared_compiled_folder",
     "straightforward_evaluation",
     "translation_distance",
 ]
