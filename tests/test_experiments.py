@@ -639,6 +639,26 @@ def test_the_friction_biasing_part_on_ray_writes_the_same_records(tiny_run, tmp_
         "models trained", "groups predicted, pushed and scored"}, tasks
 
 
+@pytest.mark.slow  # a process per array task (submitit's local backend): about a minute on two cores
+def test_the_friction_biasing_part_as_slurm_arrays_writes_the_same_records(tiny_run, tmp_path):
+    """executor=slurm (submitit's local backend, the same arrays a Slurm cluster runs): the training pushes, the
+    models and the groups as array tasks into the run folder; the records are those of the local run."""
+    pytest.importorskip("submitit")
+    _, out, _ = tiny_run
+    cfg = _compose([*TINY, "executor=slurm", "executor.cluster=local", "~experiment.parts.model_selection",
+                    "~experiment.parts.pose_estimation", "~experiment.parts.mass_biasing",
+                    "~experiment.parts.online_adaptation"])
+    quickstart.run(cfg, tmp_path / "slurm")
+
+    def friction(path):
+        return [r for r in json.loads((path / "results.json").read_text())["records"]
+                if str(r.get("model", "")).startswith("friction:")]
+
+    assert friction(tmp_path / "slurm") and friction(tmp_path / "slurm") == friction(out)
+    tasks = json.loads((tmp_path / "slurm" / "results.json").read_text())["tasks"]
+    assert {key.split(" | ")[0] for key in tasks} >= {"models trained", "groups predicted, pushed and scored"}, tasks
+
+
 def _session_processes(session: int) -> list[tuple[int, bytes]]:
     """(pid, cmdline) of every process of a session (/proc/<pid>/stat's sixth field)."""
     found = []
@@ -664,7 +684,7 @@ def _kill_session(session: int) -> None:
             pass
 
 
-@pytest.mark.slow
+@pytest.mark.slow  # about 25 s itself, but it needs the tiny run (70 s) on its worker: over a minute in the suite
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the nodes' processes in /proc")
 def test_a_ray_cluster_that_loses_a_node_finishes_with_every_record_once(tiny_run, tmp_path, monkeypatch):
     """A head and a worker node on loopback (one CPU each, each a session of its own) run the friction-biasing
