@@ -233,7 +233,10 @@ def share_with_tasks(model) -> None:
             _predict_a_cube(model)
         finally:
             torch.set_num_threads(threads)
-        (folder / _SHARED_READY).write_text("a prediction's fused functions are saved here\n")
+        try:
+            (folder / _SHARED_READY).write_text("a prediction's fused functions are saved here\n")
+        except OSError as exc:  # a read-only cache: the tasks compile in-process, as without sharing
+            log.warning("compiled functions not shared with the tasks: %s", exc)
 
 
 _SHARED_READY = "ready"

@@ -198,7 +198,12 @@ def shared_compiled_folder() -> Path:
     versions, the machine, its CPU's capability and feature flags, Inductor's options and a hash of this
     package's source files (module notes)."""
     if not _shared_folder:
-        from torch._inductor.runtime.cache_dir_utils import cache_dir
+        try:
+            from torch._inductor.runtime.cache_dir_utils import cache_dir
+        except ImportError:  # where another torch keeps it elsewhere: Inductor's documented default
+            def cache_dir() -> str:
+                user = "".join(c if c.isalnum() else "_" for c in os.environ.get("USER", "user"))
+                return os.environ.get("TORCHINDUCTOR_CACHE_DIR") or str(Path("/tmp") / f"torchinductor_{user}")
 
         package = Path(__file__).resolve().parents[1]
         digest = hashlib.sha256()
