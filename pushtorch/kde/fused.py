@@ -13,7 +13,7 @@ A process that starts many others on the same code (a Ray or Slurm run's submitt
 functions with them (:func:`share_compiled`): each is compiled ahead of time once (``torch.compile``'s
 ``aot_compile``) and saved under Inductor's cache folder, keyed by everything its code depends on (torch and
 Python versions, the CPU's features, this package's source); a worker that shares them loads them
-in about 1.5 s instead of tracing them again (9-11 s on a 2-core CPU). A loaded function runs the same generated
+in about 2 s instead of tracing them again (9-11 s on a 2-core CPU). A loaded function runs the same generated
 code as one compiled in the process, so results are equal bit for bit; a call that none of the saved functions
 was compiled for (another specialisation) is compiled in the process as usual.
 """

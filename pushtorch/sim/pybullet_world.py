@@ -65,7 +65,6 @@ MAX_COMPOUND_CHILDREN = 16
 GROUND_STIFFNESS_PER_KG, GROUND_DAMPING_PER_KG = 19200.0, 80.0
 
 
-
 def _hull_file(text: str) -> str:
     """The path of an OBJ file holding ``text``, written once per content (``PushWorld._shape_arguments``)."""
     folder = os.path.join(tempfile.gettempdir(), "pushtorch-shapes")
@@ -77,6 +76,7 @@ def _hull_file(text: str) -> str:
             f.write(text)
         os.replace(partial, path)  # another process writing the same content at once writes the same bytes
     return path
+
 
 class PushWorld:
     """One pybullet DIRECT client holding the ground, the robot and one object.
