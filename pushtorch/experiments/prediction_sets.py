@@ -190,12 +190,14 @@ class PredictionSet:
 
 @dataclass
 class Example:
-    """One prediction kept in memory for the recording (index of its condition and action)."""
+    """One prediction kept in memory for the recording (index of its condition and action), and the residual
+    model's prediction of the same push where the group has one (``pushtorch_residual``)."""
 
     condition: int
     action: int
     prediction: Any
     features: SurfaceFeatures
+    residual: Any = None
 
 
 @dataclass
@@ -314,7 +316,7 @@ def predict_set(
     cached = _cached_set(ctx, key, path, made_from, truth)
     group = _GroupPredictor(ctx, key, obj, candidates, poses, choose, seed_key,
                             library=ModelLibrary(list(candidates)) if adaptive else None,
-                            memo={} if memo is None else memo)
+                            memo={} if memo is None else memo, residual=residual)
     choice = _logged_choice(ctx, examples)
     wanted = set(choice.known_before_truth(n)) if choice is not None else set()
     chosen = Examples(choice, group.kept, group.again) if choice is not None else Examples()
@@ -407,6 +409,7 @@ class _GroupPredictor:
     library: ModelLibrary | None
     memo: dict
     kept: list[Example] = field(default_factory=list)
+    residual: Mapping[str, Any] | None = None
 
     def test_start(self, i: int, j: int) -> se3.Pose | None:
         """The placement_spread start of condition ``i``, action ``j`` (None: the model's own)."""
@@ -433,7 +436,10 @@ class _GroupPredictor:
             self.memo[memo_key], prediction = self._derive(model, i, j, features, record)
             derived.append(self.memo[memo_key])
             if record:
-                into.append(Example(i, j, prediction, features))
+                peer = None if self.residual is None else _residual_peer(
+                    self.ctx, features, self.memo[memo_key], j, self.residual[model.name],
+                    stable_seed(self.ctx.seed, self.seed_key, i, j, "residual"))
+                into.append(Example(i, j, prediction, features, peer))
         return index, derived
 
     def _derive(self, model: PushModel, i: int, j: int, features: SurfaceFeatures, record: bool) -> tuple[dict, Any]:
@@ -514,13 +520,14 @@ def _predict_conditions(group: _GroupPredictor, wanted: set[int], physics: tuple
                 fields["ensemble_start"].append(start)
                 fields["ensemble_final"].append(final)
                 densities[-1][j]["physics_ensemble"] = density
-            if residual is not None:
-                start, final, density = _residual_peer(ctx, features, poses_ij, j,
-                                                       residual[group.candidates[index].name],
-                                                       stable_seed(ctx.seed, group.seed_key, i, j, "residual"))
-                fields["residual_start"].append(start)
-                fields["residual_final"].append(final)
-                densities[-1][j]["pushtorch_residual"] = density
+            if residual is not None:  # a kept example's is the same prediction (same seed): not made twice
+                made = next((e.residual for e in group.kept if (e.condition, e.action) == (i, j)), None)
+                if made is None:
+                    made = _residual_peer(ctx, features, poses_ij, j, residual[group.candidates[index].name],
+                                          stable_seed(ctx.seed, group.seed_key, i, j, "residual"))
+                fields["residual_start"].append(made.start)
+                fields["residual_final"].append(made.final_pose)
+                densities[-1][j]["pushtorch_residual"] = made.density
             if bar is not None:
                 bar.update(1)
     return PredictionSet(
@@ -567,14 +574,12 @@ def _ensemble_peer(ctx: ExperimentContext, features: SurfaceFeatures, derived: d
 
 
 def _residual_peer(ctx: ExperimentContext, features: SurfaceFeatures, derived: dict, j: int, residual,
-                   seed: int) -> tuple[se3.Pose, se3.Pose, Any]:
-    """The ``pushtorch_residual`` prediction of one condition and action, from pushtorch's own robot start: the
-    cloud body before the push, the density's mode and the density
-    (:func:`pushtorch.prediction.residual.predict_residual`)."""
+                   seed: int):
+    """The ``pushtorch_residual`` prediction of one condition and action, from pushtorch's own robot start
+    (:func:`pushtorch.prediction.residual.predict_residual`; its start, mode and density are the set's)."""
     from pushtorch.prediction.residual import predict_residual
 
-    prediction = predict_residual(residual, features, ctx.actions[j], seed, robot_start=derived["robot_start"])
-    return prediction.start, prediction.final_pose, prediction.density
+    return predict_residual(residual, features, ctx.actions[j], seed, robot_start=derived["robot_start"])
 
 
 def _stacked(items: list[se3.Pose], n: int, a_count: int) -> se3.Pose | None:

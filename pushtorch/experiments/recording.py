@@ -116,7 +116,9 @@ def log_examples(
     pose that differs from the recorded one is reported in the log and the summary. ``<root>/summary``
     holds the example's scores as text, also kept in ``ctx.logged_predictions``: H_acc (displacement, the
     records' primary score, with the frame score beside it), ``nll`` (the records' score of that truth,
-    :func:`~pushtorch.experiments.scoring.likelihood_scores`) and the raw errors.
+    :func:`~pushtorch.experiments.scoring.likelihood_scores`) and the raw errors. Where the group has a residual
+    model (``pushtorch_residual``), its prediction of the same push goes to a cell of its own beside it, with its
+    simulator rollouts (:func:`_log_residual`).
 
     Args:
         truth_final: ground-truth final poses ``(N, A, S)`` of test condition 0 (sample 0 is shown).
@@ -162,3 +164,31 @@ def log_examples(
         ctx.recording.log(f"{root}/summary", rr.TextDocument(summary, media_type=rr.MediaType.MARKDOWN),
                           static=True)
         ctx.logged_predictions.append((root, summary))
+        if example.residual is not None:
+            _log_residual(ctx, label, example, truth_initial, truth, obj, push, replay)
+
+
+def _log_residual(ctx: ExperimentContext, label: str, example: Example, truth_initial: se3.Pose, truth: se3.Pose,
+                  obj: ObjectModel, push, replay: str) -> None:
+    """The residual model's prediction of an example's push, in a grid cell of its own at
+    ``world/model/prediction/<label>/pushtorch_residual/c<i>a<j>``: its simulator rollouts beside its density
+    (:func:`pushtorch.viz.predictions.log_prediction`), the ground-truth push, and its scores as text."""
+    import rerun as rr
+
+    from pushtorch.viz.predictions import PREDICTION, log_prediction
+
+    i, j, residual = example.condition, example.action, example.residual
+    path = f"{label}/pushtorch_residual/c{i}a{j}"
+    x, y = ctx.next_slot()
+    ctx.recording.log(f"{PREDICTION}/{path}", rr.Transform3D(translation=[x, y, 0.0]), static=True)
+    log_prediction(ctx.recording, residual, truth_initial, truth, obj, label=path, cloud=example.features,
+                   truth_push=push)
+    acc = accuracy(displaced(residual.start, residual.final_pose, truth_initial), truth, obj)
+    summary = (f"`{path}`: the residual model's prediction of condition {i}, action {ctx.actions[j].tolist()}: "
+               f"H_acc {float(acc.hacc):.3f} (displacement), linear {float(acc.linear_cm):.2f} cm, angular "
+               f"{float(acc.angular_deg):.1f} deg; {residual.rollouts.p.shape[0]} rollouts ({residual.thrown} "
+               f"thrown), contact distance² {residual.contact_distance2:.2f}, kernels widened "
+               f"×{residual.widened_by:.2f}; {replay}")
+    ctx.recording.log(f"{PREDICTION}/{path}/summary", rr.TextDocument(summary, media_type=rr.MediaType.MARKDOWN),
+                      static=True)
+    ctx.logged_predictions.append((f"{PREDICTION}/{path}", summary))
