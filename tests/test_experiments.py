@@ -462,6 +462,10 @@ def test_tiny_quickstart_writes_report_figures_and_recording(tiny_run):
     predictions = {p for p in paths if p.startswith("/world/model/prediction/")}
     assert any(p.endswith("/final_true") for p in predictions)
     assert "/world/model/prediction/model_selection/cylinder/adaptive/c0a1/final_true" in predictions
+    # shape transfer: the pooled model's examples, and its residual model's with their rollouts, cell by cell
+    shapes = "/world/model/prediction/shape_transfer/prism_thin/pushtorch_shapes"
+    assert {f"{shapes}/c0a{j}/final_true" for j in range(2)} <= predictions
+    assert {f"{shapes}/pushtorch_residual/c0a{j}/rollouts/finals" for j in range(2)} <= predictions
     # online adaptation: the posterior on the timeline of observed pushes, with each observed push
     online = {p for p in paths if p.startswith("/world/experiments/online_adaptation/cube/")}
     assert any(p.endswith("/posterior/samples") for p in online)

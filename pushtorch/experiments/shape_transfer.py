@@ -24,7 +24,9 @@ Predictors, on the same test poses and seeds (records ``task: "transfer"``, ``mo
 
 Test conditions are friction biasing's (friction low / medium / high, mass at the default). Every record has
 ``hacc_mean``, ``hacc_std``, ``n``, ``nll_mean`` and, for a method with a density, ``coverage_50`` and
-``coverage_90``. Run: ``python -m pushtorch experiment=shape_transfer``; a part of the quickstart at small sizes.
+``coverage_90``. The recording logs the pooled model's examples (``recording.conditions``), each with its residual
+model's prediction of the same push beside it. Run: ``python -m pushtorch experiment=shape_transfer``; a part of
+the quickstart at small sizes.
 """
 
 from __future__ import annotations
@@ -39,8 +41,10 @@ from pushtorch.experiments.common import (
     as_names,
     compare,
     compare_displacement,
+    entity_label,
     likelihood_scores,
     load_test_objects,
+    log_examples,
     plain,
     predict_set,
     prior_pairs,
@@ -155,11 +159,12 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             else:
                 candidates, adaptive, label = [paper[t] for t in paper_names], True, "+".join(paper_names)
             key = f"{name}_{obj.name}_{group}"
-            predictions, _ = predict_set(
+            predictions, examples = predict_set(
                 shape_ctx if group != "paper" else ctx, key, obj, candidates, poses, truth=truth_key,
                 adaptive=adaptive, physics=physics if group == "shapes" else None,
                 ensemble=ensemble if group == "shapes" else None, seed_key=seed_key, bar=bar,
-                residual={pooled.name: residual} if group == "shapes" and residual is not None else None)
+                residual={pooled.name: residual} if group == "shapes" and residual is not None else None,
+                examples=ctx.log_examples if group == "shapes" else None)  # the pooled model's, and its residual's
             truth, broken = simulate_truth(ctx, key, obj, predictions, conditions, samples, seed_key=seed_key)
             scores = likelihood_scores(ctx, key, obj, predictions, truth, truth_key)
             methods = predictions.methods()
@@ -182,6 +187,9 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
                     hacc_samples.append(sample_entry(records[-1], acc.hacc.reshape(-1, samples)))
                     records.append(summarise("transfer", obj.name, shown, compare(final, truth.take(c), obj),
                                              label, condition, metric="frame"))
+            if examples:
+                log_examples(ctx, entity_label(name, obj.name, ours), obj, examples, predictions, truth.take(0),
+                             nll=scores["pushtorch"][0])
     bar.close()
     band = [float(v) for v in part.get("coverage_band", [0.80, 0.97])]
     transfer = {"coverage_band": band, "transfer_objects": as_names(part.get("transfer_objects") or []),
