@@ -23,7 +23,7 @@ from pushtorch.apps.train import train_from_config
 from pushtorch.errors import InvalidParameterError, PushtorchError
 from pushtorch.evaluation.metrics import Accuracy
 from pushtorch.experiments import quickstart
-from pushtorch.experiments.common import sample_test_poses, summarise
+from pushtorch.experiments.common import PredictionSet, sample_test_poses, summarise
 from pushtorch.experiments.report import PAPER_LINEAR_CM, acceptance_checks, pool, primary
 from pushtorch.models.model import load_model
 from pushtorch.models.settings import ModelSettings
@@ -486,13 +486,22 @@ def test_tiny_quickstart_recording_opens_ready_to_review(tiny_run):
     assert blueprint["timeline"] == "sim_time"
     kinds = {view["class"] for view in blueprint["views"]}
     assert {"3D", "TextDocument", "TimeSeries"} <= kinds
-    on_sim_time, series = set(), set()
+    on_sim_time, series, modes = set(), set(), {}
     for chunk in RrdReader(str(out / "recording.rrd")).store().stream().to_chunks():
-        names = chunk.to_record_batch().schema.names
+        batch = chunk.to_record_batch()
+        names = batch.schema.names
         if "sim_time" in names:
             on_sim_time.add(str(chunk.entity_path))
         if "Scalars:scalars" in names:
             series.add(str(chunk.entity_path))
+        if str(chunk.entity_path).endswith("/density/mode") and "Points3D:positions" in names:
+            modes[str(chunk.entity_path)] = batch.column("Points3D:positions").to_pylist()[0]
+    # the residual model's logged example is the prediction its set holds (made once, kept for the recording)
+    residual_set = PredictionSet.load(next((out / "predictions").glob("shape_transfer_prism_thin_shapes*.npz")))
+    for j in range(2):
+        mode = modes["/world/model/prediction/shape_transfer/prism_thin/pushtorch_shapes/pushtorch_residual"
+                     f"/c0a{j}/density/mode"]
+        assert torch.allclose(torch.tensor(mode).reshape(3), residual_set.residual_final.take((0, j)).p, atol=1e-6)
     assert any(p.endswith("/truth_push/object") for p in on_sim_time)
     assert any(p.endswith("/truth_push/robot") for p in on_sim_time)
     assert any(p.startswith("/metrics/") and "/hacc/" in p for p in series)

@@ -298,30 +298,3 @@ def test_a_recording_without_blueprint_reads_back_empty(tmp_path):
     rec.disconnect()
     assert read_blueprint(path) == {"views": [], "timeline": None}
 
-
-def test_a_residual_models_prediction_is_logged_beside_pushtorchs_with_its_rollouts(tmp_path):
-    """A biasing part with the residual model (``residual: true``): each logged example's push is drawn a second
-    time, as the residual model predicted it, in a cell of its own with its simulator rollouts, its density and
-    a summary; its mode is the one the prediction set holds for ``pushtorch_residual``."""
-    overrides = ["experiment=friction_biasing", "experiment.progress=false", "experiment.workers=1",
-                 "experiment.actions.count=2", "model=tiny", "model.friction=[general]", "experiment.objects=[cube]",
-                 "experiment.conditions.friction=[low]", "experiment.test_conditions=1", "experiment.truth_samples=1",
-                 "experiment.ensemble=null", "experiment.residual=true", "experiment.residual_ensemble=2"]
-    with initialize_config_dir(version_base="1.3", config_dir=str(CONF)):
-        cfg = compose("config", overrides=overrides)
-    run_suite(cfg, tmp_path, [("biasing", cfg.experiment, cfg.model)])
-    path = tmp_path / "recording.rrd"
-    roots = _logged_roots(path)
-    label = "friction_biasing/cube/friction_general"
-    assert roots == [f"{PREDICTION}/{label}/c0a{j}" for j in range(2)] + [
-        f"{PREDICTION}/{label}/pushtorch_residual/c0a{j}" for j in range(2)], roots
-    predictions = PredictionSet.load(next((tmp_path / "predictions").glob("friction_biasing_cube_*.npz")))
-    paths = {str(chunk.entity_path) for chunk in _chunks(path)}
-    for j, root in enumerate(roots[2:]):
-        assert {f"/{root}/rollouts/{child}" for child in ("start", "finals", "final_frames", "paths")} <= paths
-        assert {f"/{root}/{child}" for child in DENSITY} <= paths
-        assert len(_present(_columns(path, f"{root}/rollouts/finals")["Points3D:positions"])[0]) == 2
-        mode = np.asarray(_present(_columns(path, f"{root}/density/mode")["Points3D:positions"])[0]).reshape(3)
-        np.testing.assert_allclose(mode, predictions.residual_final.take((0, j)).p.numpy(), atol=1e-6)
-        assert re.search(r"the residual model's prediction .* H_acc \d+\.\d+ \(displacement\).* 2 rollouts",
-                         _summary(path, root)), _summary(path, root)
