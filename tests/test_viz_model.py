@@ -33,7 +33,14 @@ from pushtorch.sim.runner import simulate_pushes
 from pushtorch.viz import open_recording, read_entity_paths
 from pushtorch.viz.annealing import ANNEAL_SERIES, ANNEAL_TIMELINE, log_anneal_history, log_anneal_series
 from pushtorch.viz.contacts import TRAINING, log_contact_model
-from pushtorch.viz.densities import DENSITY_GHOSTS, DENSITY_REGION, DENSITY_SAMPLES, DENSITY_SEED, density_truth
+from pushtorch.viz.densities import (
+    DENSITY_GHOSTS,
+    DENSITY_REGION,
+    DENSITY_SAMPLES,
+    DENSITY_SEED,
+    density_truth,
+    draw_density,
+)
 from pushtorch.viz.helpers import range_colors, subsample
 from pushtorch.viz.predictions import PREDICTION, log_prediction
 
@@ -382,6 +389,34 @@ def test_density_draws_region_mode_and_truth(tmp_path, case):
     np.testing.assert_allclose(truth, moved.p.reshape(1, 3).numpy(), atol=1e-5)
     np.testing.assert_allclose(density_truth(prediction, final, start).vector(), moved.vector(), atol=1e-6)
     np.testing.assert_allclose(density_truth(prediction, final).vector(), final.vector(), atol=1e-6)
+
+
+def test_draws_a_task_made_travel_with_its_examples_and_are_logged_as_drawn_here(tmp_path, case):
+    """A cluster task saves its kept examples with their densities' draws (the submitting process only logs
+    them): the draws loaded back are draw_density's, and a prediction logged with them shows the same samples,
+    region and ghosts as one that draws while logging; draws of another count are drawn again."""
+    from pushtorch.experiments.example_files import load_examples, save_examples
+    from pushtorch.experiments.prediction_sets import Example
+
+    prediction = case["prediction"]
+    path = tmp_path / "examples.pt"
+    save_examples(path, "set", {0}, [Example(0, 0, prediction, case["cloud"])])
+    (example,) = load_examples(path, "set", {0})
+    draws, log_p = draw_density(prediction.density)
+    assert draws.shape == (DENSITY_SAMPLES, 7) and log_p.dtype == torch.float64
+    assert torch.equal(example.drawn[0], draws) and torch.equal(example.drawn[1], log_p)
+    assert example.residual is None and example.residual_drawn is None
+    recording = tmp_path / "drawn.rrd"
+    rec = open_recording(recording, "pushtorch_test")
+    here = log_prediction(rec, prediction, label="here")
+    there = log_prediction(rec, example.prediction, label="there", drawn=example.drawn)
+    fewer = log_prediction(rec, prediction, label="fewer", max_points=50, drawn=example.drawn)
+    rec.disconnect()
+    for entity in ("density/samples", "density/region_90"):
+        np.testing.assert_array_equal(_points(recording, f"{there}/{entity}"), _points(recording, f"{here}/{entity}"))
+    np.testing.assert_array_equal(_single(recording, f"{there}/density/ghosts", "Arrows3D:origins"),
+                                  _single(recording, f"{here}/density/ghosts", "Arrows3D:origins"))
+    assert len(_points(recording, f"{fewer}/density/samples")) == 50
 
 
 def test_logging_changes_neither_the_prediction_nor_any_random_stream(tmp_path, case):

@@ -3,8 +3,10 @@ the predictions the recording shows; a cluster run's bookkeeping, beyond the pap
 
 A task that predicts a group of test conditions for a run that records keeps the conditions the recording logs
 whole (every action's prediction with its annealing history, and the cloud's features) and writes them beside
-the group's prediction set; the submitting process reads them, logs them and removes the file, so it predicts
-(and compiles) nothing only to log them. Written atomically (:func:`pushtorch.io.atomic_write_bytes`).
+the group's prediction set, with the draws the recording shows of each density
+(:func:`pushtorch.viz.densities.draw_density`); the submitting process reads them, logs them and removes the file,
+so it predicts, draws (and compiles) nothing only to log them. Written atomically
+(:func:`pushtorch.io.atomic_write_bytes`).
 """
 
 from __future__ import annotations
@@ -26,10 +28,28 @@ log = logging.getLogger("pushtorch.experiments")
 
 def save_examples(path: Path, made_from: str, wanted: set[int], kept: list[Any]) -> None:
     """Write a task's kept examples (``prediction_sets.Example``) of the set ``made_from`` and the conditions
-    ``wanted`` to ``path``, atomically."""
+    ``wanted`` to ``path``, atomically, each with the draws of its densities that the recording shows (its
+    ``drawn`` and ``residual_drawn``; None where a density cannot be drawn from: the submitting process then
+    tries and warns)."""
+    for example in kept:
+        example.drawn = _draws(example.prediction)
+        example.residual_drawn = _draws(example.residual)
     buffer = io.BytesIO()
     torch.save({"made_from": made_from, "conditions": sorted(wanted), "examples": kept}, buffer)
     atomic_write_bytes(path, buffer.getvalue())
+
+
+def _draws(prediction) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The recording's draws of ``prediction``'s density, or None (no prediction, or none can be drawn)."""
+    from pushtorch.errors import ModelError
+    from pushtorch.viz.densities import draw_density
+
+    if prediction is None:
+        return None
+    try:
+        return draw_density(prediction.density)
+    except ModelError:
+        return None
 
 
 def load_examples(path: Path, made_from: str, wanted: set[int]) -> list[Any] | None:

@@ -190,14 +190,18 @@ class PredictionSet:
 
 @dataclass
 class Example:
-    """One prediction kept in memory for the recording (index of its condition and action), and the residual
-    model's prediction of the same push where the group has one (``pushtorch_residual``)."""
+    """One prediction kept in memory for the recording (index of its condition and action), the residual
+    model's prediction of the same push where the group has one (``pushtorch_residual``), and the draws of
+    their densities where a task made them (:func:`pushtorch.viz.densities.draw_density`; None: drawn when
+    logged)."""
 
     condition: int
     action: int
     prediction: Any
     features: SurfaceFeatures
     residual: Any = None
+    drawn: Any = None
+    residual_drawn: Any = None
 
 
 @dataclass

@@ -151,7 +151,7 @@ def log_examples(
                 log.warning("%s/c%da%d: %s", label, i, j, replay)
         truth_initial = predictions.truth_initial.take(i)
         log_prediction(ctx.recording, example.prediction, truth_initial, truth, obj,
-                       label=f"{label}/c{i}a{j}", cloud=example.features, truth_push=push)
+                       label=f"{label}/c{i}a{j}", cloud=example.features, truth_push=push, drawn=example.drawn)
         estimate, final = predictions.estimate.take((i, j)), predictions.final.take((i, j))
         acc = accuracy(displaced(estimate, final, truth_initial), truth, obj)
         frame = accuracy(final, truth, obj)
@@ -182,7 +182,7 @@ def _log_residual(ctx: ExperimentContext, label: str, example: Example, truth_in
     x, y = ctx.next_slot()
     ctx.recording.log(f"{PREDICTION}/{path}", rr.Transform3D(translation=[x, y, 0.0]), static=True)
     log_prediction(ctx.recording, residual, truth_initial, truth, obj, label=path, cloud=example.features,
-                   truth_push=push)
+                   truth_push=push, drawn=example.residual_drawn)
     acc = accuracy(displaced(residual.start, residual.final_pose, truth_initial), truth, obj)
     summary = (f"`{path}`: the residual model's prediction of condition {i}, action {ctx.actions[j].tolist()}: "
                f"H_acc {float(acc.hacc):.3f} (displacement), linear {float(acc.linear_cm):.2f} cm, angular "

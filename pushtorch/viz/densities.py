@@ -45,6 +45,7 @@ __all__ = [
     "DENSITY_SAMPLES",
     "DENSITY_SEED",
     "density_truth",
+    "draw_density",
     "log_density",
 ]
 
@@ -80,6 +81,22 @@ def density_truth(prediction, truth_final: se3.Pose, truth_initial: se3.Pose | N
     return final.compose(start.inverse()).compose(estimate)
 
 
+def draw_density(density, n: int = DENSITY_SAMPLES) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` draws of a density and their log-densities up to a constant, as :func:`log_density` shows them: draws
+    ``(n * B, 7)`` (``B`` the density's batch size, pooled) and log-densities ``(n * B,)`` float64, from a generator
+    of their own seeded with :data:`DENSITY_SEED` (no caller's stream is drawn from).
+
+    Raises:
+        ModelError: no proposal with non-zero density (nothing can be drawn).
+    """
+    generator = torch.Generator(device=density.mode.device).manual_seed(DENSITY_SEED)
+    with torch.no_grad():
+        draws = density.sample((n,), generator)  # (n, *B, 7)
+        # colours and the region need only the order of the draws: no normaliser is estimated for them
+        log_p = density.unnormalised_log_prob(draws).reshape(-1).double()
+    return draws.reshape(-1, 7), log_p
+
+
 def log_density(
     rec: rr.RecordingStream,
     root: str,
@@ -87,6 +104,7 @@ def log_density(
     truth: se3.Pose | None = None,
     max_points: int = 3000,
     max_frames: int = 300,
+    drawn: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> bool:
     """A prediction's density over final poses: draws, its 90 % region, ghost poses, mode and truth.
 
@@ -109,6 +127,8 @@ def log_density(
         density: a :class:`~pushtorch.distribution.FinalPoseDistribution` (any batch shape: draws pooled).
         truth: the truth in the density's frame (:func:`density_truth`), Pose ``()``, or None.
         max_points: draws shown; max_frames: ghost poses shown.
+        drawn: the draws :func:`draw_density` made of this density beforehand (where the prediction was made,
+            say a cluster task), used as they are if there are as many as would be drawn; None: drawn here.
     Returns:
         False if the density could not be drawn from (no proposal with non-zero density: a warning, and
         only the mode and truth are logged), else True.
@@ -126,16 +146,13 @@ def log_density(
                    radii=0.006, static=True)
         log_frames(rec, f"{root}/density/truth/axes", truth.reshape(1), length=0.05, static=True)
     n = min(DENSITY_SAMPLES, max_points)
-    generator = torch.Generator(device=mode.device).manual_seed(DENSITY_SEED)
-    try:
-        with torch.no_grad():
-            draws = density.sample((n,), generator)  # (n, *B, 7)
-            # colours and the region need only the order of the draws: no normaliser is estimated for them
-            log_p = density.unnormalised_log_prob(draws).reshape(-1).double()
-    except ModelError as exc:
-        log.warning("%s: no draws from the prediction's density logged: %s", root, exc)
-        return False
-    draws = draws.reshape(-1, 7)
+    if drawn is None or drawn[0].shape[0] != n * density.batch_shape.numel():
+        try:
+            drawn = draw_density(density, n)
+        except ModelError as exc:
+            log.warning("%s: no draws from the prediction's density logged: %s", root, exc)
+            return False
+    draws, log_p = drawn
     poses = se3.Pose.unchecked(draws[:, :3], draws[:, 3:])
     log_points(rec, f"{root}/density/samples", poses.p, colors=range_colors(log_p), radii=0.002, static=True)
     # highest log-density first; ties keep draw order, so the region is the same every time

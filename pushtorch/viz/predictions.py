@@ -118,6 +118,7 @@ def log_prediction(
     max_points: int = 3000,
     max_frames: int = 300,
     truth_push=None,
+    drawn: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> str:
     """Log a prediction: query kernels, robot start, contact frames, initial pose, annealing, final pose,
     and the predicted density (:func:`~pushtorch.viz.densities.log_density`).
@@ -141,6 +142,7 @@ def log_prediction(
         max_points: points shown per point set; max_frames: axis triads shown per frame set.
         truth_push: the ground-truth push as :class:`~pushtorch.sim.records.PushRecords`; its first push
             is played on ``sim_time`` at ``<root>/truth_push`` (:func:`pushtorch.viz.sim.log_push`).
+        drawn: the density's draws made beforehand (:func:`~pushtorch.viz.densities.draw_density`), or None.
     Returns:
         The prediction's root entity path.
     Raises:
@@ -207,7 +209,7 @@ def log_prediction(
     density = getattr(prediction, "density", None)
     if density is not None:
         truth = None if truth_final is None else density_truth(prediction, truth_final, truth_initial)
-        log_density(rec, root, density, truth, max_points, max_frames)
+        log_density(rec, root, density, truth, max_points, max_frames, drawn)
     return root
 
 
