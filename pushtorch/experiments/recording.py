@@ -126,8 +126,6 @@ def log_examples(
             (:func:`~pushtorch.experiments.scoring.likelihood_scores` of test condition 0), or None (the summary
             then has none).
     """
-    import rerun as rr
-
     from pushtorch.viz.predictions import PREDICTION, log_prediction
 
     if ctx.recording is None or not examples:
@@ -135,9 +133,7 @@ def log_examples(
     picked, condition_hacc = _chosen_examples(predictions, examples, truth_final, obj)
     for example in picked:
         i, j = example.condition, example.action
-        root = f"{PREDICTION}/{label}/c{i}a{j}"
-        x, y = ctx.next_slot()
-        ctx.recording.log(root, rr.Transform3D(translation=[x, y, 0.0]), static=True)
+        root = _cell(ctx, f"{PREDICTION}/{label}/c{i}a{j}")
         truth = truth_final.take((i, j, 0))
         push = _truth_push(ctx, obj, predictions, i, j)
         replay = "ground-truth push not re-simulated"
@@ -161,9 +157,7 @@ def log_examples(
         summary = (f"`{label}/c{i}a{j}`: condition {i}{why}, action {ctx.actions[j].tolist()}: "
                    f"H_acc {float(acc.hacc):.3f} (displacement; frame {float(frame.hacc):.3f}), {score}, "
                    f"linear {float(acc.linear_cm):.2f} cm, angular {float(acc.angular_deg):.1f} deg; {replay}")
-        ctx.recording.log(f"{root}/summary", rr.TextDocument(summary, media_type=rr.MediaType.MARKDOWN),
-                          static=True)
-        ctx.logged_predictions.append((root, summary))
+        _summary(ctx, root, summary)
         if example.residual is not None:
             _log_residual(ctx, label, example, truth_initial, truth, obj, push, replay)
 
@@ -173,14 +167,11 @@ def _log_residual(ctx: ExperimentContext, label: str, example: Example, truth_in
     """The residual model's prediction of an example's push, in a grid cell of its own at
     ``world/model/prediction/<label>/pushtorch_residual/c<i>a<j>``: its simulator rollouts beside its density
     (:func:`pushtorch.viz.predictions.log_prediction`), the ground-truth push, and its scores as text."""
-    import rerun as rr
-
     from pushtorch.viz.predictions import PREDICTION, log_prediction
 
     i, j, residual = example.condition, example.action, example.residual
     path = f"{label}/pushtorch_residual/c{i}a{j}"
-    x, y = ctx.next_slot()
-    ctx.recording.log(f"{PREDICTION}/{path}", rr.Transform3D(translation=[x, y, 0.0]), static=True)
+    root = _cell(ctx, f"{PREDICTION}/{path}")
     log_prediction(ctx.recording, residual, truth_initial, truth, obj, label=path, cloud=example.features,
                    truth_push=push, drawn=example.residual_drawn)
     acc = accuracy(displaced(residual.start, residual.final_pose, truth_initial), truth, obj)
@@ -189,6 +180,21 @@ def _log_residual(ctx: ExperimentContext, label: str, example: Example, truth_in
                f"{float(acc.angular_deg):.1f} deg; {residual.rollouts.p.shape[0]} rollouts ({residual.thrown} "
                f"thrown), contact distance² {residual.contact_distance2:.2f}, kernels widened "
                f"×{residual.widened_by:.2f}; {replay}")
-    ctx.recording.log(f"{PREDICTION}/{path}/summary", rr.TextDocument(summary, media_type=rr.MediaType.MARKDOWN),
-                      static=True)
-    ctx.logged_predictions.append((f"{PREDICTION}/{path}", summary))
+    _summary(ctx, root, summary)
+
+
+def _cell(ctx: ExperimentContext, root: str) -> str:
+    """``root``, moved to the recording's next free grid cell (a static transform); returns ``root``."""
+    import rerun as rr
+
+    x, y = ctx.next_slot()
+    ctx.recording.log(root, rr.Transform3D(translation=[x, y, 0.0]), static=True)
+    return root
+
+
+def _summary(ctx: ExperimentContext, root: str, summary: str) -> None:
+    """A logged example's scores as text at ``<root>/summary``, kept in ``ctx.logged_predictions`` too."""
+    import rerun as rr
+
+    ctx.recording.log(f"{root}/summary", rr.TextDocument(summary, media_type=rr.MediaType.MARKDOWN), static=True)
+    ctx.logged_predictions.append((root, summary))
