@@ -357,6 +357,7 @@ def _fresh_push_errors(model, obj, n_conditions, seed):
     return [sum(x) / len(x) for x in (ours, still, mean)]
 
 
+@pytest.mark.slow  # 30 fresh predictions and pushes, about 65 s: the default suite was past ten minutes on 2 cores
 def test_cube_model_predicts_fresh_cube_pushes_better_than_no_motion(cube_model):
     ours, still, mean = _fresh_push_errors(cube_model, load_object("cube"), n_conditions=10, seed=3)
     assert ours < still, (ours, still)
