@@ -1,7 +1,8 @@
 """pushtorch as a library: the public face and reproducible results by default.
 
 The README's "Using it from your own code" example is run as written (smaller: 20 pushes per action, its
-run folders in a temporary directory) in two fresh processes, which must print identical numbers.
+run folders in a temporary directory) in a fresh process; with the slow checks, in two, which must print identical
+numbers.
 """
 
 from __future__ import annotations
@@ -59,17 +60,24 @@ def test_predict_is_the_function_of_the_prediction_package():
         pushtorch.no_such_thing  # noqa: B018
 
 
+def _run_readme_example(tmp_path: Path, run: str) -> str:
+    """The README's example in a fresh process, its runs under ``tmp_path / run``; returns what it printed."""
+    folder = tmp_path / run
+    folder.mkdir()
+    script = folder / "example.py"
+    script.write_text(_readme_example(folder))
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    return result.stdout
+
+
+def test_the_readme_example_runs_as_written(tmp_path):
+    assert "Pose" in _run_readme_example(tmp_path, "a")
+
+
+@pytest.mark.slow
 def test_the_readme_example_prints_the_same_numbers_in_two_processes(tmp_path):
-    outputs = []
-    for run in ("a", "b"):
-        folder = tmp_path / run
-        folder.mkdir()
-        script = folder / "example.py"
-        script.write_text(_readme_example(folder))
-        result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, cwd=tmp_path,
-                                timeout=600)
-        assert result.returncode == 0, result.stderr[-2000:]
-        outputs.append(result.stdout)
+    outputs = [_run_readme_example(tmp_path, run) for run in ("a", "b")]
     assert "Pose" in outputs[0] and outputs[0] == outputs[1]
 
 

@@ -54,7 +54,7 @@ from pushtorch.experiments.common import (
 )
 from pushtorch.experiments.statistics import sample_entry
 from pushtorch.experiments.suite import run_suite
-from pushtorch.experiments.tasks import prefetch
+from pushtorch.experiments.tasks import prefetched
 from pushtorch.experiments.training import train_models, train_residual
 from pushtorch.models.residual import DEFAULT_ENSEMBLE
 from pushtorch.objects import load_object
@@ -119,14 +119,6 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     if part.get("residual"):
         size = int(part.get("residual_ensemble") or DEFAULT_ENSEMBLE)
         residuals = {models[tfm].name: train_residual(ctx, load_object(tfm[0]), *tfm[1:], size) for tfm in trained}
-    scatter: dict[str, dict[str, list]] = {}
-    scatter_actions: dict[str, dict[str, list]] = {}  # the figures draw one row of panels per action
-    for t in sorted(needed):
-        for f, m in model_priors:
-            records = training_records(ctx, load_object(t), f, m, progress=False)  # cached by train_model
-            motion = records.object_final.p[:, :2] - records.object_initial.p[:, :2]
-            scatter.setdefault(t, {})[prior_label(bias, f, m)] = motion.tolist()
-            scatter_actions.setdefault(t, {})[prior_label(bias, f, m)] = records.action_index.tolist()
     records: list[dict] = []
     thrown: list[dict] = []
     hacc_samples: list[dict] = []
@@ -162,13 +154,22 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
         return predictions, examples, truth, broken, likelihood_scores(group_ctx, key, obj, predictions, truth,
                                                                        truth_key)
 
-    # every group in worker processes first, where there are cores to spare: the loop below then reads caches
-    ahead = prefetch(ctx, scored, groups, on_done=lambda _: bar.update(per_group),
-                     warm=next(iter(models.values())), what="groups predicted, pushed and scored")
-    for group in groups:
+    # every group in worker processes, where there are cores to spare: the loop below reads each group's caches
+    # as soon as its task ended, while the later ones run
+    ahead = prefetched(ctx, scored, groups, on_done=lambda _: bar.update(per_group),
+                       warm=next(iter(models.values())), what="groups predicted, pushed and scored")
+    scatter: dict[str, dict[str, list]] = {}
+    scatter_actions: dict[str, dict[str, list]] = {}  # the figures draw one row of panels per action
+    for t in sorted(needed):
+        for f, m in model_priors:
+            pushes = training_records(ctx, load_object(t), f, m, progress=False)  # cached by train_model
+            motion = pushes.object_final.p[:, :2] - pushes.object_initial.p[:, :2]
+            scatter.setdefault(t, {})[prior_label(bias, f, m)] = motion.tolist()
+            scatter_actions.setdefault(t, {})[prior_label(bias, f, m)] = pushes.action_index.tolist()
+    for group, done in ahead:
         obj, _, _, f, m, _, _ = group
         model_name = prior_label(bias, f, m)
-        predictions, examples, truth, broken, nll = scored(ctx, group, None if ahead else bar, log=True)
+        predictions, examples, truth, broken, nll = scored(ctx, group, None if done else bar, log=True)
         for c, (cf, cm) in enumerate(conditions):
             condition = prior_label(bias, cf, cm)
             thrown.append({"object": obj.name, "method": "pushtorch", "model": model_name,

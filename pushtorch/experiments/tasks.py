@@ -38,10 +38,10 @@ from contextlib import contextmanager
 from typing import Any
 
 from pushtorch.experiments.context import ExperimentContext
-from pushtorch.sim.executors import Executor, run_remote_tasks, task_host
-from pushtorch.sim.tasks import run_tasks, task_workers
+from pushtorch.sim.executors import Executor, submit_remote_tasks, task_host
+from pushtorch.sim.tasks import iter_tasks, task_workers
 
-__all__ = ["models_by_path", "prefetch", "saved_as", "saved_models", "share_with_tasks", "warm_up"]
+__all__ = ["models_by_path", "prefetch", "prefetched", "saved_as", "saved_models", "share_with_tasks", "warm_up"]
 
 log = logging.getLogger("pushtorch.experiments")
 
@@ -54,12 +54,12 @@ _STATE: dict[int, tuple[Callable[[ExperimentContext, Any], Any], ExperimentConte
 _WARM: list[bool] = []  # warm_up ran in this process
 
 
-def _run(index: int) -> float:
-    """Task ``index``; returns its seconds."""
+def _run(index: int) -> tuple[float, str]:
+    """Task ``index``; returns its seconds and where it ran."""
     start = time.perf_counter()
     step, ctx, item = _STATE[index]
     step(ctx, item)
-    return time.perf_counter() - start
+    return time.perf_counter() - start, f"{task_host()} (local workers)"
 
 
 def saved_as(model, reader: Callable, *arguments):
@@ -120,30 +120,67 @@ def prefetch(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], An
     Returns:
         Whether the items ran in workers (False: nothing was done, the loop does the work).
     """
+    return any([done for _, done in prefetched(ctx, step, items, on_done, warm, what)])  # a list: every item taken
+
+
+def prefetched(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], Any], items: Sequence[Any],
+               on_done: Callable[[Any], None] | None = None, warm=None,
+               what: str = "tasks") -> Iterator[tuple[Any, bool]]:
+    """:func:`prefetch`'s tasks, started before this returns; then every item, in order, with whether a task filled
+    its caches, each as soon as its task and every earlier one finished. A part's loop reads, records and logs one
+    item while the tasks go on with the later ones, and does its other work (what it draws from the training
+    pushes) while they start; its records stay those of a serial run. The tasks' counts and the line that times
+    them come when the last item is taken."""
     items = list(items)
     if not items:
-        return False
+        return iter(())
+    start = time.perf_counter()
     if ctx.executor.kind != "local":
-        _run_remote(ctx, step, items, on_done, what, warm)
-        return True
-    if task_workers(len(items), ctx.workers) <= 1:
-        return False
+        return _in_order(ctx, items, _submit_remote(ctx, step, items, warm), on_done, what, start,
+                         f"as {ctx.executor.kind} tasks on {{hosts}}")
+    workers = task_workers(len(items), ctx.workers)
+    if workers <= 1:
+        return ((item, False) for item in items)
     if warm is not None:
         warm_up(warm)
     task_ctx = dataclasses.replace(ctx, workers=1, recording=None, progress=False, logged_predictions=[],
                                    keep_examples=_keeps_examples(ctx))
-    _STATE.clear()
-    _STATE.update({i: (step, task_ctx, item) for i, item in enumerate(items)})
-    start = time.perf_counter()
+    base = len(_STATE) and max(_STATE) + 1  # keys of their own: another part's tasks may still be read
+    keys = range(base, base + len(items))
+    _STATE.update({key: (step, task_ctx, item) for key, item in zip(keys, items, strict=True)})
+    return _in_order(ctx, items, iter_tasks(_run, keys, ctx.workers), on_done, what, start,
+                     f"in {workers} worker processes", keys)
+
+
+def _in_order(ctx: ExperimentContext, items: list, finished: Iterator[tuple[int, tuple[float, str]]],
+              on_done: Callable[[Any], None] | None, what: str, start: float, how: str,
+              keys: range | None = None) -> Iterator[tuple[Any, bool]]:
+    """Every item with True as soon as it and every earlier one finished (``finished`` gives each task's index,
+    seconds and host as it ends); then the tasks' counts and their timing line, which says ``how`` they ran (its
+    ``{hosts}``: each host with its task count)."""
+    seconds: list[float] = []
+    hosts: dict[str, int] = {}
+    ended: set[int] = set()
+    taken = 0
     try:
-        seconds = run_tasks(_run, range(len(items)), ctx.workers,
-                            on_done=None if on_done is None else (lambda index, _: on_done(items[index])))
+        for index, (took, where) in finished:
+            seconds.append(took)
+            hosts[where] = hosts.get(where, 0) + 1
+            if on_done is not None:
+                on_done(items[index])
+            ended.add(index)
+            while taken in ended:
+                taken += 1
+                yield items[taken - 1], True
     finally:
-        _STATE.clear()
-    _count(ctx, what, f"{task_host()} (local workers)", len(items))
-    log.info("%d %s in %d worker processes: %.0f s (%.0f s of work, the longest %.0f s)", len(items), what,
-             task_workers(len(items), ctx.workers), time.perf_counter() - start, sum(seconds), max(seconds))
-    return True
+        getattr(finished, "close", lambda: None)()
+        for key in keys or ():
+            _STATE.pop(key, None)
+    for where, count in hosts.items():
+        _count(ctx, what, where, count)
+    where = ", ".join(f"{h} ({n})" for h, n in sorted(hosts.items()))
+    log.info("%d %s %s: %.0f s (%.0f s of work, the longest %.0f s)", len(items), what, how.format(hosts=where),
+             time.perf_counter() - start, sum(seconds), max(seconds))
 
 
 def _count(ctx: ExperimentContext, what: str, where: str, count: int) -> None:
@@ -242,27 +279,18 @@ def share_with_tasks(model) -> None:
 _SHARED_READY = "ready"
 
 
-def _run_remote(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], Any], items: list,
-                on_done: Callable[[Any], None] | None, what: str, warm=None) -> None:
-    """Every item as a task of the context's Ray or Slurm executor (module notes)."""
+def _submit_remote(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], Any],
+                   items: list, warm=None) -> Iterator[tuple[int, tuple[float, str]]]:
+    """Every item as a task of the context's Ray or Slurm executor, submitted before this returns (module notes);
+    then each task's index, seconds and host as it ends."""
     from pushtorch.kde import fast_path_compiled
 
     compiled = fast_path_compiled("cpu")
     shared = compiled and warm is not None
     if shared:
         share_with_tasks(warm)
-    start = time.perf_counter()
     with models_by_path():
-        task_ctx = _task_context(ctx)
-        results = run_remote_tasks(ctx.executor, _remote_task,
+        task_ctx = _task_context(ctx)  # one object: put once for every task
+        return submit_remote_tasks(ctx.executor, _remote_task,
                                    [(step, task_ctx, item, compiled, shared) for item in items],
-                                   ctx.run_dir / ".submitit" / "tasks",
-                                   on_done=None if on_done is None else (lambda index, _: on_done(items[index])))
-    hosts: dict[str, int] = {}
-    for _, where in results:
-        hosts[where] = hosts.get(where, 0) + 1
-    for where, count in hosts.items():
-        _count(ctx, what, where, count)
-    log.info("%d %s as %s tasks on %s: %.0f s (%.0f s of work, the longest %.0f s)", len(items), what,
-             ctx.executor.kind, ", ".join(f"{h} ({n})" for h, n in sorted(hosts.items())),
-             time.perf_counter() - start, sum(r[0] for r in results), max(r[0] for r in results))
+                                   ctx.run_dir / ".submitit" / "tasks")

@@ -42,7 +42,7 @@ from typing import Any
 from pushtorch.errors import InvalidParameterError, MissingDependencyError
 
 __all__ = ["EXECUTORS", "Executor", "connect", "executor_from_config", "run_remote_tasks", "slurm_problem",
-           "task_host"]
+           "submit_remote_tasks", "task_host"]
 
 #: The executors ``executor.kind`` may name.
 EXECUTORS = ("local", "ray", "slurm")
@@ -335,8 +335,20 @@ def run_remote_tasks(executor: Executor, function: Callable, calls: Sequence[tup
     """
     calls = list(calls)
     results: list = [None] * len(calls)
+    for index, result in submit_remote_tasks(executor, function, calls, folder):
+        results[index] = result
+        if on_done is not None:
+            on_done(index, result)
+    return results
+
+
+def submit_remote_tasks(executor: Executor, function: Callable, calls: Sequence[tuple],
+                        folder: Path) -> Iterator[tuple[int, Any]]:
+    """:func:`run_remote_tasks`'s tasks, every one submitted (and so pickled) before this returns; then
+    ``(index, result)`` of each as it finishes, in the order they finish (a task's error raised there)."""
+    calls = list(calls)
     if not calls:
-        return results
+        return iter(())
     if executor.kind == "ray":
         ray = _ray_session(executor)
         largest = max((node["Resources"].get("memory", 0.0) for node in ray.nodes() if node.get("Alive")),
@@ -353,14 +365,7 @@ def run_remote_tasks(executor: Executor, function: Callable, calls: Sequence[tup
         for index, call in enumerate(calls):
             args = [puts[id(a)] if id(a) in puts else puts.setdefault(id(a), ray.put(a)) for a in call]
             refs[remote.remote(*args)] = index
-        pending = list(refs)
-        while pending:
-            done, pending = ray.wait(pending, num_returns=1)
-            index = refs[done[0]]
-            results[index] = ray.get(done[0])
-            if on_done is not None:
-                on_done(index, results[index])
-        return results
+        return _as_ray_ends(ray, refs)
     if executor.kind != "slurm":
         raise InvalidParameterError(f"executor {executor.kind!r} runs no remote tasks")
     if problem := slurm_problem(executor):
@@ -368,11 +373,15 @@ def run_remote_tasks(executor: Executor, function: Callable, calls: Sequence[tup
     jobs = _slurm_array(_require("submitit", "slurm"), executor, folder, function,
                         [list(column) for column in zip(*calls, strict=True)], cpus_per_task=1,
                         mem_gb=executor.task_memory_mb / 1024)
-    for index, result in _as_they_end(jobs):
-        results[index] = result
-        if on_done is not None:
-            on_done(index, result)
-    return results
+    return _as_they_end(jobs)
+
+
+def _as_ray_ends(ray, refs: dict) -> Iterator[tuple[int, Any]]:
+    """``(index, result)`` of each Ray task of ``refs`` (object ref → index) as it ends."""
+    pending = list(refs)
+    while pending:
+        done, pending = ray.wait(pending, num_returns=1)
+        yield refs[done[0]], ray.get(done[0])
 
 
 def executor_pool(executor: Executor, spec, settings):

@@ -19,13 +19,13 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import sys
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import Callable, Generator, Hashable, Sequence
 from typing import Any
 
 from pushtorch.errors import InvalidParameterError
 from pushtorch.parallel import core_share
 
-__all__ = ["run_tasks", "task_workers"]
+__all__ = ["iter_tasks", "run_tasks", "task_workers"]
 
 
 def task_workers(count: int, workers: int = 0) -> int:
@@ -70,22 +70,41 @@ def run_tasks(function: Callable[[Any], Any], keys: Sequence[Hashable], workers:
         Whatever a task raised (the other workers are stopped first).
     """
     keys = list(keys)
-    count = task_workers(len(keys), workers)
     results: list = [None] * len(keys)
-    if count <= 1 or not ("fork" in mp.get_all_start_methods() and sys.platform.startswith("linux")):
-        for i, key in enumerate(keys):
-            results[i] = function(key)
+    finished = iter_tasks(function, keys, workers)
+    try:
+        for i, result in finished:
+            results[i] = result
             if on_done is not None:
-                on_done(key, results[i])
-        return results
-    with mp.get_context("fork").Pool(count, initializer=_init_worker) as pool:
-        pending = {i: pool.apply_async(function, (key,)) for i, key in enumerate(keys)}
-        try:
-            for i, handle in pending.items():  # in order; each waits for its own task
-                results[i] = handle.get()
-                if on_done is not None:
-                    on_done(keys[i], results[i])
-        except BaseException:
-            pool.terminate()
-            raise
+                on_done(keys[i], result)
+    finally:
+        finished.close()
     return results
+
+
+def iter_tasks(function: Callable[[Any], Any], keys: Sequence[Hashable],
+               workers: int = 0) -> Generator[tuple[int, Any], None, None]:
+    """:func:`run_tasks`'s tasks, started before this returns, as ``(index, result)`` in the order of ``keys``, each
+    as soon as it finished: the caller works on one result while the workers go on with the later tasks.
+
+    Where the tasks run in this process (module notes) each runs when its result is asked for. Closing the
+    iterator early stops the workers; a task's error is raised where its result is asked for (the other workers
+    are stopped first)."""
+    keys = list(keys)
+    count = task_workers(len(keys), workers)
+    if count <= 1 or not ("fork" in mp.get_all_start_methods() and sys.platform.startswith("linux")):
+        return ((i, function(key)) for i, key in enumerate(keys))
+    pool = mp.get_context("fork").Pool(count, initializer=_init_worker)  # forked now, before the caller goes on
+    pending = [pool.apply_async(function, (key,)) for key in keys]
+
+    def results() -> Generator[tuple[int, Any], None, None]:
+        try:
+            yield None  # primed below: from here on, closing the iterator stops the workers
+            for i, handle in enumerate(pending):  # in order; each waits for its own task
+                yield i, handle.get()
+        finally:  # every task ended, one raised, or the caller closed the iterator early
+            pool.terminate()
+
+    primed = results()
+    next(primed)
+    return primed
