@@ -24,16 +24,18 @@ $(STAMP): pyproject.toml | system-deps
 demo: $(STAMP)
 	$(PY) -m pushtorch
 
+# --dist loadscope: a module's tests share one worker, so its module fixtures (trained models, a tiny run) are made
+# once rather than once per worker.
 test: $(STAMP)
-	$(PY) -m pytest -n 2 -q
+	$(PY) -m pytest -n 2 --dist loadscope -q
 
 # The numerical tests again with MKL pinned to the code paths other CPUs take (AVX-512 hosts round matmuls and
 # reductions differently from AVX2 ones): a tolerance that holds on one host only fails here, on any host.
 FLOAT_TESTS := tests/test_conditioning.py tests/test_kde.py tests/test_se3.py tests/test_anneal.py tests/test_distribution.py \
 	tests/test_likelihood.py tests/test_fast_path.py tests/test_metrics.py
 test-float-paths: $(STAMP)
-	MKL_CBWR=COMPATIBLE $(PY) -m pytest -n 2 -q $(FLOAT_TESTS)
-	MKL_CBWR=AVX2 $(PY) -m pytest -n 2 -q $(FLOAT_TESTS)
+	MKL_CBWR=COMPATIBLE $(PY) -m pytest -n 2 --dist loadscope -q $(FLOAT_TESTS)
+	MKL_CBWR=AVX2 $(PY) -m pytest -n 2 --dist loadscope -q $(FLOAT_TESTS)
 
 # A normal (non-editable) install in a fresh environment, at the declared lower bounds, run from outside the
 # checkout: what CI runs after the tests (tools/check_install.sh).

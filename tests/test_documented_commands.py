@@ -157,6 +157,7 @@ def test_documented_command_runs_as_written(where, module, argv, slurm_on_path):
             assert not argv and "is not set" in str(exc), f"{where}: {exc}"
 
 
+@pytest.mark.slow  # 20-30 s; the shipped table trains from the command line in tests/test_tables.py
 def test_the_push_table_example_trains_and_predicts_as_written(tmp_path):
     """docs/usage.md's push-table example, run as written from a folder that sees the shipped table: the command
     trains from tests/data/lab_table, the Python block predicts a push and conditions on three rows."""

@@ -1,6 +1,6 @@
 """pushtorch as a library: the public face and reproducible results by default.
 
-The README's "Using it from your own code" example is run as written (smaller: 20 pushes per action, its
+The README's "Using it from your own code" example is run as written (smaller: 10 pushes per action, its
 run folders in a temporary directory) in a fresh process; with the slow checks, in two, which must print identical
 numbers.
 """
@@ -20,13 +20,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _readme_example(folder: Path) -> str:
-    """The README's library example, at 20 pushes per action, writing under ``folder``."""
+    """The README's library example, at 10 pushes per action, writing under ``folder``."""
     readme = (ROOT / "README.md").read_text()
     section = readme[readme.index("## Using it from your own code"):]
     code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
     assert "make_actions(3), 100," in code and '"runs/' in code  # what the substitutions below rely on
     assert "from pushtorch." not in code and "import pushtorch." not in code  # the top level alone
-    return code.replace("make_actions(3), 100,", "make_actions(3), 20,").replace('"runs/', f'"{folder}/')
+    return code.replace("make_actions(3), 100,", "make_actions(3), 10,").replace('"runs/', f'"{folder}/')
 
 
 def test_the_public_face_is_light_and_complete():

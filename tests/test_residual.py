@@ -298,6 +298,7 @@ def test_the_predict_app_reads_a_residual_model_file_and_records_its_rollouts_be
     assert f"{root}/motion/experts" not in paths
 
 
+@pytest.mark.slow  # 17-20 s; the tiny quickstart's shape-transfer part trains a pooled residual in the default suite
 def test_a_pooled_residual_takes_every_shapes_pushes_holds_one_out_and_widens_across_them(cube_pushes_of, tmp_path):
     """A residual model of a pooled model: each kernel's residual is its own shape's push (records given in another
     order are refused by their physics), a shape held out leaves only the other's kernels, the widening is chosen

@@ -220,6 +220,7 @@ def test_a_tipped_or_lifted_object_is_flagged():
         assert infer_flags(poses)[flag][0]
 
 
+@pytest.mark.slow  # 22-25 s: three trainings
 def test_a_table_of_two_objects_trains_one_model_each_or_one_pooled_model(tmp_path):
     path = _copy(tmp_path)
     table = pq.read_table(path)
