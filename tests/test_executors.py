@@ -63,6 +63,28 @@ def test_ray_tasks_write_the_same_records_as_local_workers(cube_plan, local_reco
     _same(load_records(tmp_path / "pushes"), local_records)
 
 
+@pytest.mark.parametrize("kind", ["local", "ray"])
+def test_figures_drawn_as_tasks_are_those_drawn_in_one_process_byte_for_byte(kind, request, tmp_path):
+    """An experiment's figures spread over its executor (forked workers on the local one, Ray tasks on Ray) are the
+    files one process draws, in the same order; here from the committed paper runs' records."""
+    import json
+    from types import SimpleNamespace
+
+    from pushtorch.experiments.figures import make_figures
+    from pushtorch.experiments.tasks import spread_calls
+
+    if kind == "ray":
+        request.getfixturevalue("ray_instance")
+    paper = ROOT / "docs" / "results" / "paper"
+    records = json.loads((paper / "friction_biasing" / "results.json").read_text())["records"]
+    serial = make_figures(tmp_path / "serial", records, {})
+    ctx = SimpleNamespace(executor=Executor(kind, num_cpus=2), workers=2, run_dir=tmp_path)
+    spread = make_figures(tmp_path / "spread", records, {},
+                          lambda draw, calls: spread_calls(ctx, draw, calls, "figures"))
+    assert len(serial) == 3 and [p.name for p in spread] == [p.name for p in serial]
+    assert all(a.read_bytes() == b.read_bytes() for a, b in zip(serial, spread, strict=True))
+
+
 def _ray_task_pids() -> list[int]:
     pids = []
     for entry in Path("/proc").iterdir():

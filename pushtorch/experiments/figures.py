@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import math
 import textwrap
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +36,8 @@ from pushtorch.viz.colours import colour_of  # re-exported: the figures' colours
 
 __all__ = [
     "FIGURE_DATA",
+    "draw_figure",
+    "figure_jobs",
     "make_figures",
     "read_figure_data",
     "write_figure_data",
@@ -224,118 +226,137 @@ def _training_figure(plt, part_name: str, obj: str, by_prior: Mapping[str, Any],
     return fig
 
 
-def make_figures(out_dir: Path, records: Sequence[Mapping[str, Any]],
-                 extras: Mapping[str, Any]) -> list[Path]:
-    """PNG figures in ``out_dir/figures`` (matplotlib, Agg); returns their paths.
+def _chart(plt, groups, series, stats, kind: str, title: str, unit: str, cluster: str, legend_title: str):
+    """One axes of grouped marks with its legend and caption."""
+    log = wants_log_axis(stat_values(stats.values(), lows=False))
+    width = max(4.5, 1.3 * len(groups)) + (1.6 if len(series) > 1 else 0.0)  # + the legend's column
+    fig, ax = plt.subplots(figsize=(width, 3.6), layout="constrained")
+    _draw_marks(ax, groups, series, stats, kind, log)
+    _set_y_scale(ax, log, stat_values(stats.values()))
+    ax.set_ylabel("H_acc, mean (95 % CI)" + (", log scale" if log else ""))
+    axes_width = width - (1.6 if len(series) > 1 else 0.0) - 0.8
+    ax.set_title("\n".join(textwrap.wrap(title, max(30, int(axes_width * 11)))), fontsize=10)
+    if len(series) > 1:
+        _legend(fig, [ax], legend_title)
+    _put_caption(fig, _caption(stats.values(), unit, cluster, log, _n_by_series(series, stats)), width)
+    return fig
 
-    ``extras`` may hold per-sample values (``hacc_samples``, ``pose_hacc``) for bootstrap intervals, and
-    ``training_scatter`` (with ``training_actions``) for the training figures; without them the bar
-    figures draw summary intervals and no training figure is drawn.
-    """
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def _methods_figure(plt, part, samples, order, title: str, unit: str, cluster: str):
+    """Every method's H_acc per object (model selection, pose estimation, a biasing part's baselines)."""
+    objects = ordered(r["object"] for r in part)
+    methods = ordered((r["method"] for r in part), order)
+    stats = {(o, m): group_stat(part, samples, object=o, method=m) for o in objects for m in methods}
+    return _chart(plt, objects, methods, stats, "method", title, unit, cluster, "method")
 
-    folder = Path(out_dir) / "figures"
-    folder.mkdir(parents=True, exist_ok=True)
-    paths: list[Path] = []
+
+def _biasing_figure(plt, bias: str, part, samples):
+    """Our predictor's H_acc per model (colours) and test condition (groups), a panel per object."""
+    objects = ordered(r["object"] for r in part)
+    models = ordered(r["model"] for r in part)
+    conditions = ordered(r["condition"] for r in part)
+    panels = {obj: {(c, m): group_stat(part, samples, object=obj, method="pushtorch", model=m, condition=c)
+                    for c in conditions for m in models} for obj in objects}
+    every = [st for stats in panels.values() for st in stats.values()]
+    log = wants_log_axis(stat_values(every, lows=False))  # one rule for the whole figure: panels read alike
+    cols = min(3, len(objects))
+    rows = math.ceil(len(objects) / cols)
+    width = 4.0 * cols + 1.6
+    fig, axes = plt.subplots(rows, cols, figsize=(width, 3.0 * rows + 0.8), squeeze=False, layout="constrained")
+    for k, (ax, obj) in enumerate(zip(axes.flat, objects, strict=False)):
+        _draw_marks(ax, conditions, models, panels[obj], "prior", log)
+        _set_y_scale(ax, log, stat_values(panels[obj].values()))
+        ax.set_title(obj, fontsize=9)
+        if k % cols == 0:
+            ax.set_ylabel("H_acc, mean (95 % CI)" + (", log" if log else ""), fontsize=8)
+        if k >= len(objects) - cols:
+            ax.set_xlabel("test condition", fontsize=8)
+    for ax in list(axes.flat)[len(objects):]:
+        ax.axis("off")
+    _legend(fig, list(axes.flat), "model (training prior)")
+    fig.suptitle(f"{bias} biasing: our predictor's H_acc per model (colours) and test condition "
+                 "(groups)", fontsize=10)
+    _put_caption(fig, _caption(every, "comparisons", "predictions", log), width)
+    return fig
+
+
+def _objects_figure(plt, matched, samples):
+    """pushtorch's H_acc per object where the model's prior is the test condition."""
+    objects = ordered(r["object"] for r in matched)
+    stats = {(o, "pushtorch"): group_stat(matched, samples, object=o) for o in objects}
+    return _chart(plt, objects, ["pushtorch"], stats, "method", "pushtorch per object: model prior = test condition",
+                  "comparisons", "predictions", "method")
+
+
+def figure_jobs(records: Sequence[Mapping[str, Any]],
+                extras: Mapping[str, Any]) -> list[tuple[str, Callable[..., Any], tuple]]:
+    """What :func:`make_figures` draws: ``(file name, draw, arguments)`` per figure, where ``draw(plt, *arguments)``
+    returns a matplotlib figure or None (nothing to draw). Each is independent of the others, and its function and
+    arguments pickle, so the figures may be drawn in parallel."""
     samples = samples_by_record(records, extras)
-
-    def save(fig, name: str) -> None:
-        path = folder / name
-        fig.savefig(path, dpi=110, bbox_inches="tight")
-        plt.close(fig)
-        paths.append(path)
-
-    def chart(groups, series, stats, kind: str, title: str, unit: str, cluster: str, name: str,
-              legend_title: str) -> None:
-        """One axes of grouped marks with its legend and caption."""
-        log = wants_log_axis(stat_values(stats.values(), lows=False))
-        width = max(4.5, 1.3 * len(groups)) + (1.6 if len(series) > 1 else 0.0)  # + the legend's column
-        fig, ax = plt.subplots(figsize=(width, 3.6), layout="constrained")
-        _draw_marks(ax, groups, series, stats, kind, log)
-        _set_y_scale(ax, log, stat_values(stats.values()))
-        ax.set_ylabel("H_acc, mean (95 % CI)" + (", log scale" if log else ""))
-        axes_width = width - (1.6 if len(series) > 1 else 0.0) - 0.8
-        ax.set_title("\n".join(textwrap.wrap(title, max(30, int(axes_width * 11)))), fontsize=10)
-        if len(series) > 1:
-            _legend(fig, [ax], legend_title)
-        _put_caption(fig, _caption(stats.values(), unit, cluster, log, _n_by_series(series, stats)), width)
-        save(fig, name)
-
+    jobs: list[tuple[str, Callable[..., Any], tuple]] = []
     for task, order, title, filename, unit, cluster in (
         ("selection", SELECTION_ORDER, "Contact model selection", "model_selection.png", "comparisons",
          "predictions"),
         ("pose", POSE_ORDER, "Pose estimation", "pose_estimation.png", "estimates", "estimates"),
     ):
         part = select(records, task=task)
-        if not part:
-            continue
-        objects = ordered(r["object"] for r in part)
-        methods = ordered((r["method"] for r in part), order)
-        stats = {(o, m): group_stat(part, samples, object=o, method=m) for o in objects for m in methods}
-        chart(objects, methods, stats, "method", title, unit, cluster, filename, "method")
-
+        if part:
+            jobs.append((filename, _methods_figure, (part, samples, order, title, unit, cluster)))
     prediction = select(records, task="prediction")
     for bias in ordered(bias_of(r["model"]) for r in prediction):
         part = [r for r in prediction if bias_of(r["model"]) == bias]
-        objects = ordered(r["object"] for r in part)
-        models = ordered(r["model"] for r in part)
-        conditions = ordered(r["condition"] for r in part)
-        panels = {obj: {(c, m): group_stat(part, samples, object=obj, method="pushtorch", model=m, condition=c)
-                        for c in conditions for m in models} for obj in objects}
-        every = [st for stats in panels.values() for st in stats.values()]
-        log = wants_log_axis(stat_values(every, lows=False))  # one rule for the whole figure: panels read alike
-        cols = min(3, len(objects))
-        rows = math.ceil(len(objects) / cols)
-        width = 4.0 * cols + 1.6
-        fig, axes = plt.subplots(rows, cols, figsize=(width, 3.0 * rows + 0.8), squeeze=False,
-                                 layout="constrained")
-        for k, (ax, obj) in enumerate(zip(axes.flat, objects, strict=False)):
-            _draw_marks(ax, conditions, models, panels[obj], "prior", log)
-            _set_y_scale(ax, log, stat_values(panels[obj].values()))
-            ax.set_title(obj, fontsize=9)
-            if k % cols == 0:
-                ax.set_ylabel("H_acc, mean (95 % CI)" + (", log" if log else ""), fontsize=8)
-            if k >= len(objects) - cols:
-                ax.set_xlabel("test condition", fontsize=8)
-        for ax in list(axes.flat)[len(objects):]:
-            ax.axis("off")
-        _legend(fig, list(axes.flat), "model (training prior)")
-        fig.suptitle(f"{bias} biasing: our predictor's H_acc per model (colours) and test condition "
-                     "(groups)", fontsize=10)
-        _put_caption(fig, _caption(every, "comparisons", "predictions", log), width)
-        save(fig, f"{bias or 'prediction'}_biasing.png")
-
-        methods = ordered((r["method"] for r in part), METHOD_ORDER)
-        stats = {(o, m): group_stat(part, samples, object=o, method=m) for o in objects for m in methods}
-        chart(objects, methods, stats, "method",
-              f"{bias} biasing: pushtorch and baselines (pooled over models and conditions)", "comparisons",
-              "predictions", f"{bias or 'prediction'}_baselines.png", "method")
-
+        jobs.append((f"{bias or 'prediction'}_biasing.png", _biasing_figure, (bias, part, samples)))
+        jobs.append((f"{bias or 'prediction'}_baselines.png", _methods_figure,
+                     (part, samples, METHOD_ORDER,
+                      f"{bias} biasing: pushtorch and baselines (pooled over models and conditions)", "comparisons",
+                      "predictions")))
     matched = [r for r in prediction if r["method"] == "pushtorch" and r["model"] == r["condition"]]
     if matched:
-        objects = ordered(r["object"] for r in matched)
-        stats = {(o, "pushtorch"): group_stat(matched, samples, object=o) for o in objects}
-        chart(objects, ["pushtorch"], stats, "method", "pushtorch per object: model prior = test condition",
-              "comparisons", "predictions", "objects.png", "method")
-
-    fig = online_figure(plt, records)
-    if fig is not None:
-        save(fig, "online_adaptation.png")
-    fig = coverage_figure(plt, records)
-    if fig is not None:
-        save(fig, "coverage.png")
-
+        jobs.append(("objects.png", _objects_figure, (matched, samples)))
+    jobs.append(("online_adaptation.png", online_figure, (records,)))
+    jobs.append(("coverage.png", coverage_figure, (records,)))
     actions = extras.get("training_actions") or {}
     for part_name, by_object in (extras.get("training_scatter") or {}).items():
         for obj, by_prior in by_object.items():
-            if not any(len(points) for points in by_prior.values()):
-                continue
-            fig = _training_figure(plt, part_name, obj, by_prior, (actions.get(part_name) or {}).get(obj) or {})
-            save(fig, f"training_{part_name}_{obj}.png")
-    return paths
+            if any(len(points) for points in by_prior.values()):
+                jobs.append((f"training_{part_name}_{obj}.png", _training_figure,
+                             (part_name, obj, by_prior, (actions.get(part_name) or {}).get(obj) or {})))
+    return jobs
+
+
+def draw_figure(folder: Path, name: str, draw: Callable[..., Any], arguments: tuple) -> Path | None:
+    """One of :func:`figure_jobs`' figures drawn (matplotlib, Agg) and saved as ``folder / name``; its path, or None
+    when it had nothing to draw."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = draw(plt, *arguments)
+    if fig is None:
+        return None
+    path = Path(folder) / name
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def make_figures(out_dir: Path, records: Sequence[Mapping[str, Any]], extras: Mapping[str, Any],
+                 draw_all: Callable[[Callable, list[tuple]], list] | None = None) -> list[Path]:
+    """PNG figures in ``out_dir/figures`` (matplotlib, Agg); returns their paths.
+
+    ``extras`` may hold per-sample values (``hacc_samples``, ``pose_hacc``) for bootstrap intervals, and
+    ``training_scatter`` (with ``training_actions``) for the training figures; without them the bar
+    figures draw summary intervals and no training figure is drawn. ``draw_all(function, calls)`` returns
+    ``[function(*call) for call in calls]``, in parallel where it can (an experiment's executor); by default one
+    after the other here.
+    """
+    folder = Path(out_dir) / "figures"
+    folder.mkdir(parents=True, exist_ok=True)
+    calls = [(folder, *job) for job in figure_jobs(records, extras)]
+    drawn = draw_all(draw_figure, calls) if draw_all is not None else [draw_figure(*call) for call in calls]
+    return [path for path in drawn if path is not None]
 
 
 def write_figure_data(out_dir: Path, extras: Mapping[str, Any]) -> Path | None:

@@ -92,12 +92,13 @@ __all__ = [
 
 def write_outputs(out_dir: Path, experiment: str, config: Mapping[str, Any], wall_s: float,
                   records: Sequence[Mapping[str, Any]], extras: Mapping[str, Any],
-                  overrides: Sequence[str] = ()) -> dict[str, Any]:
-    """results.json, figures, report.md; returns their paths and the acceptance checks."""
+                  overrides: Sequence[str] = (), draw_all=None) -> dict[str, Any]:
+    """results.json, figures, report.md; returns their paths and the acceptance checks. ``draw_all`` draws the
+    figures in parallel (:func:`pushtorch.experiments.figures.make_figures`)."""
     results = write_results(out_dir, experiment, config, wall_s, records, overrides,
                             extras.get("model_bandwidths"), extras.get("online_separability") or (),
                             extras.get("tasks"))
-    figures = make_figures(out_dir, primary(records), extras)
+    figures = make_figures(out_dir, primary(records), extras, draw_all)
     figure_data = write_figure_data(out_dir, extras)  # what tools/redraw_figures.py redraws them from
     checks = acceptance_checks(primary(records), extras.get("thrown") or ())
     report = write_report(out_dir, experiment, wall_s, records, extras, figures, checks,

@@ -116,6 +116,7 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]],
             PushtorchError from any step.
     """
     from pushtorch.experiments.report import write_outputs
+    from pushtorch.experiments.tasks import spread_calls
     from pushtorch.viz.blueprint import experiment_blueprint
     from pushtorch.viz.core import open_recording
 
@@ -149,7 +150,8 @@ def run_suite(cfg, out_dir: str | Path, parts: Sequence[tuple[str, Any, Any]],
                                   if "bandwidths" in m.meta}
     extras["tasks"] = dict(sorted(ctx.task_counts.items()))
     wall = time.perf_counter() - start
-    outputs = write_outputs(out_dir, name, plain(cfg), wall, records, extras, overrides=list(overrides))
+    outputs = write_outputs(out_dir, name, plain(cfg), wall, records, extras, overrides=list(overrides),
+                            draw_all=lambda draw, calls: spread_calls(ctx, draw, calls, "figures"))
     passed = sum(c["passed"] for c in outputs["checks"])
     return {
         "summary": summary_table(records, outputs["checks"], extras.get("thrown") or ()),

@@ -39,9 +39,10 @@ from typing import Any
 
 from pushtorch.experiments.context import ExperimentContext
 from pushtorch.sim.executors import Executor, submit_remote_tasks, task_host
-from pushtorch.sim.tasks import iter_tasks, task_workers
+from pushtorch.sim.tasks import iter_tasks, run_tasks, task_workers
 
-__all__ = ["models_by_path", "prefetch", "prefetched", "saved_as", "saved_models", "share_with_tasks", "warm_up"]
+__all__ = ["models_by_path", "prefetch", "prefetched", "saved_as", "saved_models", "share_with_tasks", "spread_calls",
+           "warm_up"]
 
 log = logging.getLogger("pushtorch.experiments")
 
@@ -181,6 +182,40 @@ def _in_order(ctx: ExperimentContext, items: list, finished: Iterator[tuple[int,
     where = ", ".join(f"{h} ({n})" for h, n in sorted(hosts.items()))
     log.info("%d %s %s: %.0f s (%.0f s of work, the longest %.0f s)", len(items), what, how.format(hosts=where),
              time.perf_counter() - start, sum(seconds), max(seconds))
+
+
+def spread_calls(ctx: ExperimentContext, function: Callable, calls: Sequence[tuple], what: str) -> list:
+    """``[function(*call) for call in calls]``, spread where the context's executor allows: Ray tasks on
+    ``executor=ray`` (``function`` and the calls cross by pickle), forked worker processes on the local executor,
+    and this process on Slurm (an array's queue costs more than such small work) or with one worker. For work
+    that writes its own outputs, such as the figures; results in the order of ``calls``."""
+    calls = list(calls)
+    if ctx.executor.kind == "ray" and len(calls) > 1:
+        from pushtorch.sim.executors import run_remote_tasks
+
+        start = time.perf_counter()
+        results = run_remote_tasks(ctx.executor, function, calls, ctx.run_dir / ".submitit" / what)
+        log.info("%d %s as ray tasks: %.1f s", len(calls), what, time.perf_counter() - start)
+        return results
+    if ctx.executor.kind != "local" or task_workers(len(calls), ctx.workers) <= 1:
+        return [function(*call) for call in calls]
+    base = len(_CALLS) and max(_CALLS) + 1
+    keys = range(base, base + len(calls))
+    _CALLS.update({key: (function, call) for key, call in zip(keys, calls, strict=True)})
+    try:
+        return run_tasks(_call, keys, ctx.workers)
+    finally:
+        for key in keys:
+            _CALLS.pop(key, None)
+
+
+#: What :func:`_call` works on, set before the workers fork: key → (function, its arguments).
+_CALLS: dict[int, tuple[Callable, tuple]] = {}
+
+
+def _call(key: int):
+    function, call = _CALLS[key]
+    return function(*call)
 
 
 def _count(ctx: ExperimentContext, what: str, where: str, count: int) -> None:
