@@ -42,7 +42,7 @@ from pushtorch.experiments.common import (
 )
 from pushtorch.experiments.statistics import sample_entry
 from pushtorch.experiments.suite import run_suite
-from pushtorch.experiments.tasks import prefetch
+from pushtorch.experiments.tasks import prefetched
 from pushtorch.experiments.training import train_models
 from pushtorch.objects import load_object
 
@@ -124,11 +124,12 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
                         likelihood_scores(obj_ctx, key, obj, predictions, truth, truth_key)))
         return obj, congruent, out
 
-    # every object in worker processes first, where there are cores to spare: the loop below then reads caches
-    ahead = prefetch(ctx, scored, objects, on_done=lambda _: bar.update(per_object), warm=models[0],
-                     what="objects predicted, pushed and scored")
-    for obj_name in objects:
-        obj, congruent, per_method = scored(ctx, obj_name, None if ahead else bar, log=True)
+    # every object in worker processes, where there are cores to spare: the loop below reads each object's caches
+    # as soon as its task ended
+    ahead = prefetched(ctx, scored, objects, on_done=lambda _: bar.update(per_object), warm=models[0],
+                       what="objects predicted, pushed and scored")
+    for obj_name, done in ahead:
+        obj, congruent, per_method = scored(ctx, obj_name, None if done else bar, log=True)
         for method, predictions, examples, truth, broken, scores in per_method:
             nll = scores["pushtorch"]
             rate = float((predictions.selected == congruent).double().mean())

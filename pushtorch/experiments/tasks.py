@@ -146,9 +146,7 @@ def prefetched(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], 
         warm_up(warm)
     task_ctx = dataclasses.replace(ctx, workers=1, recording=None, progress=False, logged_predictions=[],
                                    keep_examples=_keeps_examples(ctx))
-    base = len(_STATE) and max(_STATE) + 1  # keys of their own: another part's tasks may still be read
-    keys = range(base, base + len(items))
-    _STATE.update({key: (step, task_ctx, item) for key, item in zip(keys, items, strict=True)})
+    keys = _keep(_STATE, [(step, task_ctx, item) for item in items])
     return _in_order(ctx, items, iter_tasks(_run, keys, ctx.workers), on_done, what, start,
                      f"in {workers} worker processes", keys)
 
@@ -199,9 +197,7 @@ def spread_calls(ctx: ExperimentContext, function: Callable, calls: Sequence[tup
         return results
     if ctx.executor.kind != "local" or task_workers(len(calls), ctx.workers) <= 1:
         return [function(*call) for call in calls]
-    base = len(_CALLS) and max(_CALLS) + 1
-    keys = range(base, base + len(calls))
-    _CALLS.update({key: (function, call) for key, call in zip(keys, calls, strict=True)})
+    keys = _keep(_CALLS, [(function, call) for call in calls])
     try:
         return run_tasks(_call, keys, ctx.workers)
     finally:
@@ -216,6 +212,15 @@ _CALLS: dict[int, tuple[Callable, tuple]] = {}
 def _call(key: int):
     function, call = _CALLS[key]
     return function(*call)
+
+
+def _keep(state: dict[int, Any], values: list) -> range:
+    """``values`` put in ``state`` (what forked workers read by key) under keys of their own, which it returns:
+    another batch's entries may still be there."""
+    base = len(state) and max(state) + 1
+    keys = range(base, base + len(values))
+    state.update(zip(keys, values, strict=True))
+    return keys
 
 
 def _count(ctx: ExperimentContext, what: str, where: str, count: int) -> None:
