@@ -1,11 +1,14 @@
 """An experiment's work as tasks in worker processes (no paper section): what a part's serial loop reads from its
-run folder's caches, computed first by the runner's task workers (:func:`pushtorch.sim.tasks.run_tasks`).
+run folder's caches, computed by the runner's task workers (:func:`pushtorch.sim.tasks.iter_tasks`).
 
 A part's steps are cached in the run folder (training pushes and models, prediction sets with their peers,
-ground truth, likelihood scores), each keyed by what made it. :func:`prefetch` runs a step for many keys in
-forked worker processes, one per core with one torch thread each, before the part's own loop: the loop then
-finds every cache filled and only reads, records and logs, in its usual order. So a part's records are those of
-a serial run, a killed run resumes from whatever the tasks wrote, and the recording is written by one process.
+ground truth, likelihood scores), each keyed by what made it. :func:`prefetched` starts a step for many keys in
+forked worker processes, one per core with one torch thread each, and hands the part's loop each key, in order,
+as soon as its task and every earlier one ended: the loop finds that key's caches filled and only reads, records
+and logs, in its usual order, while the later tasks run (:func:`prefetch` waits for all of them). So a part's
+records are those of a serial run, a killed run resumes from whatever the tasks wrote, and the recording is
+written by one process. Work that writes its own outputs (the report's figures) is spread by
+:func:`spread_calls`.
 
 Inside a task the context simulates in its own process (``workers=1``), logs nothing to the recording and shows
 no progress bars; the part's bar advances as tasks finish. Nothing is prefetched with one core on the local
