@@ -122,6 +122,7 @@ def test_a_killed_ray_worker_is_retried_and_no_shard_is_lost_or_doubled(cube_pla
     _same(load_records(tmp_path / "pushes"), local_records)
 
 
+@pytest.mark.slow  # 10-14 s of submitit processes; test_remote_tasks_as_a_submitit_array keeps an array in make test
 def test_a_submitit_array_of_four_tasks_writes_the_same_records(cube_plan, local_records, tmp_path):
     pytest.importorskip("submitit")
     cube, plan = cube_plan

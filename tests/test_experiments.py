@@ -540,6 +540,7 @@ def test_the_placement_spread_test_set_runs_beside_the_default_one_in_one_folder
     assert "placement_spread" in (run / "report.md").read_text()
 
 
+@pytest.mark.slow  # 10-12 s: a second world's run beside the tiny one
 def test_the_pybullet_world_runs_beside_the_mujoco_one_in_one_folder(tiny_run, tmp_path):
     """world=pybullet: training pushes and truth in pybullet (cached apart from the default MuJoCo world's, which
     are named _mujoco), the peers in MuJoCo; results.json and the report name both engines; the MuJoCo caches are

@@ -86,6 +86,7 @@ def shapes_and_records(tmp_path_factory):
     return shapes, records
 
 
+@pytest.mark.slow  # 15-17 s; the tiny quickstart's shape-transfer part trains, saves and reads a pooled model
 def test_a_pooled_model_holds_every_shapes_kernels_and_round_trips(shapes_and_records, tmp_path):
     shapes, records = shapes_and_records
     parts = fit_shape_parts(shapes, records, SMALL, 0)
