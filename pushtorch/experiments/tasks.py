@@ -15,7 +15,7 @@ no progress bars; the part's bar advances as tasks finish. Nothing is prefetched
 executor (the loop does the work itself, as before).
 
 With ``executor=ray`` or ``executor=slurm`` the same tasks run on the cluster
-(:func:`pushtorch.sim.executors.run_remote_tasks`), one CPU and one torch thread each, into the run folder that
+(:func:`pushtorch.sim.executors.submit_remote_tasks`), one CPU and one torch thread each, into the run folder that
 every node shares; the submitting process plans, then its loop reads the caches and writes the report. What a
 task needs crosses by pickle, with two exceptions: a model an experiment trained travels as its file's path and
 is read again there (:func:`saved_as`), and an experiment context travels
@@ -41,7 +41,7 @@ from contextlib import contextmanager
 from typing import Any
 
 from pushtorch.experiments.context import ExperimentContext
-from pushtorch.sim.executors import Executor, submit_remote_tasks, task_host
+from pushtorch.sim.executors import Executor, run_remote_tasks, submit_remote_tasks, task_host
 from pushtorch.sim.tasks import iter_tasks, run_tasks, task_workers
 
 __all__ = ["models_by_path", "prefetch", "prefetched", "saved_as", "saved_models", "share_with_tasks", "spread_calls",
@@ -192,8 +192,6 @@ def spread_calls(ctx: ExperimentContext, function: Callable, calls: Sequence[tup
     that writes its own outputs, such as the figures; results in the order of ``calls``."""
     calls = list(calls)
     if ctx.executor.kind == "ray" and len(calls) > 1:
-        from pushtorch.sim.executors import run_remote_tasks
-
         start = time.perf_counter()
         results = run_remote_tasks(ctx.executor, function, calls, ctx.run_dir / ".submitit" / what)
         log.info("%d %s as ray tasks: %.1f s", len(calls), what, time.perf_counter() - start)
