@@ -14,14 +14,14 @@ from hypothesis import strategies as st
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError
 from pushtorch.evaluation.baselines import physics_ensemble_prediction
-from pushtorch.evaluation.likelihood import covered, ensemble_density, hdr_thresholds, point_density
+from pushtorch.evaluation.likelihood import covered, ensemble_density, hdr_thresholds, nll, point_density
 from pushtorch.evaluation.transfer import choose_widening
 from pushtorch.experiments.prediction_sets import observe
 from pushtorch.models.model import load_model
 from pushtorch.models.motion import contact_distances, nearest_in_contact
 from pushtorch.models.pooled import fit_shape_parts, train_pooled_model
 from pushtorch.models.settings import ModelSettings
-from pushtorch.objects import load_object
+from pushtorch.objects import Symmetry, load_object
 from pushtorch.objects.shapes import (
     HELD_OUT_FIRST_SEED,
     SHAPE_KINDS,
@@ -184,6 +184,33 @@ def test_coverage_of_a_density_is_its_own_level_on_its_own_draws(p_std, rot_std,
     at_centre = -one.log_prob(centres.take(0).vector().reshape(1, 7))
     far = -one.log_prob((centres.take(0).vector() + torch.tensor([1.0, 0, 0, 0, 0, 0, 0])).reshape(1, 7))
     assert covered(at_centre, t).all() and not covered(far, t).any()
+
+
+@settings(max_examples=4, deadline=None)
+@given(p_std=st.floats(0.005, 0.05), rot_std=st.floats(0.1, 0.4), seed=st.integers(0, 2**16),
+       continuous=st.booleans())
+def test_coverage_of_a_symmetric_object_is_its_own_level_when_draws_are_scored_as_truths(p_std, rot_std, seed,
+                                                                                         continuous):
+    """A symmetric object's truths are scored by their nearest symmetric copy; its regions' draws scored the same
+    way keep the coverage of truths drawn from the density at its level, where draws scored as they are would
+    put nearly every truth inside the 90 % region (a surface of revolution's turn never counting against it)."""
+    generator = torch.Generator().manual_seed(seed)
+    centres = se3.Pose.unchecked(torch.randn(2, 3, generator=generator) * 0.05,
+                                 torch.tensor([[1.0, 0.0, 0.0, 0.0]]).expand(2, 4))
+    density = ensemble_density(centres, p_std, rot_std)
+    half_turn = torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    symmetry = Symmetry(half_turn[:1], continuous_z=True) if continuous else Symmetry(half_turn)
+    same = se3.identity(dtype=torch.float64)
+    truths = se3.Pose.from_vector(density.sample((1000,), torch.Generator().manual_seed(seed + 1)).double())
+    scores = nll(density, truths, same, same, symmetry)
+    fair = hdr_thresholds(density, (0.5, 0.9), samples=1000, generator=generator, symmetry=symmetry)
+    inside = covered(scores, fair).double().mean(0)
+    for level, share in zip((0.5, 0.9), inside.tolist(), strict=True):
+        se = math.sqrt(level * (1 - level) / 1000)
+        assert abs(share - level) < 4 * se + 0.03, (level, share)
+    if continuous:
+        generous = hdr_thresholds(density, (0.5, 0.9), samples=1000, generator=generator)
+        assert float(covered(scores, generous).double().mean(0)[0]) > 0.5 + 4 * math.sqrt(0.25 / 1000) + 0.03
 
 
 def test_coverage_refuses_levels_outside_zero_one():

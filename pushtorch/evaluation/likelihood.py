@@ -24,9 +24,10 @@ that is wrong but says it is unsure. Decisions (docs/method.md, "Likelihood scor
   copy. A continuous symmetry is scanned on a 3° grid and refined to 0.25°.
 * **Calibration.** A density's ``α`` highest-density region is ``{x : log p(x) ≥ t_α}``, in the 7-D pose space,
   with ``t_α`` the ``1 − α`` quantile of ``log p`` over :data:`COVERAGE_SAMPLES` draws from the density itself
-  (:func:`hdr_thresholds`); a truth is inside when its score (``−nll``, the nearest symmetric copy, as above)
-  reaches ``t_α``. ``coverage_50`` and ``coverage_90`` are the shares of truths inside: a calibrated density
-  has 0.5 and 0.9, an overconfident one less. Point predictions have no such region and get none.
+  (:func:`hdr_thresholds`), each draw scored as a truth is (its nearest symmetric copy); a truth is inside when
+  its score (``−nll``, the nearest symmetric copy, as above) reaches ``t_α``. ``coverage_50`` and
+  ``coverage_90`` are the shares of truths inside: a calibrated density has 0.5 and 0.9, an overconfident one
+  less. Point predictions have no such region and get none.
 * **Baselines.** The mean-motion baseline's density is an isotropic Gaussian × folded vMF over the training
   motions in the robot's start frame, fitted by moments (:func:`mean_motion_density`). A point prediction
   (no motion, nearest push, physics) is scored as one kernel of the model's motion bandwidth at the
@@ -240,10 +241,13 @@ def ensemble_density(finals: se3.Pose, p_std: float, rot_std: float) -> FinalPos
 
 
 def hdr_thresholds(density: FinalPoseDistribution, levels=COVERAGE_LEVELS, samples: int = COVERAGE_SAMPLES,
-                   generator: torch.Generator | None = None) -> Tensor:
+                   generator: torch.Generator | None = None, symmetry: Symmetry | None = None) -> Tensor:
     """``(L,)`` float64 log-density thresholds of the density's highest-density regions holding ``levels`` of
     its mass (module docstring, "Calibration"): ``t_α`` is the ``1 − α`` quantile of ``log p`` over ``samples``
-    draws from the density (batch shape ``()``).
+    draws from the density (batch shape ``()``). With the test object's ``symmetry`` each draw is scored as a
+    truth is (:func:`nll`, its nearest symmetric copy), so that a truth drawn from the density itself is inside a
+    share ``α`` of the time: scoring the truths by their best copy and the draws as they are would make every
+    symmetric object look better calibrated than it is (a surface of revolution's turn would never count).
 
     Raises:
         InvalidParameterError: a level outside (0, 1), or fewer than 10 samples.
@@ -254,7 +258,11 @@ def hdr_thresholds(density: FinalPoseDistribution, levels=COVERAGE_LEVELS, sampl
     if samples < 10:
         raise InvalidParameterError(f"a region's threshold needs at least 10 draws, got {samples}")
     draws = density.sample((int(samples),), generator)
-    log_p = density.log_prob(draws).double().reshape(-1)
+    if symmetry is None or (symmetry.continuous_axis is None and symmetry.discrete.shape[0] == 1):
+        log_p = density.log_prob(draws).double().reshape(-1)
+    else:  # each draw's nearest copy: a truth at the draw, moved from and predicted at the same start
+        same = se3.identity(dtype=torch.float64)
+        log_p = -nll(density, se3.Pose.from_vector(draws.double().reshape(-1, 7)), same, same, symmetry)
     log_p = log_p[torch.isfinite(log_p)]
     if log_p.numel() == 0:
         raise InvalidParameterError("no draw from the density has a finite log density")

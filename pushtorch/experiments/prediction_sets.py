@@ -42,12 +42,14 @@ __all__ = [
     "Example",
     "Examples",
     "PREDICTION_VERSION",
+    "SCORES_VERSION",
     "PredictionSet",
     "cache_name",
     "examples_path",
     "observe",
     "predict_set",
     "sample_test_poses",
+    "scores_made_from",
     "scores_path",
     "spread_test_start",
 ]
@@ -242,6 +244,17 @@ def scores_path(ctx: ExperimentContext, key: str) -> Path:
                           what="experiment, object or prior name")
 
 
+#: Bump when a group's scores would come out differently for the same predictions and truth (the coverage's draws
+#: scored by their nearest symmetric copy, as the truths are): cached sets of an older one are recomputed.
+SCORES_VERSION = 2
+
+
+def scores_made_from(made_from: str, truth: str) -> list:
+    """What a group's cached scores were computed from: its prediction set's fingerprint, its ground truth's
+    (:func:`~pushtorch.experiments.scoring.truth_fingerprint`) and :data:`SCORES_VERSION`."""
+    return [made_from, truth, SCORES_VERSION]
+
+
 def spread_test_start(obj: ObjectModel, pose: se3.Pose, placement: Placement,
                       generator: torch.Generator) -> se3.Pose:
     """A ``placement_spread`` start: the robot heading along the object's own x axis (its yaw in ``pose``)
@@ -384,7 +397,7 @@ def _cached_set(ctx: ExperimentContext, key: str, path: Path, made_from: str, tr
     except RecordFormatError as exc:
         log.warning("recomputing %s: %s", key, exc)
         return None
-    if cached.fingerprint != made_from or scores_meta.get("made_from") != [made_from, truth]:
+    if cached.fingerprint != made_from or scores_meta.get("made_from") != scores_made_from(made_from, truth):
         return None
     return cached
 

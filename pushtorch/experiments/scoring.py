@@ -18,7 +18,7 @@ from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, RecordFormatError
 from pushtorch.evaluation.metrics import Accuracy, accuracy, displaced
 from pushtorch.experiments.context import ExperimentContext, fingerprint, load_arrays, save_arrays, stable_seed
-from pushtorch.experiments.prediction_sets import PredictionSet, cache_name, scores_path
+from pushtorch.experiments.prediction_sets import PredictionSet, cache_name, scores_made_from, scores_path
 from pushtorch.objects import ObjectModel
 from pushtorch.paths import contained_path
 
@@ -62,7 +62,7 @@ def likelihood_scores(ctx: ExperimentContext, key: str, obj: ObjectModel, predic
     from pushtorch.evaluation.likelihood import COVERAGE_LEVELS, covered, hdr_thresholds, nll, point_density
 
     path = scores_path(ctx, key)
-    made_from = [predictions.fingerprint, truth]
+    made_from = scores_made_from(predictions.fingerprint, truth)
     if predictions.densities is None:
         arrays, meta = load_arrays(path)
         if meta.get("made_from") != made_from:
@@ -87,7 +87,7 @@ def likelihood_scores(ctx: ExperimentContext, key: str, obj: ObjectModel, predic
                 out[:, i, j] = values.reshape(c_count, samples).float()
                 if own is not None:
                     draws = torch.Generator().manual_seed(stable_seed(ctx.seed, key, method, i, j, "coverage"))
-                    thresholds = hdr_thresholds(own, COVERAGE_LEVELS, generator=draws)
+                    thresholds = hdr_thresholds(own, COVERAGE_LEVELS, generator=draws, symmetry=obj.symmetry)
                     inside[:, i, j] = covered(values, thresholds).reshape(c_count, samples, -1).float()
         scores[method] = out
         if has_density:
