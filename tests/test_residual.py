@@ -367,3 +367,38 @@ def test_rollouts_pair_with_the_kernels_whose_training_rollout_did_the_same(trai
     narrow = predict_residual(dataclasses.replace(residual, outcome_width=0.25), cloud, model.actions[0], 6)
     assert not torch.equal(narrow.density.log_weights, one.density.log_weights)
     assert abs(float(narrow.density.log_weights.exp().sum()) - 1.0) < 1e-5
+
+
+def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(trained, residual, tmp_path):
+    """The novelty widening: a prediction's rollouts' median outcome novelty ``n`` widens the residual kernels by
+    ``sqrt(1 + ν·n)`` (0: as trained), the density stays normalised, ``ν`` is chosen across training objects from
+    the grid, and the model file keeps it."""
+    import dataclasses
+
+    from pushtorch.errors import InvalidParameterError
+    from pushtorch.evaluation.transfer import choose_novelty_widening
+    from pushtorch.models.residual import NOVELTY_WIDENINGS, load_residual_model
+
+    cube, records, model = trained
+    assert residual.novelty_widening == 0.0
+    cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=0.35))
+    plain = predict_residual(residual, cloud, model.actions[2], 3)
+    assert plain.outcome_novelty > 0 and plain.widened_by == 1.0
+    wide = dataclasses.replace(residual, novelty_widening=3.0)
+    widened = predict_residual(wide, cloud, model.actions[2], 3)
+    assert widened.outcome_novelty == plain.outcome_novelty  # the same rollouts
+    assert widened.widened_by == pytest.approx(math.sqrt(1 + 3.0 * plain.outcome_novelty))
+    assert widened.density.bandwidth.p_std == pytest.approx(plain.density.bandwidth.p_std * widened.widened_by)
+    assert abs(float(widened.density.log_normaliser())) < 0.05
+    back = load_residual_model(wide.save(tmp_path / "widened.npz"))
+    assert back.novelty_widening == 3.0
+    again = predict_residual(back, cloud, model.actions[2], 3)
+    torch.testing.assert_close(again.final_pose.vector(), widened.final_pose.vector(), rtol=0, atol=0)
+    # one widening across training objects (here the cube's model twice: each scores the other's pushes)
+    chosen = choose_novelty_widening([residual, residual], [cube, cube], [records, records], pushes_per_shape=2,
+                                     generator=torch.Generator().manual_seed(0))
+    assert len({m.novelty_widening for m in chosen}) == 1 and chosen[0].novelty_widening in NOVELTY_WIDENINGS
+    meta = chosen[0].meta["novelty"]
+    assert meta["pushes"] == 4 and len(meta["nll"]) == len(NOVELTY_WIDENINGS) and meta["across"] == ["cube", "cube"]
+    with pytest.raises(InvalidParameterError, match="two models or more"):
+        choose_novelty_widening([residual], [cube], [records])

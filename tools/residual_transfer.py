@@ -9,6 +9,16 @@ two would choose); (2) the squared contact distance ``d²`` (:func:`pushtorch.pr
 each catalogue object's pushes, from the robot start its training object's model chooses at six random yaws: a
 diagnosis of what a widening by contact distance could tell apart, never a choice of anything.
 
+``novelty <run>``: for the same run, (1) each training object's residual model scores ``--pushes`` of the other
+object's training pushes (and of its own, in sample) at every novelty widening ``ν`` of
+:data:`pushtorch.models.residual.NOVELTY_WIDENINGS` (the same rollouts, the kernels' stds times
+``sqrt(1 + ν·n)``), with the predictions' median novelty ``n``; (2) per catalogue object at six random yaws and
+every action, how far the prediction's rollouts did something its training object's rollouts never did
+(:func:`pushtorch.models.residual.outcome_novelty`: the squared distance, in the training outcomes' stds, from
+the rollout's displacement and turn in the robot's start frame to the nearest training rollout's of that action
+that the contact reaches; the median over the rollouts). (2) is a diagnosis of what a widening by novelty can tell
+apart, never a choice.
+
 ``weights <run>``: for a shape-transfer run (``experiment=quickstart_transfer``), the pooled residual model's
 mean correction per training shape and action (translation cm / turn rad), and for each transfer object at three
 yaws the four training shapes whose kernels weigh most in its predictions (their share of the contact weight):
@@ -20,6 +30,7 @@ the better of the two, its nll and 90 % coverage. The last line is exactly ``obj
 (the issue's target: ≤ the better + 2 paired SE on at least 3 of 4).
 
     .venv/bin/python tools/residual_transfer.py distance runs/engine_gap [--pushes 15]
+    .venv/bin/python tools/residual_transfer.py novelty runs/engine_gap [--pushes 15]
     .venv/bin/python tools/residual_transfer.py weights runs/quickstart_transfer
     .venv/bin/python tools/residual_transfer.py target runs/quickstart_transfer
 """
@@ -39,7 +50,7 @@ from pushtorch import se3
 from pushtorch.evaluation.likelihood import nll
 from pushtorch.evaluation.transfer import RESIDUAL_WIDENINGS
 from pushtorch.experiments.figures import FIGURE_DATA, read_figure_data
-from pushtorch.models.residual import load_residual_model
+from pushtorch.models.residual import NOVELTY_WIDENINGS, load_residual_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.prediction import transfer_distance
@@ -90,6 +101,42 @@ def distance(run: Path, pushes: int) -> None:
                 values.append(float(transfer_distance(residual.model, prediction.condition, a)))
         q10, median, q90 = np.quantile(values, [0.1, 0.5, 0.9])
         print(f"{obj_name:14s} ({trained}'s model) d2 median {median:.2f} (10 % {q10:.2f}, 90 % {q90:.2f})")
+
+
+def novelty(run: Path, pushes: int) -> None:
+    models = {o: load_residual_model(_one(f"{run}/models/{o}_*_residual_vs_*.npz")) for o in ("cube", "cylinder")}
+    generator = torch.Generator().manual_seed(0)
+    for name, other in (("cube", "cylinder"), ("cylinder", "cube"), ("cube", "cube"), ("cylinder", "cylinder")):
+        residual, obj = models[name], load_object(other)
+        valid = load_records(_one(f"{run}/data/{other}_*"))
+        valid = valid.take(valid.valid)
+        rows, news = [], []
+        for i in torch.randperm(len(valid), generator=generator)[:pushes].tolist():
+            push = valid.take(torch.tensor([i]))
+            start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
+            robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
+            cloud = capture_partial_cloud(obj, start, voxel_size=residual.settings.voxel_size)
+            prediction = predict_residual(residual, cloud, push.action[0].float(), i, robot_start=robot)
+            truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
+            n = prediction.outcome_novelty
+            rows.append([float(nll(rescaled(prediction, math.sqrt(1 + v * n) / prediction.widened_by), truth, start,
+                                   prediction.start, obj.symmetry)[0]) for v in NOVELTY_WIDENINGS])
+            news.append(n)
+        mean = np.asarray(rows).mean(0)
+        print(f"{name}'s residuals on {len(rows)} {other} training pushes (own pushes in-sample): nll by nu "
+              + ", ".join(f"{v:g}: {x:.2f}" for v, x in zip(NOVELTY_WIDENINGS, mean, strict=True))
+              + f"; novelty median {np.median(news):.2f}")
+    for obj_name, trained in TRAINING_OF.items():
+        residual, obj = models[trained], load_object(obj_name)
+        values = []
+        for k in range(6):
+            yaw = float(torch.empty(()).uniform_(-math.pi / 4, math.pi / 4, generator=generator))
+            cloud = capture_partial_cloud(obj, obj.resting_pose(yaw=yaw), voxel_size=residual.settings.voxel_size)
+            for a in range(len(residual.actions)):
+                prediction = predict_residual(residual, cloud, residual.actions[a], 3 * k + a)
+                values.append(prediction.outcome_novelty)
+        q10, median, q90 = np.quantile(values, [0.1, 0.5, 0.9])
+        print(f"{obj_name:14s} ({trained}'s model) outcome d2 median {median:.2f} (10 % {q10:.2f}, 90 % {q90:.2f})")
 
 
 def weights(run: Path) -> None:
@@ -145,12 +192,14 @@ def target(run: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("what", choices=("distance", "weights", "target"))
+    parser.add_argument("what", choices=("distance", "novelty", "weights", "target"))
     parser.add_argument("run", type=Path)
     parser.add_argument("--pushes", type=int, default=15)
     args = parser.parse_args()
     if args.what == "distance":
         distance(args.run, args.pushes)
+    elif args.what == "novelty":
+        novelty(args.run, args.pushes)
     else:
         (weights if args.what == "weights" else target)(args.run)
 

@@ -36,9 +36,11 @@ from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.evaluation.likelihood import nll, product_density
 from pushtorch.models.model import PushModel
 from pushtorch.models.pooled import ShapeParts, pool_parts
+from pushtorch.models.residual import NOVELTY_WIDENINGS
 from pushtorch.objects import ObjectModel
 
-__all__ = ["RESIDUAL_WIDENINGS", "SCALES", "WIDENINGS", "choose_residual_widening", "choose_widening"]
+__all__ = ["RESIDUAL_WIDENINGS", "SCALES", "WIDENINGS", "choose_novelty_widening", "choose_residual_widening",
+           "choose_widening"]
 
 log = logging.getLogger(__name__)
 
@@ -132,6 +134,40 @@ def choose_widening(model: PushModel, objects: list[ObjectModel], records: list,
     return replace(model, settings=replace(model.settings, transfer_scale=s0, transfer_widening=kappa), meta=meta)
 
 
+def _held_out_pushes(obj: ObjectModel, records, count: int, voxel_size: float, generator: torch.Generator):
+    """Up to ``count`` of ``obj``'s valid pushes in ``records``, drawn at random: each ``(cloud, action, robot
+    start, start, truth)``, the single-shot cloud at the push's start."""
+    from pushtorch.perception import capture_partial_cloud
+
+    valid = records.take(records.valid)
+    for i in torch.randperm(len(valid), generator=generator)[:count].tolist():
+        push = valid.take(torch.tensor([i]))
+        start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
+        robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
+        truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
+        yield capture_partial_cloud(obj, start, voxel_size=voxel_size), push.action[0].float(), robot, start, truth
+
+
+def _residual_scores(residual, obj: ObjectModel, records, count: int, generator: torch.Generator,
+                     factors) -> tuple[list[torch.Tensor], int]:
+    """Each held-out push's nll under ``residual``'s prediction with its kernels' stds times each of
+    ``factors(prediction)``, from one prediction per push (the same rollouts), and how many pushes could not be
+    predicted."""
+    from pushtorch.prediction.residual import predict_residual, rescaled
+
+    scores, skipped = [], 0
+    for cloud, action, robot, start, truth in _held_out_pushes(obj, records, count, residual.settings.voxel_size,
+                                                                generator):
+        try:
+            prediction = predict_residual(residual, cloud, action, generator, robot_start=robot)
+        except (ModelError, InvalidPoseError):  # no body, or the bumper meets no observed feature there
+            skipped += 1
+            continue
+        scores.append(torch.tensor([float(nll(rescaled(prediction, f), truth, start, prediction.start,
+                                              obj.symmetry)[0]) for f in factors(prediction)], dtype=torch.float64))
+    return scores, skipped
+
+
 def choose_residual_widening(residual, objects: list[ObjectModel], records: list, pushes_per_shape: int = 6,
                              generator: torch.Generator | None = None, widenings=RESIDUAL_WIDENINGS):
     """The pooled ``residual`` model with its ``widening`` chosen by leave-one-shape-out likelihood (module
@@ -146,15 +182,11 @@ def choose_residual_widening(residual, objects: list[ObjectModel], records: list
         InvalidParameterError: a residual model of one object, shapes that are not its own, or no held-out
             push that could be predicted.
     """
-    from pushtorch.perception import capture_partial_cloud
-    from pushtorch.prediction.residual import predict_residual, rescaled
-
     if residual.shapes is None or [o.name for o in objects] != list(residual.shape_names) or len(objects) < 2:
         raise InvalidParameterError("choosing the residual's widening holds one of its pooled training shapes out: "
                                     f"it needs the model's own shapes ({residual.shape_names}), at least two, got "
                                     f"{[o.name for o in objects]}")
-    if isinstance(pushes_per_shape, bool) or int(pushes_per_shape) != pushes_per_shape or pushes_per_shape < 1:
-        raise InvalidParameterError(f"widening_pushes must be a whole number >= 1, got {pushes_per_shape!r}")
+    _check_pushes(pushes_per_shape)
     generator = generator or torch.Generator().manual_seed(0)
     grid = [float(k) for k in widenings]
     base = replace(residual, widening=0.0)
@@ -165,22 +197,10 @@ def choose_residual_widening(residual, objects: list[ObjectModel], records: list
         except InvalidParameterError:  # the only shape of some action: nothing to hold it out against
             skipped += 1
             continue
-        valid = shape_records.take(shape_records.valid)
-        for i in torch.randperm(len(valid), generator=generator)[:pushes_per_shape].tolist():
-            push = valid.take(torch.tensor([i]))
-            start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
-            robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
-            cloud = capture_partial_cloud(obj, start, voxel_size=residual.settings.voxel_size)
-            try:
-                prediction = predict_residual(held_out, cloud, push.action[0].float(), generator, robot_start=robot)
-            except (ModelError, InvalidPoseError):  # no body, or the bumper meets no observed feature there
-                skipped += 1
-                continue
-            truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
-            d2 = prediction.contact_distance2
-            scores.append(torch.tensor([float(nll(rescaled(prediction, math.sqrt(1.0 + k * d2)), truth, start,
-                                                  prediction.start, obj.symmetry)[0]) for k in grid],
-                                       dtype=torch.float64))
+        more, missed = _residual_scores(held_out, obj, shape_records, pushes_per_shape, generator,
+                                        lambda p: [math.sqrt(1.0 + k * p.contact_distance2) for k in grid])
+        scores += more
+        skipped += missed
     if not scores:
         raise InvalidParameterError("no held-out push of any training shape could be predicted to choose the "
                                     "residual's widening")
@@ -192,3 +212,48 @@ def choose_residual_widening(residual, objects: list[ObjectModel], records: list
     meta["widening"] = {"chosen": grid[best], "grid": grid, "nll": mean.tolist(), "pushes": len(scores),
                         "skipped": skipped}
     return replace(residual, widening=grid[best], meta=meta)
+
+
+def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records: list, pushes_per_shape: int = 6,
+                            generator: torch.Generator | None = None, widenings=NOVELTY_WIDENINGS) -> list:
+    """Residual models of one object each, trained on the same prior, with one novelty widening ``ν`` chosen
+    across them: each model predicts ``pushes_per_shape`` of every *other* training object's pushes (a shape it
+    never saw, as a pooled model's held-out shape), its kernels' stds widened by ``sqrt(1 + ν·n)`` (``n`` the
+    prediction's outcome novelty), and the ``ν`` of lowest mean nll is given to all (kept in ``meta["novelty"]``).
+    What an experiment with several training objects does for their residual models; a single object has no shape
+    to hold out and keeps ``ν = 0``.
+
+    Raises:
+        InvalidParameterError: fewer than two models, objects or records not one per model, or no push predicted.
+    """
+    if len(residuals) < 2 or len(objects) != len(residuals) or len(records) != len(residuals):
+        raise InvalidParameterError("choosing the residual's novelty widening holds each training object out of "
+                                    f"another's model: it needs two models or more, one object and one set of "
+                                    f"records each, got {len(residuals)}, {len(objects)} and {len(records)}")
+    _check_pushes(pushes_per_shape)
+    generator = generator or torch.Generator().manual_seed(0)
+    grid = [float(v) for v in widenings]
+    scores, skipped = [], 0
+    for i, residual in enumerate(residuals):
+        for j, (obj, other) in enumerate(zip(objects, records, strict=True)):
+            if j != i:
+                more, missed = _residual_scores(
+                    replace(residual, novelty_widening=0.0), obj, other, pushes_per_shape, generator,
+                    lambda p: [math.sqrt(p.widened_by**2 + v * p.outcome_novelty) / p.widened_by for v in grid])
+                scores += more
+                skipped += missed
+    if not scores:
+        raise InvalidParameterError("no push of another training object could be predicted to choose the "
+                                    "residual's novelty widening")
+    mean = torch.stack(scores).mean(0)
+    best = int(mean.argmin())
+    log.info("residual novelty widening %g across %s (held-out nll %.2f against %.2f unwidened, %d pushes)",
+             grid[best], [o.name for o in objects], float(mean[best]), float(mean[0]), len(scores))
+    chosen = {"chosen": grid[best], "across": [o.name for o in objects], "grid": grid, "nll": mean.tolist(),
+              "pushes": len(scores), "pushes_per_shape": int(pushes_per_shape), "skipped": skipped}
+    return [replace(r, novelty_widening=grid[best], meta={**r.meta, "novelty": chosen}) for r in residuals]
+
+
+def _check_pushes(pushes_per_shape) -> None:
+    if isinstance(pushes_per_shape, bool) or int(pushes_per_shape) != pushes_per_shape or pushes_per_shape < 1:
+        raise InvalidParameterError(f"widening_pushes must be a whole number >= 1, got {pushes_per_shape!r}")

@@ -55,7 +55,7 @@ from pushtorch.experiments.common import (
 from pushtorch.experiments.statistics import sample_entry
 from pushtorch.experiments.suite import run_suite
 from pushtorch.experiments.tasks import prefetched
-from pushtorch.experiments.training import train_models, train_residual
+from pushtorch.experiments.training import train_models, train_residual, widen_residuals_by_novelty
 from pushtorch.models.residual import DEFAULT_ENSEMBLE
 from pushtorch.objects import load_object
 
@@ -118,7 +118,10 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     residuals = None
     if part.get("residual"):
         size = int(part.get("residual_ensemble") or DEFAULT_ENSEMBLE)
-        residuals = {models[tfm].name: train_residual(ctx, load_object(tfm[0]), *tfm[1:], size) for tfm in trained}
+        fitted = {tfm: train_residual(ctx, load_object(tfm[0]), *tfm[1:], size) for tfm in trained}
+        if int(part.get("residual_novelty_pushes", 0)) > 0:  # one novelty widening across the training objects
+            fitted = widen_residuals_by_novelty(ctx, fitted, int(part["residual_novelty_pushes"]))
+        residuals = {models[tfm].name: fitted[tfm] for tfm in trained}
     records: list[dict] = []
     thrown: list[dict] = []
     hacc_samples: list[dict] = []

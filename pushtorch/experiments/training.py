@@ -17,7 +17,7 @@ from pushtorch.experiments.context import ExperimentContext, stable_seed
 from pushtorch.experiments.tasks import prefetch, saved_as
 from pushtorch.models.model import PushModel, load_model
 from pushtorch.models.training import train_push_model
-from pushtorch.objects import ObjectModel
+from pushtorch.objects import ObjectModel, load_object
 from pushtorch.paths import contained_path
 from pushtorch.sim.plan import Placement
 
@@ -152,7 +152,6 @@ def train_models(ctx: ExperimentContext, keys) -> dict[tuple[str, str, str], Pus
     so that the pushes are spread as widely as the cluster allows and each model's task only trains."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from pushtorch.objects import load_object
     from pushtorch.sim.executors import connect
 
     keys = list(keys)
@@ -204,6 +203,36 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
     residual = train_residual_model(fresh, obj, records, ctx.physics, ensemble)
     residual.save(path)
     return saved_as(residual, _read_residual, str(path), int(ensemble))
+
+
+def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: int) -> dict:
+    """``{(object, friction, mass): residual model}`` with one novelty widening chosen across the training objects
+    of each prior (:func:`pushtorch.evaluation.transfer.choose_novelty_widening`: each object's model scores
+    ``pushes`` of every other's training pushes per object), each saved back to its file. A prior with one
+    training object keeps its models as they are; a model whose file already holds the choice across the same
+    objects is kept as read."""
+    from pushtorch.evaluation.transfer import choose_novelty_widening
+
+    out = dict(trained)
+    by_prior: dict[tuple[str, str], list] = {}
+    for t, f, m in trained:
+        by_prior.setdefault((f, m), []).append(t)
+    for (f, m), names in sorted(by_prior.items()):
+        names = sorted(names)
+        models = [trained[(t, f, m)] for t in names]
+        if len(names) < 2 or all((r.meta.get("novelty") or {}).get("across") == names
+                                 and (r.meta.get("novelty") or {}).get("pushes_per_shape") == int(pushes)
+                                 for r in models):
+            continue
+        objects = [load_object(t) for t in names]
+        records = [training_records(ctx, o, f, m, progress=False) for o in objects]
+        generator = torch.Generator().manual_seed(stable_seed(ctx.seed, "residual_novelty", f, m, *names))
+        widened = choose_novelty_widening(models, objects, records, pushes, generator)
+        for t, residual in zip(names, widened, strict=True):
+            path = _residual_path(ctx, _model_key(t, f, m))
+            residual.save(path)
+            out[(t, f, m)] = saved_as(residual, _read_residual, str(path), int(residual.ensemble))
+    return out
 
 
 def _residual_path(ctx: ExperimentContext, key: str) -> Path:

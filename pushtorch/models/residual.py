@@ -45,9 +45,10 @@ from pushtorch.sim.settings import SimSettings
 
 Tensor = torch.Tensor
 
-__all__ = ["DEFAULT_ENSEMBLE", "OUTCOME_LADDER", "RESIDUAL_LADDER", "ResidualModel", "choose_bandwidth", "corrected",
-           "engine_version", "load_any_model", "load_residual_model", "outcome_log_affinity", "residual_of",
-           "rollout_outcome", "train_residual_model", "with_ensemble"]
+__all__ = ["DEFAULT_ENSEMBLE", "NOVELTY_WIDENINGS", "OUTCOME_LADDER", "RESIDUAL_LADDER", "ResidualModel",
+           "choose_bandwidth", "corrected", "engine_version", "load_any_model", "load_residual_model",
+           "outcome_log_affinity", "outcome_novelty", "residual_of", "rollout_outcome", "train_residual_model",
+           "with_ensemble"]
 
 #: Rollouts per prediction unless the model says otherwise, chosen by held-out likelihood on generated training
 #: shapes among the sizes within 3× a pushtorch prediction (tools/residual_ensemble.py on an Intel Xeon, 2 cores:
@@ -61,6 +62,11 @@ RESIDUAL_LADDER = ((0.0025, 0.005, 0.01, 0.02, 0.04, 0.08), (0.005, 0.01, 0.02, 
 #: The widths tried for pairing residual kernels with a rollout by its outcome, in the training outcomes' stds
 #: (``inf``: every kernel weighs alike whatever the rollout did): chosen with the kernels' stds, leave one push out.
 OUTCOME_LADDER = (0.25, 0.5, 1.0, 2.0, 4.0, math.inf)
+
+#: The novelty widenings ``ν`` tried: a prediction whose rollouts did something ``n`` training-outcome stds² from
+#: what any training rollout did (:func:`outcome_novelty`, their median) widens its residual kernels by
+#: ``sqrt(1 + ν·n)`` (0: never).
+NOVELTY_WIDENINGS = (0.0, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
 
 _IDENTITY_Q = torch.tensor([1.0, 0.0, 0.0, 0.0])
 
@@ -78,17 +84,29 @@ def rollout_outcome(robot_start: se3.Pose, start: se3.Pose, final: se3.Pose) -> 
     return torch.cat([(p1 - p0)[..., :2], turn.unsqueeze(-1).expand(*p1.shape[:-1], 1)], -1)
 
 
+def _outcome_d2(queries: Tensor, kernels: Tensor) -> Tensor:
+    """``(Q, J)`` float64 squared distances of outcomes ``queries (Q, 3)`` to ``kernels (J, 3)``, per component in
+    the kernels' stds (turns wrapped)."""
+    q, k = queries.double(), kernels.double()
+    scale = k.std(0).clamp_min(1e-9) if k.shape[0] > 1 else torch.ones(3, dtype=torch.float64, device=k.device)
+    d = q.unsqueeze(1) - k.unsqueeze(0)
+    d[..., 2] = torch.atan2(torch.sin(d[..., 2]), torch.cos(d[..., 2]))
+    return ((d / scale) ** 2).sum(-1)
+
+
 def outcome_log_affinity(queries: Tensor, kernels: Tensor, width: float) -> Tensor:
     """``(Q, J)`` float64 log of how much each training rollout's outcome ``kernels (J, 3)`` resembles each of
     ``queries (Q, 3)`` (:func:`rollout_outcome`): a Gaussian of ``width`` stds of the training outcomes per
     component, up to a constant; 0 everywhere for an infinite width."""
-    q, k = queries.double(), kernels.double()
     if math.isinf(width):
-        return torch.zeros(q.shape[0], k.shape[0], dtype=torch.float64, device=k.device)
-    scale = k.std(0).clamp_min(1e-9) if k.shape[0] > 1 else torch.ones(3, dtype=torch.float64, device=k.device)
-    d = q.unsqueeze(1) - k.unsqueeze(0)
-    d[..., 2] = torch.atan2(torch.sin(d[..., 2]), torch.cos(d[..., 2]))
-    return -((d / scale) ** 2).sum(-1) / (2.0 * width**2)
+        return torch.zeros(queries.shape[0], kernels.shape[0], dtype=torch.float64, device=kernels.device)
+    return -_outcome_d2(queries, kernels) / (2.0 * width**2)
+
+
+def outcome_novelty(queries: Tensor, kernels: Tensor) -> Tensor:
+    """``(Q,)`` float64 how new each rollout outcome of ``queries (Q, 3)`` is: its squared distance, in the
+    training outcomes' stds, to the nearest of ``kernels (J, 3)`` (what each kernel's training rollout did)."""
+    return _outcome_d2(queries, kernels).amin(1)
 
 
 def _centre(pose: se3.Pose) -> se3.Pose:
@@ -136,6 +154,9 @@ class ResidualModel:
             None (a file written before rollouts were kept: every kernel then weighs alike for every rollout).
         outcome_width: ``h``, how closely a prediction's rollout pairs with the kernels whose training rollout
             did the same (:func:`outcome_log_affinity`; ``inf``: not at all), chosen with the stds.
+        novelty_widening: ``ν``: a prediction whose rollouts' outcomes lie a median ``n`` (:func:`outcome_novelty`)
+            from every training rollout's widens the residual kernels' stds by ``sqrt(1 + ν·n)`` (0: never;
+            :func:`pushtorch.evaluation.transfer.choose_novelty_widening` chooses it across training objects).
     """
 
     model: PushModel
@@ -150,6 +171,7 @@ class ResidualModel:
     widening: float = 0.0
     outcomes: list[Tensor] | None = None
     outcome_width: float = math.inf
+    novelty_widening: float = 0.0
 
     @property
     def name(self) -> str:
@@ -245,6 +267,7 @@ class ResidualModel:
                                "p_std": self.bandwidth.p_std, "rot_std": self.bandwidth.rot_std,
                                "widening": self.widening, "shape_names": self.shape_names,
                                "outcome_width": None if math.isinf(self.outcome_width) else self.outcome_width,
+                               "novelty_widening": self.novelty_widening,
                                "meta": self.meta}}
         return write_model_file(path, *self.model.file_parts(arrays, header))
 
@@ -471,9 +494,13 @@ def _residual_from_parts(path, header: dict, arrays: dict, dtype: torch.dtype, o
         width = math.inf if spec.get("outcome_width") is None else float(spec["outcome_width"])
         if not width > 0:
             raise ValueError(f"an outcome width of {width}")
+        novelty = float(spec.get("novelty_widening", 0.0))
+        if not math.isfinite(novelty) or novelty < 0:
+            raise ValueError(f"a novelty widening of {novelty}")
         return ResidualModel(model, residuals, bandwidth, sim, str(spec["engine_version"]), int(spec["ensemble"]),
                              dict(spec.get("meta") or {}), shapes, [str(n) for n in spec.get("shape_names", [])],
-                             widening, outcomes, width if outcomes is not None else math.inf)
+                             widening, outcomes, width if outcomes is not None else math.inf,
+                             novelty if outcomes is not None else 0.0)
     except RecordFormatError:
         raise
     except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError, InvalidParameterError) as exc:

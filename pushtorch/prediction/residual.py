@@ -9,9 +9,12 @@ this push's manipulator contact (the paper's Eq. contact_frame_probability, as i
 ``A_h`` how alike rollout ``i``'s outcome is to kernel ``j``'s training rollout's
 (:func:`pushtorch.models.residual.outcome_log_affinity`; 1 at the model's ``outcome_width = inf``): a correction
 learnt where the simulator did one thing is applied where it does the same. The kernels' stds are the model's,
-widened by ``sqrt(1 + κ·d²)`` where this contact is ``d`` contact-kernel stds from the nearest training contact
-(``κ`` the model's ``widening``, chosen across training shapes; 0 for a model of one object). Its mode is the
-mixture's highest kernel centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one expert
+widened by ``sqrt(1 + κ·d² + ν·n)`` where this contact is ``d`` contact-kernel stds from the nearest training
+contact (``κ`` the model's ``widening``, chosen across a pool's training shapes; 0 for a model of one object) and
+the rollouts did something ``n`` training-outcome stds² from what any training rollout did (the median over the
+rollouts of :func:`pushtorch.models.residual.outcome_novelty`; ``ν`` the model's ``novelty_widening``, chosen
+across an experiment's training objects, 0 unless chosen). Its mode is the mixture's highest kernel centre.
+It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one expert
 with exponent 1, so ``log_prob``, ``sample`` and the coverage work as for pushtorch's own prediction.
 """
 
@@ -31,7 +34,7 @@ from pushtorch.kde.normaliser import NO_CUTOFF
 from pushtorch.models.clearance import check_start
 from pushtorch.models.motion import contact_distances, contact_log_weights
 from pushtorch.models.push_condition import PushCondition, features_for, push_conditions
-from pushtorch.models.residual import ResidualModel, corrected, outcome_log_affinity, rollout_outcome
+from pushtorch.models.residual import ResidualModel, corrected, outcome_log_affinity, outcome_novelty, rollout_outcome
 from pushtorch.models.settings import as_generator
 from pushtorch.perception import PointCloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
@@ -64,8 +67,10 @@ class ResidualPrediction:
     #: ``d²``: the squared distance, in contact-kernel stds, from this push's manipulator contact to the nearest
     #: training contact of the action (:func:`~pushtorch.models.motion.contact_distances`)
     contact_distance2: float = 0.0
-    #: ``sqrt(1 + κ·d²)``, the factor the residual kernels' stds were widened by (1: the model does not widen)
+    #: ``sqrt(1 + κ·d² + ν·n)``, the factor the residual kernels' stds were widened by (1: the model does not widen)
     widened_by: float = 1.0
+    #: ``n``: the rollouts' median novelty (:func:`~pushtorch.models.residual.outcome_novelty`), 0 without outcomes
+    outcome_novelty: float = 0.0
 
 
 def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Generator | int | None = None,
@@ -123,18 +128,24 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
                       se3.Pose.unchecked(kernels.p.double().unsqueeze(0), kernels.q.double().unsqueeze(0)))
     means = se3.Pose.unchecked(means.p.reshape(-1, 3).to(dtype), se3.quat_normalize(means.q.reshape(-1, 4)).to(dtype))
     log_v = log_w.unsqueeze(0).expand(n, -1)  # (N, J) each rollout's residual kernels
-    if residual.outcomes is not None and not math.isinf(residual.outcome_width):
-        # each rollout leans on the kernels whose training rollout did what it did
+    novelty = 0.0
+    if residual.outcomes is not None:
         did = rollout_outcome(condition.robot_start, body_start, finals)
-        log_v = log_v + outcome_log_affinity(did, residual.outcomes[a].to(did), residual.outcome_width)
-        log_v = log_v - torch.logsumexp(log_v, 1, keepdim=True)
+        kernels_did = residual.outcomes[a].to(did)
+        if not math.isinf(residual.outcome_width):  # each rollout leans on the kernels whose rollout did the same
+            log_v = log_v + outcome_log_affinity(did, kernels_did, residual.outcome_width)
+            log_v = log_v - torch.logsumexp(log_v, 1, keepdim=True)
+        reached = torch.isfinite(log_w).to(kernels_did.device)  # kernels no contact reaches correct nothing
+        if bool(reached.any()):
+            novelty = float(outcome_novelty(did, kernels_did[reached]).median())
     log_weights = (log_v - math.log(n)).reshape(1, -1).to(dtype)
     keep = torch.isfinite(log_weights[0])  # kernels no contact reaches weigh nothing
     means = means.take(keep.nonzero().reshape(-1))
     log_weights = log_weights[:, keep]
     d2 = float(contact_distances(condition.manipulator_frame, motion.manipulator, condition.robot_start,
                                  model.settings.contact_bandwidth, condition.contact_patch).amin())
-    scale = math.sqrt(1.0 + residual.widening * d2)  # corrections learnt far from this contact are less sure
+    # corrections learnt far from this contact, or where the simulator did something else, are less sure
+    scale = math.sqrt(1.0 + residual.widening * d2 + residual.novelty_widening * novelty)
     bandwidth = dataclasses.replace(residual.bandwidth, p_std=residual.bandwidth.p_std * scale,
                                     rot_std=residual.bandwidth.rot_std * scale, cutoff_std=NO_CUTOFF)
     # the mode: the kernel centre of highest density
@@ -145,7 +156,7 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     thrown = int((~records.valid).sum())
     return ResidualPrediction(residual.name, motion.action, condition, body_start.to(dtype), mode, density,
                               se3.Pose.unchecked(finals.p.to(dtype), finals.q.to(dtype)), drawn, thrown, log_w, d2,
-                              scale)
+                              scale, novelty)
 
 
 def _mixture(means: se3.Pose, log_weights: torch.Tensor, bandwidth, mode: torch.Tensor | None) -> FinalPoseDistribution:
