@@ -68,75 +68,75 @@ def _one(pattern: str) -> str:
     return found[0]
 
 
+def _scored(residual, obj, run: Path, pushes: int, generator: torch.Generator, factors) -> tuple[np.ndarray, list]:
+    """``pushes`` of ``obj``'s training pushes in ``run`` predicted by ``residual`` from their robot starts: each
+    push's nll with the kernels' stds times each of ``factors(prediction)``, and the predictions."""
+    valid = load_records(_one(f"{run}/data/{obj.name}_*"))
+    valid = valid.take(valid.valid)
+    rows, predictions = [], []
+    for i in torch.randperm(len(valid), generator=generator)[:pushes].tolist():
+        push = valid.take(torch.tensor([i]))
+        start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
+        robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
+        cloud = capture_partial_cloud(obj, start, voxel_size=residual.settings.voxel_size)
+        prediction = predict_residual(residual, cloud, push.action[0].float(), i, robot_start=robot)
+        truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
+        rows.append([float(nll(rescaled(prediction, f), truth, start, prediction.start, obj.symmetry)[0])
+                     for f in factors(prediction)])
+        predictions.append(prediction)
+    return np.asarray(rows), predictions
+
+
+def _per_object(models: dict, generator: torch.Generator, what: str, value) -> None:
+    """Per catalogue object at six random yaws and every action, the quantiles of ``value(prediction, action)``
+    under its training object's residual model."""
+    for obj_name, trained in TRAINING_OF.items():
+        residual, obj = models[trained], load_object(obj_name)
+        values = []
+        for k in range(6):
+            yaw = float(torch.empty(()).uniform_(-math.pi / 4, math.pi / 4, generator=generator))
+            cloud = capture_partial_cloud(obj, obj.resting_pose(yaw=yaw), voxel_size=residual.settings.voxel_size)
+            for a in range(len(residual.actions)):
+                values.append(float(value(predict_residual(residual, cloud, residual.actions[a], 3 * k + a), a)))
+        q10, median, q90 = np.quantile(values, [0.1, 0.5, 0.9])
+        print(f"{obj_name:14s} ({trained}'s model) {what} median {median:.2f} (10 % {q10:.2f}, 90 % {q90:.2f})")
+
+
+def _models(run: Path) -> dict:
+    return {o: load_residual_model(_one(f"{run}/models/{o}_*_residual_vs_*.npz")) for o in ("cube", "cylinder")}
+
+
 def distance(run: Path, pushes: int) -> None:
-    models = {o: load_residual_model(_one(f"{run}/models/{o}_*_residual_vs_*.npz")) for o in ("cube", "cylinder")}
+    models = _models(run)
     generator = torch.Generator().manual_seed(0)
     for name, other in (("cube", "cylinder"), ("cylinder", "cube")):
-        residual, obj = models[name], load_object(other)
-        records = load_records(_one(f"{run}/data/{other}_*"))
-        valid = records.take(records.valid)
-        rows = []
-        for i in torch.randperm(len(valid), generator=generator)[:pushes].tolist():
-            push = valid.take(torch.tensor([i]))
-            start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
-            robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
-            cloud = capture_partial_cloud(obj, start, voxel_size=residual.settings.voxel_size)
-            prediction = predict_residual(residual, cloud, push.action[0].float(), i, robot_start=robot)
-            truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
-            d2 = prediction.contact_distance2
-            rows.append([float(nll(rescaled(prediction, math.sqrt(1 + k * d2)), truth, start, prediction.start,
-                                   obj.symmetry)[0]) for k in RESIDUAL_WIDENINGS])
-        mean = np.asarray(rows).mean(0)
+        residual = models[name]
+        rows, _ = _scored(residual, load_object(other), run, pushes, generator,
+                          lambda p: [math.sqrt(1 + k * p.contact_distance2) for k in RESIDUAL_WIDENINGS])
+        mean = rows.mean(0)
         print(f"{name}'s residuals on {len(rows)} {other} pushes: held-out nll by kappa "
               + ", ".join(f"{k:g}: {v:.2f}" for k, v in zip(RESIDUAL_WIDENINGS, mean, strict=True))
               + f"; best kappa {RESIDUAL_WIDENINGS[int(mean.argmin())]:g}")
-    for obj_name, trained in TRAINING_OF.items():
-        residual, obj = models[trained], load_object(obj_name)
-        values = []
-        for k in range(6):
-            yaw = float(torch.empty(()).uniform_(-math.pi / 4, math.pi / 4, generator=generator))
-            cloud = capture_partial_cloud(obj, obj.resting_pose(yaw=yaw), voxel_size=residual.settings.voxel_size)
-            for a in range(len(residual.actions)):
-                prediction = predict_residual(residual, cloud, residual.actions[a], 3 * k + a)
-                values.append(float(transfer_distance(residual.model, prediction.condition, a)))
-        q10, median, q90 = np.quantile(values, [0.1, 0.5, 0.9])
-        print(f"{obj_name:14s} ({trained}'s model) d2 median {median:.2f} (10 % {q10:.2f}, 90 % {q90:.2f})")
+    _per_object(models, generator, "d2", lambda p, a: transfer_distance(_model_of(models, p), p.condition, a))
+
+
+def _model_of(models: dict, prediction):
+    """The push model inside the residual model that made ``prediction``."""
+    return next(m.model for m in models.values() if m.name == prediction.model_name)
 
 
 def novelty(run: Path, pushes: int) -> None:
-    models = {o: load_residual_model(_one(f"{run}/models/{o}_*_residual_vs_*.npz")) for o in ("cube", "cylinder")}
+    models = _models(run)
     generator = torch.Generator().manual_seed(0)
     for name, other in (("cube", "cylinder"), ("cylinder", "cube"), ("cube", "cube"), ("cylinder", "cylinder")):
-        residual, obj = models[name], load_object(other)
-        valid = load_records(_one(f"{run}/data/{other}_*"))
-        valid = valid.take(valid.valid)
-        rows, news = [], []
-        for i in torch.randperm(len(valid), generator=generator)[:pushes].tolist():
-            push = valid.take(torch.tensor([i]))
-            start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
-            robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
-            cloud = capture_partial_cloud(obj, start, voxel_size=residual.settings.voxel_size)
-            prediction = predict_residual(residual, cloud, push.action[0].float(), i, robot_start=robot)
-            truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
-            n = prediction.outcome_novelty
-            rows.append([float(nll(rescaled(prediction, math.sqrt(1 + v * n) / prediction.widened_by), truth, start,
-                                   prediction.start, obj.symmetry)[0]) for v in NOVELTY_WIDENINGS])
-            news.append(n)
-        mean = np.asarray(rows).mean(0)
+        rows, predictions = _scored(models[name], load_object(other), run, pushes, generator,
+                                    lambda p: [math.sqrt(1 + v * p.outcome_novelty) / p.widened_by
+                                               for v in NOVELTY_WIDENINGS])
+        mean = rows.mean(0)
         print(f"{name}'s residuals on {len(rows)} {other} training pushes (own pushes in-sample): nll by nu "
               + ", ".join(f"{v:g}: {x:.2f}" for v, x in zip(NOVELTY_WIDENINGS, mean, strict=True))
-              + f"; novelty median {np.median(news):.2f}")
-    for obj_name, trained in TRAINING_OF.items():
-        residual, obj = models[trained], load_object(obj_name)
-        values = []
-        for k in range(6):
-            yaw = float(torch.empty(()).uniform_(-math.pi / 4, math.pi / 4, generator=generator))
-            cloud = capture_partial_cloud(obj, obj.resting_pose(yaw=yaw), voxel_size=residual.settings.voxel_size)
-            for a in range(len(residual.actions)):
-                prediction = predict_residual(residual, cloud, residual.actions[a], 3 * k + a)
-                values.append(prediction.outcome_novelty)
-        q10, median, q90 = np.quantile(values, [0.1, 0.5, 0.9])
-        print(f"{obj_name:14s} ({trained}'s model) outcome d2 median {median:.2f} (10 % {q10:.2f}, 90 % {q90:.2f})")
+              + f"; novelty median {np.median([p.outcome_novelty for p in predictions]):.2f}")
+    _per_object(models, generator, "outcome d2", lambda p, a: p.outcome_novelty)
 
 
 def weights(run: Path) -> None:
