@@ -32,6 +32,7 @@ __all__ = [
     "LOG_RULES",
     "LogConditions",
     "MAX_LOGGED_CONDITIONS",
+    "SCORES_VERSION",
     "as_names",
     "context_from_config",
     "fingerprint",
@@ -42,6 +43,7 @@ __all__ = [
     "prior_pairs",
     "progress_bar",
     "save_arrays",
+    "scores_made_from",
     "stable_seed",
 ]
 
@@ -393,3 +395,14 @@ def load_arrays(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
 def fingerprint(**inputs: Any) -> str:
     """SHA-256 of JSON-able inputs: a cached result is reused only if what made it is unchanged."""
     return hashlib.sha256(json.dumps(inputs, sort_keys=True, default=str).encode()).hexdigest()
+
+
+#: Bump when a group's scores would come out differently for the same predictions and truth (the coverage's draws
+#: scored by their nearest symmetric copy, as the truths are): cached sets of an older one are recomputed.
+SCORES_VERSION = 2
+
+
+def scores_made_from(made_from: str, truth: str) -> list:
+    """What a group's cached scores were computed from: its prediction set's fingerprint, its ground truth's
+    (:func:`~pushtorch.experiments.scoring.truth_fingerprint`) and :data:`SCORES_VERSION`."""
+    return [made_from, truth, SCORES_VERSION]

@@ -25,6 +25,7 @@ from pushtorch.experiments.context import (
     fingerprint,
     load_arrays,
     save_arrays,
+    scores_made_from,
     stable_seed,
 )
 from pushtorch.experiments.example_files import load_examples, save_examples
@@ -42,14 +43,12 @@ __all__ = [
     "Example",
     "Examples",
     "PREDICTION_VERSION",
-    "SCORES_VERSION",
     "PredictionSet",
     "cache_name",
     "examples_path",
     "observe",
     "predict_set",
     "sample_test_poses",
-    "scores_made_from",
     "scores_path",
     "spread_test_start",
 ]
@@ -242,17 +241,6 @@ def scores_path(ctx: ExperimentContext, key: str) -> Path:
     prediction set's fingerprint; a set is reused from the cache only with its scores)."""
     return contained_path(ctx.run_dir, "scores", f"{cache_name(ctx, key)}.npz",
                           what="experiment, object or prior name")
-
-
-#: Bump when a group's scores would come out differently for the same predictions and truth (the coverage's draws
-#: scored by their nearest symmetric copy, as the truths are): cached sets of an older one are recomputed.
-SCORES_VERSION = 2
-
-
-def scores_made_from(made_from: str, truth: str) -> list:
-    """What a group's cached scores were computed from: its prediction set's fingerprint, its ground truth's
-    (:func:`~pushtorch.experiments.scoring.truth_fingerprint`) and :data:`SCORES_VERSION`."""
-    return [made_from, truth, SCORES_VERSION]
 
 
 def spread_test_start(obj: ObjectModel, pose: se3.Pose, placement: Placement,

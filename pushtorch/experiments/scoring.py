@@ -17,8 +17,15 @@ import torch
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, RecordFormatError
 from pushtorch.evaluation.metrics import Accuracy, accuracy, displaced
-from pushtorch.experiments.context import ExperimentContext, fingerprint, load_arrays, save_arrays, stable_seed
-from pushtorch.experiments.prediction_sets import PredictionSet, cache_name, scores_made_from, scores_path
+from pushtorch.experiments.context import (
+    ExperimentContext,
+    fingerprint,
+    load_arrays,
+    save_arrays,
+    scores_made_from,
+    stable_seed,
+)
+from pushtorch.experiments.prediction_sets import PredictionSet, cache_name, scores_path
 from pushtorch.objects import ObjectModel
 from pushtorch.paths import contained_path
 
