@@ -86,6 +86,10 @@ COVERAGE_LEVELS = (0.5, 0.9)
 COVERAGE_SAMPLES = 400
 _CONTINUOUS_STEPS = 120  # a 3° grid about a continuous symmetry axis
 _REFINE = torch.linspace(-1.5, 1.5, 37, dtype=torch.float64)  # ±1.5 grid steps (±4.5°) in 0.25° steps
+#: A draw's search about a continuous axis (:func:`_nearest_copy_scores`): 9 turns over nll's refined span, then 9
+#: about the best of them, a quarter as wide
+_DRAW_STEPS = (torch.linspace(-1.5, 1.5, 9, dtype=torch.float64) * (2.0 * math.pi / _CONTINUOUS_STEPS),
+               torch.linspace(-0.375, 0.375, 9, dtype=torch.float64) * (2.0 * math.pi / _CONTINUOUS_STEPS))
 
 
 def _full_density(means: se3.Pose, log_weights: Tensor, p_std: float, rot_std: float,
@@ -271,10 +275,10 @@ def _nearest_copy_scores(density: FinalPoseDistribution, draws: Tensor, log_p: T
     """``(T,)`` each draw's ``(T, 7)`` log density at its nearest symmetric copy (``log_p``: at itself).
     :func:`nll` scans a truth's every copy (157 evaluations a copy about a continuous axis); a draw is instead
     turned to face the best draw, the orientation the density's mass gathers around: the discrete copy closest to
-    it (about a continuous axis, after the twist that aligns the two) is scored, refined about the axis on
-    :func:`nll`'s own fine grid (±4.5° in 0.25° steps), and the draw as it is kept as a candidate. Wherever the
-    density has one basin per symmetric class, that is the same maximum, at 1 (discrete) or 38 (continuous)
-    evaluations a draw."""
+    it (about a continuous axis, after the twist that aligns the two) is scored, searched about the axis over
+    :func:`nll`'s refined span (±4.5°, to 0.28°), and the draw as it is kept as a candidate. Wherever the density
+    has one basin per symmetric class, that is the same maximum, at 1 (discrete) or 19 (continuous) evaluations a
+    draw."""
     q = draws[:, 3:]
     copies = pkt.quaternion_raw_multiply(q.unsqueeze(1), symmetry.discrete.double().unsqueeze(0))  # (T, K, 4)
     target = q[int(log_p.argmax())]
@@ -286,12 +290,17 @@ def _nearest_copy_scores(density: FinalPoseDistribution, draws: Tensor, log_p: T
     axis = symmetry.continuous_axis.double()
     along = (relative[..., 1:] * axis).sum(-1)
     k = (relative[..., 0] ** 2 + along**2).argmax(-1)  # the copy whose axis the twist can align with the target's
-    twist = 2.0 * torch.atan2(along[rows, k], relative[rows, k, 0])  # (T,)
-    angles = twist.unsqueeze(-1) + _REFINE * (2.0 * math.pi / _CONTINUOUS_STEPS)  # (T, R)
-    turned = pkt.quaternion_raw_multiply(copies[rows, k].unsqueeze(1).expand(*angles.shape, 4),
-                                         _axis_turns(axis, angles))
-    vectors = torch.cat([draws[:, :3].unsqueeze(1).expand(*angles.shape, 3), turned], -1)
-    return torch.maximum(log_p, density.log_prob(vectors).double().amax(-1))
+    best = 2.0 * torch.atan2(along[rows, k], relative[rows, k, 0])  # (T,) the twist that faces the best draw
+    found = log_p
+    for offsets in _DRAW_STEPS:  # ±4.5° in 1.125° steps, then ±1.125° in 0.28° steps about the best so far
+        angles = best.unsqueeze(-1) + offsets  # (T, R)
+        turned = pkt.quaternion_raw_multiply(copies[rows, k].unsqueeze(1).expand(*angles.shape, 4),
+                                             _axis_turns(axis, angles))
+        scores = density.log_prob(torch.cat([draws[:, :3].unsqueeze(1).expand(*angles.shape, 3), turned],
+                                            -1)).double()
+        best = angles[rows, scores.argmax(-1)]
+        found = torch.maximum(found, scores.amax(-1))
+    return found
 
 
 def covered(nll_values: Tensor, thresholds: Tensor) -> Tensor:
