@@ -62,22 +62,18 @@ def _training_folder(ctx: ExperimentContext, obj_name: str, friction: str, mass:
 
 
 def training_records(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str,
-                     progress: bool | None = None):
+                     progress: bool | None = None, plan=None):
     """The training pushes of ``obj`` under the named priors, simulated into the run's cache if missing.
 
     Paper, Experimental Setup: the robot placed against the object, mass and friction drawn from the
-    training prior, ``samples_per_action`` pushes per action.
+    training prior, ``samples_per_action`` pushes per action. ``plan``: that plan, where the caller drew it already
+    (the same plan, drawn from the same seed).
     """
-    from pushtorch.sim.plan import plan_training_pushes
     from pushtorch.sim.records import load_records
     from pushtorch.sim.runner import run_plan
     from pushtorch.sim.settings import object_spec
 
-    plan = plan_training_pushes(
-        obj, ctx.actions, ctx.samples_per_action, ctx.prior("mass", mass), ctx.prior("friction", friction),
-        seed=stable_seed(ctx.seed, "training", obj.name, friction, mass), duration=ctx.duration,
-        placement=ctx.placement,
-    )
+    plan = _training_plan(ctx, obj, friction, mass) if plan is None else plan
     folder = _training_folder(ctx, obj.name, friction, mass)
     # a plan smaller than one shard (a generated shape's share of a pooled model's pushes) runs in this process:
     # a worker pool costs more than it saves
@@ -86,6 +82,17 @@ def training_records(ctx: ExperimentContext, obj: ObjectModel, friction: str, ma
              shard_size=ctx.shard_size, progress=ctx.progress if progress is None else progress,
              executor=None if small else ctx.executor)
     return load_records(folder, trajectories=False)  # training uses the final poses only
+
+
+def _training_plan(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str):
+    """The training pushes :func:`training_records` simulates: the same plan however often it is drawn."""
+    from pushtorch.sim.plan import plan_training_pushes
+
+    return plan_training_pushes(
+        obj, ctx.actions, ctx.samples_per_action, ctx.prior("mass", mass), ctx.prior("friction", friction),
+        seed=stable_seed(ctx.seed, "training", obj.name, friction, mass), duration=ctx.duration,
+        placement=ctx.placement,
+    )
 
 
 #: Model meta keys a training writes besides what it was asked for (searches and what was pooled): a cached
@@ -159,14 +166,19 @@ def train_models(ctx: ExperimentContext, keys) -> dict[tuple[str, str, str], Pus
     shards = ctx.samples_per_action * int(ctx.actions.shape[0]) >= ctx.shard_size
     if ctx.executor.kind != "local" and keys and shards:
         start = time.perf_counter()
-        connect(ctx.executor)  # once, before the threads submit
-        connected = time.perf_counter()
+        objects = [load_object(t) for t, _, _ in keys]
         with ThreadPoolExecutor(max_workers=len(keys), thread_name_prefix="pushtorch-training-pushes") as pool:
-            runs = [pool.submit(training_records, ctx, load_object(t), f, m, False) for t, f, m in keys]
+            # the threads draw the plans while this one connects (Ray starts in seconds; its processes stay tied to
+            # the thread that starts them), then each submits its run's shards and waits
+            plans = [pool.submit(_training_plan, ctx, o, f, m) for o, (_, f, m) in zip(objects, keys, strict=True)]
+            connect(ctx.executor)
+            connected = time.perf_counter()
+            runs = [pool.submit(lambda o, f, m, plan: training_records(ctx, o, f, m, False, plan.result()), o, f, m,
+                                plan) for o, (_, f, m), plan in zip(objects, keys, plans, strict=True)]
             for run in runs:
                 run.result()  # a run's error, raised here
-        log.info("the training pushes of %d models as %s shards: %.0f s (%.0f s connecting)", len(keys),
-                 ctx.executor.kind, time.perf_counter() - start, connected - start)
+        log.info("the training pushes of %d models as %s shards: %.0f s (%.0f s connecting, while planning)",
+                 len(keys), ctx.executor.kind, time.perf_counter() - start, connected - start)
     prefetch(ctx, lambda task_ctx, tfm: train_model(task_ctx, load_object(tfm[0]), *tfm[1:]), keys,
              what="models trained")
     return {(t, f, m): train_model(ctx, load_object(t), f, m) for t, f, m in keys}

@@ -169,8 +169,10 @@ def _check_address(address: str) -> None:
 
 
 def connect(executor: Executor) -> None:
-    """Join (or start) the executor's Ray cluster in this process now, once: before threads submit to it. Nothing
-    for the local and Slurm executors."""
+    """Join (or start) the executor's Ray cluster in this process now, once, before threads submit to it. Call it
+    from a thread that lives as long as the run (the main thread): a local instance's processes are tied to the
+    thread that starts them (Linux's parent-death signal) and end with it. Nothing for the local and Slurm
+    executors."""
     if executor.kind == "ray":
         _ray_session(executor)
 
@@ -179,18 +181,23 @@ def _ray_session(executor: Executor):
     """Ray, joined to ``executor.address`` or started locally with ``num_cpus`` (once per process)."""
     ray = _require("ray", "ray")
     if not ray.is_initialized():
-        if executor.address:
-            _check_address(executor.address)
-            try:
-                ray.init(address=executor.address, include_dashboard=False, log_to_driver=False)
-            except ConnectionError as exc:
-                raise InvalidParameterError(f"executor.address={executor.address!r}: {exc}") from exc
-        else:
-            # address="local": a new instance even where `ray start` left a cluster's address in Ray's temp folder
-            # (ray.init() would join that cluster, or refuse num_cpus)
-            ray.init(address="local", num_cpus=executor.num_cpus or os.cpu_count(), include_dashboard=False,
-                     log_to_driver=False)
+        _ray_init(ray, executor)
     return ray
+
+
+def _ray_init(ray, executor: Executor) -> None:
+    """Join ``executor.address``, or start a local instance of ``num_cpus``."""
+    if executor.address:
+        _check_address(executor.address)
+        try:
+            ray.init(address=executor.address, include_dashboard=False, log_to_driver=False)
+        except ConnectionError as exc:
+            raise InvalidParameterError(f"executor.address={executor.address!r}: {exc}") from exc
+    else:
+        # address="local": a new instance even where `ray start` left a cluster's address in Ray's temp folder
+        # (ray.init() would join that cluster, or refuse num_cpus)
+        ray.init(address="local", num_cpus=executor.num_cpus or os.cpu_count(), include_dashboard=False,
+                 log_to_driver=False)
 
 
 class _RemotePool:
