@@ -98,15 +98,18 @@ def warm_up(model) -> None:
     _WARM.append(True)
 
 
-def _predict_a_cube(model) -> None:
-    """One prediction of a cube with ``model``: what compiles the fast path's fused functions."""
+def _predict_a_cube(model, history: bool = False) -> None:
+    """One prediction of a cube with ``model``: what compiles the fast path's fused functions; with ``history``, a
+    second one that keeps its annealing history, as an example for the recording does (the generic annealing
+    steps, compiled on their own)."""
     from pushtorch.objects import load_object
     from pushtorch.perception import capture_partial_cloud
     from pushtorch.prediction import predict
 
     cube = load_object("cube")
-    predict(model, capture_partial_cloud(cube, cube.resting_pose(yaw=0.3), voxel_size=model.settings.voxel_size),
-            model.actions[0])
+    cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=0.3), voxel_size=model.settings.voxel_size)
+    for record_history in (False, True) if history else (False,):
+        predict(model, cloud, model.actions[0], record_history=record_history)
 
 
 def prefetch(ctx: ExperimentContext, step: Callable[[ExperimentContext, Any], Any], items: Sequence[Any],
@@ -296,9 +299,11 @@ def _remote_task(step: Callable[[ExperimentContext, Any], Any], ctx: ExperimentC
 
 def share_with_tasks(model) -> None:
     """Share this process's compiled fast path with the tasks it submits (:func:`pushtorch.kde.share_compiled`):
-    where this code has not been compiled ahead of time on this machine kind, one prediction of a cube with
-    ``model`` on one torch thread, as a task predicts, compiles and saves what a prediction needs (once: about
-    30 s on a 2-core CPU); a task then loads them (about 2 s) instead of compiling them (about 11 s)."""
+    where this code has not been compiled ahead of time on this machine kind, a prediction of a cube with
+    ``model`` on one torch thread, as a task predicts, and one that keeps its annealing history, as the tasks that
+    log examples do, compile and save what a prediction needs (once: about 40 s on a 2-core CPU); a task then
+    loads them (about 2 s) instead of compiling them (about 11 s, and 2.5 s more in each worker that logs an
+    example)."""
     import torch
 
     from pushtorch.kde import share_compiled
@@ -308,7 +313,7 @@ def share_with_tasks(model) -> None:
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # as a task runs: Inductor's code, and so its guards, depend on the threads
         try:
-            _predict_a_cube(model)
+            _predict_a_cube(model, history=True)  # the tasks that log examples keep histories
         finally:
             torch.set_num_threads(threads)
         try:
