@@ -14,7 +14,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from pushtorch.apps.cli import CONFIG_PATH, compose_or_exit, current_overrides, run_stage
+from pushtorch.apps.cli import CONFIG_PATH, compose_or_exit, current_overrides, exit_without_collecting, run_stage
 from pushtorch.experiments.registry import experiment_runner
 from pushtorch.kde import declare_long_run
 
@@ -38,6 +38,7 @@ def main() -> None:
     compose_or_exit("pushtorch", "config")
     declare_long_run()  # an experiment predicts many times: compiling the fast path pays
     _app()
+    exit_without_collecting()
 
 
 if __name__ == "__main__":

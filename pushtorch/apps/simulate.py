@@ -27,7 +27,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from pushtorch.apps.cli import CONFIG_PATH, compose_or_exit, run_stage
+from pushtorch.apps.cli import CONFIG_PATH, compose_or_exit, exit_without_collecting, run_stage
 from pushtorch.apps.config_check import check_config
 from pushtorch.errors import InvalidParameterError
 
@@ -159,6 +159,7 @@ def main() -> None:
     """Entry point of ``pushtorch-simulate`` (a user error exits with status 2 and one line)."""
     compose_or_exit("pushtorch-simulate", "simulate")
     _app()
+    exit_without_collecting()
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from pushtorch.apps.cli import CONFIG_PATH, compose_or_exit, run_stage
+from pushtorch.apps.cli import CONFIG_PATH, compose_or_exit, exit_without_collecting, run_stage
 from pushtorch.apps.config_check import check_config
 from pushtorch.errors import InvalidParameterError
 
@@ -232,6 +232,7 @@ def main() -> None:
     """Entry point of ``pushtorch-train`` (a user error exits with status 2 and one line)."""
     compose_or_exit("pushtorch-train", "train")
     _app()
+    exit_without_collecting()
 
 
 if __name__ == "__main__":
