@@ -97,6 +97,8 @@ EXPERIMENT = ["experiment=quickstart", "experiment.progress=false", "executor=ra
 
 #: A log line of tasks run on the executor: their kind, wall seconds and summed seconds of work.
 _TASK_LINE = re.compile(r"\] - \d+ (?P<kind>[^\[\]]+?) as ray tasks on .*?: (?P<wall>\d+) s \((?P<work>\d+) s of work")
+#: The log line of the training pushes as shards: their wall seconds (the shards' work is not summed there).
+_SHARDS_LINE = re.compile(r"\] - the training pushes of \d+ models as ray shards: (?P<wall>\d+) s")
 
 
 def _experiment_seconds(cpus: int, folder: Path) -> tuple[float, dict[str, tuple[float, float]]]:
@@ -110,8 +112,10 @@ def _experiment_seconds(cpus: int, folder: Path) -> tuple[float, dict[str, tuple
     seconds = time.perf_counter() - started
     if result.returncode != 0:
         raise SystemExit(f"the experiment at {cpus} CPU failed: {result.stderr[-2000:]}")
-    phases = {m["kind"]: (float(m["wall"]), float(m["work"]))
-              for m in _TASK_LINE.finditer((folder / "pushtorch.log").read_text())}
+    text = (folder / "pushtorch.log").read_text()
+    phases = {m["kind"]: (float(m["wall"]), float(m["work"])) for m in _TASK_LINE.finditer(text)}
+    if shards := _SHARDS_LINE.search(text):
+        phases["training pushes as shards"] = (float(shards["wall"]), float("nan"))
     return seconds, phases
 
 
@@ -125,9 +129,11 @@ def _phase_lines(phases: dict[int, list[dict[str, tuple[float, float]]]]) -> lis
     for kind in sorted(set.intersection(*(set(p) for p in runs))) if runs else []:
         wall = {c: statistics.median([p[kind][0] for p in phases[c]]) for c in (1, 2)}
         work = {c: statistics.median([p[kind][1] for p in phases[c]]) for c in (1, 2)}
-        lines.append(f"  {kind}: {wall[1]:.0f} s at 1 CPU, {wall[2]:.0f} s at 2 ({wall[1] / wall[2]:.2f}); its tasks' "
-                     f"work {work[1]:.0f} s at 1 CPU, {work[2]:.0f} s at 2 (x{work[2] / work[1]:.2f}: at most "
-                     f"{2 * work[1] / work[2]:.2f} from 2 CPUs)")
+        line = f"  {kind}: {wall[1]:.0f} s at 1 CPU, {wall[2]:.0f} s at 2 ({wall[1] / wall[2]:.2f})"
+        if work[1] == work[1]:  # the shards' line sums no work
+            line += (f"; its tasks' work {work[1]:.0f} s at 1 CPU, {work[2]:.0f} s at 2 (x{work[2] / work[1]:.2f}: at "
+                     f"most {2 * work[1] / work[2]:.2f} from 2 CPUs)")
+        lines.append(line)
     return lines
 
 
