@@ -191,6 +191,10 @@ def test_above_its_bounds_the_bandwidth_search_keeps_a_seeded_subsample_of_whole
         _, thin = bandwidth.select_bandwidths(FAST, motions, 5, torch.Generator().manual_seed(0))
     assert thin.held_out == 3 * 30 and thin.score_chosen is not None
     assert caplog.text.count("seeded subsample") == 3 and "kernels of 40 of 100 pushes" in caplog.text
+    # the pushes of which no kernel was kept are scored after the search, at the configured and the chosen stds
+    assert full.unseen == 0 and full.unseen_start is full.unseen_chosen is None  # every push kept: none unseen
+    assert 0 < thin.unseen <= 3 * 60 and thin.unseen_chosen is not None and math.isfinite(thin.unseen_chosen)
+    assert caplog.text.count("pushes it never saw") == 1
     _, again = bandwidth.select_bandwidths(FAST, motions, 5, torch.Generator().manual_seed(0))
     assert again.chosen == thin.chosen  # seeded
 

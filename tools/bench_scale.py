@@ -86,6 +86,12 @@ def _bandwidth_from_data(per_action: int, folder: Path) -> int:
     print(f"bandwidth search on {per_action} pushes per action: {search.held_out} held-out pushes, score "
           f"{search.score_start} -> {search.score_chosen}, {time.perf_counter() - started:.1f} s; chose "
           f"{search.chosen}", flush=True)
+    if search.unseen:  # pushes of which the search kept no kernel (it subsampled): scored after it
+        better = search.unseen_chosen is not None and (search.unseen_start is None
+                                                       or search.unseen_chosen >= search.unseen_start)
+        print(f"on {search.unseen} pushes the search never saw: held-out log-likelihood {search.unseen_start} "
+              f"configured, {search.unseen_chosen} chosen (nats a push): the chosen "
+              f"{'at least as good' if better else 'WORSE'}", flush=True)
     return int(search.held_out > 0 and search.score_chosen is not None)
 
 

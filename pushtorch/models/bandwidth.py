@@ -108,6 +108,12 @@ class BandwidthSearch:
     held_out: int
     score_density: float | None = None  # at the density's stds (``chosen``'s density_p_std, density_rot_std)
     score_outlier: float | None = None  # with the evidence's outlier share too (``chosen``'s density_outlier)
+    # pushes of which the search kept no kernel (only where it subsampled), scored after it against the kept ones:
+    # how many, and the same score at the configured, the chosen and the density's stds
+    unseen: int = 0
+    unseen_start: float | None = None
+    unseen_chosen: float | None = None
+    unseen_density: float | None = None
 
     def as_meta(self) -> dict:
         def rounded(score: float | None) -> float | None:
@@ -116,7 +122,9 @@ class BandwidthSearch:
         return {"chosen": self.chosen, "start": self.start, "score_start": rounded(self.score_start),
                 "score_chosen": rounded(self.score_chosen), "score_density": rounded(self.score_density),
                 "score_outlier": rounded(self.score_outlier),
-                "folds": self.folds, "held_out": self.held_out}
+                "folds": self.folds, "held_out": self.held_out, "unseen": self.unseen,
+                "unseen_start": rounded(self.unseen_start), "unseen_chosen": rounded(self.unseen_chosen),
+                "unseen_density": rounded(self.unseen_density)}
 
 
 @dataclass
@@ -147,19 +155,30 @@ def _first_of_push(push: Tensor, queries: Tensor, count: int) -> Tensor:
     return order[first.unsqueeze(-1) + torch.arange(count)]
 
 
-def _kernel_terms(man: MotionKernels, env: MotionKernels, man_push: Tensor, env_push: Tensor, queries: Tensor,
-                  n_env_frames: int, folds: int, settings) -> _Terms:
-    """The distance terms for held-out pushes ``queries`` (push indices) of one action."""
-    kernels = MotionKernels(
+def _joined(man: MotionKernels, env: MotionKernels) -> MotionKernels:
+    """The manipulator kernels, then the environment kernels, as one set."""
+    return MotionKernels(
         torch.cat([man.r, env.r]), se3.Pose.unchecked(torch.cat([man.u.p, env.u.p]), torch.cat([man.u.q, env.u.q])),
         se3.Pose.unchecked(torch.cat([man.m.p, env.m.p]), torch.cat([man.m.q, env.m.q])),
         torch.cat([man.g, env.g]), torch.cat([man.patch, env.patch]),
     )
+
+
+def _kernel_terms(man: MotionKernels, env: MotionKernels, man_push: Tensor, env_push: Tensor, queries: Tensor,
+                  n_env_frames: int, folds: int, settings, unseen: tuple | None = None) -> _Terms:
+    """The distance terms for held-out pushes ``queries`` (push indices) of one action. ``unseen``: the queries are
+    pushes none of whose kernels are among these, their frames taken from ``(man, env, man_push, env_push)`` of
+    the whole action, and no kernel is left out for them (no fold)."""
+    kernels = _joined(man, env)
     push = torch.cat([man_push, env_push])
     n_man = len(man)
-    rows = torch.cat([_first_of_push(man_push, queries, 1), _first_of_push(env_push, queries, n_env_frames) + n_man],
+    source, (m_push, e_push, n_source) = kernels, (man_push, env_push, n_man)
+    if unseen is not None:
+        source = _joined(unseen[0], unseen[1])
+        m_push, e_push, n_source = unseen[2], unseen[3], len(unseen[0])
+    rows = torch.cat([_first_of_push(m_push, queries, 1), _first_of_push(e_push, queries, n_env_frames) + n_source],
                      -1)  # (Q, E): each held-out push's own frames, its manipulator kernel first
-    frames = kernels.take(rows.reshape(-1))
+    frames = source.take(rows.reshape(-1))
     shape = (*rows.shape, len(kernels))
 
     def pair(a: Tensor, b: Tensor) -> Tensor:
@@ -167,7 +186,7 @@ def _kernel_terms(man: MotionKernels, env: MotionKernels, man_push: Tensor, env_
 
     dot = (frames.u.q.reshape(-1, 1, 4) * kernels.u.q.unsqueeze(0)).sum(-1).abs().reshape(shape)
     r = pair(embed_descriptors(frames.r), embed_descriptors(kernels.r)) / (2 * settings.descriptor_std**2)
-    truth = kernels.take(rows[:, 0])  # the held-out push's motion (its manipulator kernel's m)
+    truth = source.take(rows[:, 0])  # the held-out push's motion (its manipulator kernel's m)
     motion_dot = (truth.m.q.unsqueeze(1) * kernels.m.q.unsqueeze(0)).sum(-1).abs()
     kinds = torch.zeros(rows.shape[1], len(kernels), dtype=torch.bool)
     kinds[0, :n_man] = True
@@ -178,7 +197,7 @@ def _kernel_terms(man: MotionKernels, env: MotionKernels, man_push: Tensor, env_
         patch_yaw=pair(frames.patch[:, 2:], kernels.patch[:, 2:]),
         motion_p=((truth.m.p.unsqueeze(1) - kernels.m.p.unsqueeze(0)) ** 2).sum(-1),
         motion_q=(1 - motion_dot).clamp_min(0),
-        member=kinds, same_fold=(queries.unsqueeze(1) % folds) == (push.unsqueeze(0) % folds),
+        member=kinds, same_fold=((queries.unsqueeze(1) % folds) == (push.unsqueeze(0) % folds)) & (unseen is None),
     )
 
 
@@ -273,7 +292,9 @@ def select_bandwidths(settings, motions: list, folds: int = 5,
         The settings with the chosen values, and the search's record.
     """
     n_env_frames = settings.environment_contacts
-    terms, exponents = [], []
+    terms, exponents, unseen = [], [], []
+    # the pushes the search never sees are drawn by a generator of their own: the search's draws stay as they were
+    never_generator = None if generator is None else torch.Generator().manual_seed(generator.initial_seed() ^ 0x5EED)
     for motion in motions:
         man_push, env_push = motion.manipulator.push, motion.environment.push
         if man_push is None or env_push is None:
@@ -290,6 +311,9 @@ def select_bandwidths(settings, motions: list, folds: int = 5,
         terms.append(t)
         exponents.append(expert_exponents(len(motion.manipulator), len(motion.environment), n_experts - 1,
                                           settings.pool_sharpness, torch.float32))
+        never = _never_kept(man_push, env_push, man_push[keep_man], n_env_frames, never_generator)
+        if len(never):
+            unseen.append((man, env, keep_man, keep_env, never, exponents[-1]))
     start = {name: float(getattr(settings, name)) for name in (*SELECTED, *DENSITY, "density_outlier")}
     if not terms:  # too few pushes to hold any out: keep the configured values
         return settings, BandwidthSearch(start, start, None, None, folds, 0, None)
@@ -332,9 +356,47 @@ def select_bandwidths(settings, motions: list, folds: int = 5,
     def reported(score: float) -> float | None:  # an inadmissible set has no likelihood to report
         return None if score < _INADMISSIBLE / 2 else score
 
-    return replace(settings, **chosen), BandwidthSearch(chosen, start, reported(score_start), reported(best), folds,
-                                                       sum(t.u_p.shape[0] for t in terms), reported(density_best),
-                                                       reported(outlier_best))
+    held_out = sum(t.u_p.shape[0] for t in terms)
+    terms.clear()  # the search's terms freed: the unseen pushes' terms, one action at a time, in their place
+    cached.clear()
+    scores, count = _unseen_scores(unseen, (start, values, density), n_env_frames, folds, settings)
+    search = BandwidthSearch(chosen, start, reported(score_start), reported(best), folds,
+                             held_out, reported(density_best), reported(outlier_best), count,
+                             *(reported(x) if count else None for x in scores))
+    if count:
+        log.info("bandwidth search: on %d pushes it never saw (no kernel of theirs kept), held-out log-likelihood "
+                 "%s configured, %s chosen, %s at the density's stds (nats a push)", count,
+                 *(f"{x:.3f}" if x is not None else "inadmissible" for x in
+                   (search.unseen_start, search.unseen_chosen, search.unseen_density)))
+    return replace(settings, **chosen), search
+
+
+def _never_kept(man_push: Tensor, env_push: Tensor, kept: Tensor, n_env_frames: int,
+                generator: torch.Generator | None) -> Tensor:
+    """Up to :data:`MAX_HELD_OUT` pushes (a seeded draw) none of whose kernels the search keeps (``kept``: the
+    pushes of the kept manipulator kernels, which hold those of the kept environment kernels), with the
+    ``n_env_frames`` environment frames a held-out push needs. Empty wherever the search keeps every push."""
+    pushes = torch.unique(man_push)
+    counts = torch.bincount(env_push, minlength=int(max(int(env_push.max()), int(pushes.max()))) + 1)
+    never = pushes[~torch.isin(pushes, kept) & (counts[pushes] >= n_env_frames)]
+    if len(never) > MAX_HELD_OUT:
+        never = never[torch.randperm(len(never), generator=generator)[:MAX_HELD_OUT]].sort().values
+    return never
+
+
+def _unseen_scores(unseen: list, settings_values: tuple[dict, ...], n_env_frames: int, folds: int,
+                   settings) -> tuple[list[float], int]:
+    """The held-out score (:func:`_score`) of the pushes the search never saw, per action ``(manipulator and
+    environment kernels, the kept ones' indices, the unseen pushes, the experts' exponents)``, against the kept
+    kernels, at each of ``settings_values``: the means over all those pushes, and how many there were."""
+    sums, count = [0.0] * len(settings_values), 0
+    for man, env, keep_man, keep_env, never, exponent in unseen:
+        t = _kernel_terms(man.take(keep_man), env.take(keep_env), man.push[keep_man], env.push[keep_env], never,
+                          n_env_frames, folds, settings, unseen=(man, env, man.push, env.push))
+        for i, values in enumerate(settings_values):
+            sums[i] += _score(t, values, exponent) * len(never)
+        count += len(never)
+    return [x / max(count, 1) for x in sums], count
 
 
 def _ladder_step(total, values: dict[str, float], best: float, name: str,
