@@ -165,17 +165,18 @@ def _joined(man: MotionKernels, env: MotionKernels) -> MotionKernels:
 
 
 def _kernel_terms(man: MotionKernels, env: MotionKernels, man_push: Tensor, env_push: Tensor, queries: Tensor,
-                  n_env_frames: int, folds: int, settings, unseen: tuple | None = None) -> _Terms:
+                  n_env_frames: int, folds: int, settings,
+                  unseen: tuple[MotionKernels, MotionKernels] | None = None) -> _Terms:
     """The distance terms for held-out pushes ``queries`` (push indices) of one action. ``unseen``: the queries are
-    pushes none of whose kernels are among these, their frames taken from ``(man, env, man_push, env_push)`` of
-    the whole action, and no kernel is left out for them (no fold)."""
+    pushes none of whose kernels are among these, their frames taken from the whole action's ``(manipulator,
+    environment)`` kernels, and no kernel is left out for them (no fold)."""
     kernels = _joined(man, env)
     push = torch.cat([man_push, env_push])
     n_man = len(man)
     source, (m_push, e_push, n_source) = kernels, (man_push, env_push, n_man)
     if unseen is not None:
         source = _joined(unseen[0], unseen[1])
-        m_push, e_push, n_source = unseen[2], unseen[3], len(unseen[0])
+        m_push, e_push, n_source = unseen[0].push, unseen[1].push, len(unseen[0])
     rows = torch.cat([_first_of_push(m_push, queries, 1), _first_of_push(e_push, queries, n_env_frames) + n_source],
                      -1)  # (Q, E): each held-out push's own frames, its manipulator kernel first
     frames = source.take(rows.reshape(-1))
@@ -248,6 +249,11 @@ def _log_motion_kernels(terms: _Terms, p_std: float, rot_std: float) -> Tensor:
     return -terms.motion_p / (2 * p_std**2) - terms.motion_q / sigma_q - log_norm
 
 
+def _environment_frames(man_push: Tensor, env_push: Tensor) -> Tensor:
+    """Each push index's count of environment kernels (indexable by every push of ``man_push``)."""
+    return torch.bincount(env_push, minlength=int(max(int(env_push.max()), int(man_push.max()))) + 1)
+
+
 def _kept_pushes(motion, n_env_frames: int, generator: torch.Generator | None
                  ) -> tuple[MotionKernels, MotionKernels, Tensor, Tensor, Tensor]:
     """One action's kernels the search keeps (``MAX_MANIPULATOR_PUSHES``, ``MAX_ENVIRONMENT_KERNELS``), as index
@@ -261,8 +267,8 @@ def _kept_pushes(motion, n_env_frames: int, generator: torch.Generator | None
     thin_man, thin_env = total > MAX_MANIPULATOR_PUSHES, len(env) > MAX_ENVIRONMENT_KERNELS
     if thin_man:
         pushes = pushes[torch.randperm(total, generator=generator)[:MAX_MANIPULATOR_PUSHES]].sort().values
-    env_counts = torch.bincount(env_push, minlength=int(max(int(env_push.max()), int(man_push.max()))) + 1)
-    pool = pushes[env_counts[pushes] >= n_env_frames]  # pushes whose environment frames can be the query's
+    # pushes whose environment frames can be the query's
+    pool = pushes[_environment_frames(man_push, env_push)[pushes] >= n_env_frames]
     if not (thin_man or thin_env):
         return man, env, torch.arange(len(man)), torch.arange(len(env)), pool
     per_push = max(1, math.ceil(len(env) / max(1, len(torch.unique(env_push)))))
@@ -377,8 +383,7 @@ def _never_kept(man_push: Tensor, env_push: Tensor, kept: Tensor, n_env_frames: 
     pushes of the kept manipulator kernels, which hold those of the kept environment kernels), with the
     ``n_env_frames`` environment frames a held-out push needs. Empty wherever the search keeps every push."""
     pushes = torch.unique(man_push)
-    counts = torch.bincount(env_push, minlength=int(max(int(env_push.max()), int(pushes.max()))) + 1)
-    never = pushes[~torch.isin(pushes, kept) & (counts[pushes] >= n_env_frames)]
+    never = pushes[~torch.isin(pushes, kept) & (_environment_frames(man_push, env_push)[pushes] >= n_env_frames)]
     if len(never) > MAX_HELD_OUT:
         never = never[torch.randperm(len(never), generator=generator)[:MAX_HELD_OUT]].sort().values
     return never
@@ -392,7 +397,7 @@ def _unseen_scores(unseen: list, settings_values: tuple[dict, ...], n_env_frames
     sums, count = [0.0] * len(settings_values), 0
     for man, env, keep_man, keep_env, never, exponent in unseen:
         t = _kernel_terms(man.take(keep_man), env.take(keep_env), man.push[keep_man], env.push[keep_env], never,
-                          n_env_frames, folds, settings, unseen=(man, env, man.push, env.push))
+                          n_env_frames, folds, settings, unseen=(man, env))
         for i, values in enumerate(settings_values):
             sums[i] += _score(t, values, exponent) * len(never)
         count += len(never)
