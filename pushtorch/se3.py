@@ -48,6 +48,7 @@ __all__ = [
     "identity",
     "inverse",
     "mean_pose",
+    "onto_plane_of",
     "perturb",
     "quat_distance",
     "quat_normalize",
@@ -525,3 +526,21 @@ def yaw_of(q: Tensor) -> Tensor:
     """Heading in rad: the angle of the rotated x axis in the world xy plane (``(..., 4)`` → ``(...)``)."""
     w, x, y, z = q.unbind(-1)
     return torch.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+def onto_plane_of(pose: Pose, reference: Pose) -> Pose:
+    """Poses moved onto the plane of ``reference`` (batch dims broadcast): their x and y, ``reference``'s height,
+    and the twist about world z of their rotation relative to ``reference`` applied to it,
+    ``q' = twist_z(q q_ref⁻¹) q_ref``; the rest of the rotation (the tilt) is dropped. A rotation whose twist is
+    undefined (a half turn about a horizontal axis) keeps ``reference``'s orientation."""
+    relative_q = pkt.quaternion_raw_multiply(pose.q, pkt.quaternion_invert(reference.q))
+    w, z = relative_q[..., 0], relative_q[..., 3]
+    norm = torch.sqrt(w * w + z * z)
+    flat = norm < 1e-9
+    safe = torch.where(flat, torch.ones_like(norm), norm)
+    zeros = torch.zeros_like(w)
+    twist = torch.stack([torch.where(flat, torch.ones_like(w), w / safe), zeros, zeros,
+                         torch.where(flat, zeros, z / safe)], -1)
+    q = pkt.quaternion_raw_multiply(twist, reference.q.expand_as(twist))
+    height = reference.p[..., 2:].expand_as(pose.p[..., 2:])
+    return Pose.unchecked(torch.cat([pose.p[..., :2], height], -1), q)

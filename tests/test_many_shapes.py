@@ -10,6 +10,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pytorch_kinematics import transforms as pkt
 
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError
@@ -217,6 +218,37 @@ def test_coverage_of_a_symmetric_object_is_its_own_level_when_draws_are_scored_a
         generous = hdr_thresholds(density, (0.5, 0.9), samples=1000, generator=torch.Generator().manual_seed(seed + 2))
         assert bool((generous < fair - 0.1).all())
         assert bool((covered(scores, generous).double().mean(0) > inside).all())
+
+
+@settings(max_examples=5, deadline=None)
+@given(p_std=st.floats(0.005, 0.05), rot_std=st.floats(0.02, 0.3), height=st.floats(0.0, 0.2),
+       tilt=st.floats(0.0, 0.3), seed=st.integers(0, 2**16))
+def test_coverage_of_planar_truths_is_their_level_when_draws_are_moved_onto_the_starts_plane(p_std, rot_std, height,
+                                                                                            tilt, seed):
+    """Pushed objects end on the table: truths drawn from the density and moved onto the estimated start's plane
+    (its height and tilt) fall inside its α region a share α of the time when the region's draws are moved there
+    too; scored in all seven dimensions, the draws' spread in height, roll and pitch puts far more of them
+    inside."""
+    generator = torch.Generator().manual_seed(seed)
+    start = se3.Pose.unchecked(torch.tensor([0.0, 0.0, height]),
+                               pkt.axis_angle_to_quaternion(torch.tensor([tilt, 0.0, 0.0])))
+    turns = se3.Pose.unchecked(torch.cat([torch.randn(3, 2, generator=generator) * 0.05, torch.zeros(3, 1)], -1),
+                               se3.yaw_quaternion(torch.randn(3, generator=generator)))
+    density = ensemble_density(se3.compose(turns, start), p_std, rot_std)  # kernels on the start's plane
+    drawn = density.sample((1000,), torch.Generator().manual_seed(seed + 1))
+    truths = se3.onto_plane_of(se3.Pose.unchecked(drawn[:, :3], drawn[:, 3:]), start)
+    same = se3.identity(dtype=torch.float64)
+    scores = nll(density, se3.Pose.unchecked(truths.p.double(), truths.q.double()), same, same,
+                 Symmetry(torch.tensor([[1.0, 0.0, 0.0, 0.0]])))
+    assert torch.allclose(truths.p[:, 2], torch.full((1000,), height))
+    fair = hdr_thresholds(density, (0.5, 0.9), samples=1000, generator=torch.Generator().manual_seed(seed + 2),
+                          plane=start)
+    inside = covered(scores, fair).double().mean(0)
+    for level, share in zip((0.5, 0.9), inside.tolist(), strict=True):
+        se = math.sqrt(level * (1 - level) / 1000)
+        assert abs(share - level) < 4 * se + 0.03, (level, share)
+    seven = hdr_thresholds(density, (0.5, 0.9), samples=1000, generator=torch.Generator().manual_seed(seed + 2))
+    assert bool((covered(scores, seven).double().mean(0) > inside + 0.05).all())
 
 
 def test_coverage_refuses_levels_outside_zero_one():

@@ -66,6 +66,23 @@ def test_relative_pose_recovers_b(a, b):
     assert_same_pose(se3.compose(a, se3.relative(a, b)), b)
 
 
+@given(poses(), poses(n=1), st.floats(-3.0, 3.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0))
+def test_onto_plane_keeps_x_y_and_the_twist_and_takes_the_references_height_and_tilt(a, ref, yaw, dx, dy):
+    """The moved poses are the reference turned about world z and shifted in x, y: the reference's height, its
+    tilt, the pose's x and y; a pose already on the plane stays where it is, and moving twice is moving once."""
+    ref = se3.Pose(ref.p[0], ref.q[0])
+    moved = se3.onto_plane_of(a, ref)
+    torch.testing.assert_close(moved.p[:, :2], a.p[:, :2])
+    torch.testing.assert_close(moved.p[:, 2], ref.p[2].expand(4))
+    turn = pkt.quaternion_raw_multiply(moved.q, pkt.quaternion_invert(ref.q))  # a turn about world z only
+    torch.testing.assert_close(turn[:, 1:3], torch.zeros(4, 2, dtype=torch.float64), atol=1e-9, rtol=0)
+    assert_same_pose(se3.onto_plane_of(moved, ref), moved)
+    on_plane = se3.Pose(ref.p + torch.tensor([dx, dy, 0.0], dtype=torch.float64),
+                        pkt.quaternion_raw_multiply(se3.yaw_quaternion(torch.tensor(yaw, dtype=torch.float64)),
+                                                    ref.q))
+    assert_same_pose(se3.onto_plane_of(on_plane, ref), on_plane)
+
+
 @given(poses())
 def test_matrix_round_trip_and_matrix_product_matches_compose(a):
     assert_same_pose(se3.from_matrix(se3.to_matrix(a)), a, atol=1e-9)

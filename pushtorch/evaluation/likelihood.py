@@ -25,9 +25,13 @@ that is wrong but says it is unsure. Decisions (docs/method.md, "Likelihood scor
 * **Calibration.** A density's ``α`` highest-density region is ``{x : log p(x) ≥ t_α}``, in the 7-D pose space,
   with ``t_α`` the ``1 − α`` quantile of ``log p`` over :data:`COVERAGE_SAMPLES` draws from the density itself
   (:func:`hdr_thresholds`), each draw scored as a truth is (its nearest symmetric copy); a truth is inside when
-  its score (``−nll``, the nearest symmetric copy, as above) reaches ``t_α``. ``coverage_50`` and
-  ``coverage_90`` are the shares of truths inside: a calibrated density has 0.5 and 0.9, an overconfident one
-  less. Point predictions have no such region and get none.
+  its score (``−nll``, the nearest symmetric copy, as above) reaches ``t_α``. The draws are first moved onto the
+  plane of the estimated start (x, y and the twist about world z kept; height and tilt the start's), where the
+  truths of pushes on a table lie: scored in all seven dimensions, the draws' spread in height, roll and pitch
+  would lower ``t_α`` below what a planar truth at the same distance scores, and every density would look wider
+  than it is. A truth that leaves the plane (a toppled object) is scored as it is, and counts against the region.
+  ``coverage_50`` and ``coverage_90`` are the shares of truths inside: a calibrated density has 0.5 and 0.9, an
+  overconfident one less. Point predictions have no such region and get none.
 * **Baselines.** The mean-motion baseline's density is an isotropic Gaussian × folded vMF over the training
   motions in the robot's start frame, fitted by moments (:func:`mean_motion_density`). A point prediction
   (no motion, nearest push, physics) is scored as one kernel of the model's motion bandwidth at the
@@ -245,13 +249,19 @@ def ensemble_density(finals: se3.Pose, p_std: float, rot_std: float) -> FinalPos
 
 
 def hdr_thresholds(density: FinalPoseDistribution, levels=COVERAGE_LEVELS, samples: int = COVERAGE_SAMPLES,
-                   generator: torch.Generator | None = None, symmetry: Symmetry | None = None) -> Tensor:
+                   generator: torch.Generator | None = None, symmetry: Symmetry | None = None,
+                   plane: se3.Pose | None = None) -> Tensor:
     """``(L,)`` float64 log-density thresholds of the density's highest-density regions holding ``levels`` of
     its mass (module docstring, "Calibration"): ``t_α`` is the ``1 − α`` quantile of ``log p`` over ``samples``
     draws from the density (batch shape ``()``). With the test object's ``symmetry`` each draw is scored as a
     truth is (:func:`nll`, its nearest symmetric copy), so that a truth drawn from the density itself is inside a
     share ``α`` of the time: scoring the truths by their best copy and the draws as they are would make every
     symmetric object look better calibrated than it is (a surface of revolution's turn would never count).
+    With ``plane`` (the estimated start ``B̂0``, ``()``) each draw is first moved onto its plane
+    (:func:`pushtorch.se3.onto_plane_of`: its x, y and twist about world z kept, its height and tilt
+    ``B̂0``'s), the poses a pushed object on a table takes: the truths lie there, at the centre of the
+    density's spread in height, roll and pitch, so that draws spread over those three would set thresholds that
+    nearly every truth reaches (module docstring, "Calibration").
 
     Raises:
         InvalidParameterError: a level outside (0, 1), or fewer than 10 samples.
@@ -262,6 +272,10 @@ def hdr_thresholds(density: FinalPoseDistribution, levels=COVERAGE_LEVELS, sampl
     if samples < 10:
         raise InvalidParameterError(f"a region's threshold needs at least 10 draws, got {samples}")
     draws = density.sample((int(samples),), generator)
+    if plane is not None:
+        on_plane = se3.onto_plane_of(se3.Pose.unchecked(draws[..., :3], draws[..., 3:]),
+                                     se3.Pose.unchecked(plane.p.to(draws), plane.q.to(draws)))
+        draws = on_plane.vector()
     log_p = density.log_prob(draws).double().reshape(-1)
     if symmetry is not None and (symmetry.continuous_axis is not None or symmetry.discrete.shape[0] > 1):
         log_p = _nearest_copy_scores(density, draws.double().reshape(-1, 7), log_p, symmetry)

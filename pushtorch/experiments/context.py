@@ -397,9 +397,10 @@ def fingerprint(**inputs: Any) -> str:
     return hashlib.sha256(json.dumps(inputs, sort_keys=True, default=str).encode()).hexdigest()
 
 
-#: Bump when a group's scores would come out differently for the same predictions and truth (the coverage's draws
-#: scored by their nearest symmetric copy, as the truths are): cached sets of an older one are recomputed.
-SCORES_VERSION = 2
+#: Bump when a group's scores would come out differently for the same predictions and truth (2: the coverage's
+#: draws scored by their nearest symmetric copy, as the truths are; 3: the draws moved onto the start's plane):
+#: cached sets of an older one are recomputed.
+SCORES_VERSION = 3
 
 
 def scores_made_from(made_from: str, truth: str) -> list:

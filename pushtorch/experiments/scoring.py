@@ -94,7 +94,8 @@ def likelihood_scores(ctx: ExperimentContext, key: str, obj: ObjectModel, predic
                 out[:, i, j] = values.reshape(c_count, samples).float()
                 if own is not None:
                     draws = torch.Generator().manual_seed(stable_seed(ctx.seed, key, method, i, j, "coverage"))
-                    thresholds = hdr_thresholds(own, COVERAGE_LEVELS, generator=draws, symmetry=obj.symmetry)
+                    thresholds = hdr_thresholds(own, COVERAGE_LEVELS, generator=draws, symmetry=obj.symmetry,
+                                                plane=start.take((i, j)))
                     inside[:, i, j] = covered(values, thresholds).reshape(c_count, samples, -1).float()
         scores[method] = out
         if has_density:
