@@ -567,7 +567,10 @@ def test_the_pybullet_world_runs_beside_the_mujoco_one_in_one_folder(tiny_run, t
     assert "**World: pybullet. Physics peers: mujoco.**" in (run / "report.md").read_text()
 
 
-@pytest.mark.parametrize("part", ["friction_biasing", pytest.param("online_adaptation", marks=pytest.mark.slow)])
+# slow: about 30 s each in the suite (a serial run of the part); the default suite keeps the same claim for Ray and
+# local task workers (test_executors: the same shards and records either way)
+@pytest.mark.slow
+@pytest.mark.parametrize("part", ["friction_biasing", "online_adaptation"])
 def test_the_parts_steps_in_worker_processes_give_the_records_of_a_serial_run(tiny_run, tmp_path, part):
     """The default run fills a part's caches in forked task workers, and its loop reads each group as its task
     ends; experiment.workers=1 does every step in this process, in the loop's order. The records are the same."""
