@@ -248,7 +248,8 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     mean = torch.stack(scores).mean(0)
     best = int(mean.argmin())
     log.info("residual novelty widening %g across %s (held-out nll %.2f against %.2f unwidened, %d pushes)",
-             grid[best], [o.name for o in objects], float(mean[best]), float(mean[0]), len(scores))
+             grid[best], [o.name for o in objects], float(mean[best]),
+             float(mean[grid.index(0.0)]) if 0.0 in grid else math.nan, len(scores))
     chosen = {"chosen": grid[best], "across": [o.name for o in objects], "grid": grid, "nll": mean.tolist(),
               "pushes": len(scores), "pushes_per_shape": int(pushes_per_shape), "skipped": skipped}
     return [replace(r, novelty_widening=grid[best], meta={**r.meta, "novelty": chosen}) for r in residuals]
