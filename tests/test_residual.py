@@ -402,3 +402,36 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
     assert meta["pushes"] == 4 and len(meta["nll"]) == len(NOVELTY_WIDENINGS) and meta["across"] == ["cube", "cube"]
     with pytest.raises(InvalidParameterError, match="two models or more"):
         choose_novelty_widening([residual], [cube], [records])
+
+
+def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes_are(trained, residual, tmp_path):
+    """``choose_residual_scale``: each held-out push's own kernels leave the model (``without_pushes``: its
+    residuals and its manipulator kernels, no other), and the factor of lowest held-out nll scales the stds; a
+    model made eight times too wide is pulled back narrower, one eight times too narrow wider, and a loaded model
+    (its kernels no longer know their pushes) is refused with a clear error."""
+    import dataclasses
+
+    from pushtorch.errors import InvalidParameterError
+    from pushtorch.evaluation.transfer import RESIDUAL_SCALES, choose_residual_scale
+    from pushtorch.models.residual import load_residual_model
+
+    cube, records, model = trained
+    push = model.motions[1].manipulator.push
+    without = residual.without_pushes(1, torch.tensor([int(push[0])]))
+    dropped = int((push == push[0]).sum())
+    assert without.residuals[1].p.shape[0] == residual.residuals[1].p.shape[0] - dropped
+    assert len(without.model.motions[1].manipulator) == len(model.motions[1].manipulator) - dropped
+    assert int(push[0]) not in without.model.motions[1].manipulator.push.tolist()
+    assert [r.p.shape[0] for i, r in enumerate(without.residuals) if i != 1] == \
+        [r.p.shape[0] for i, r in enumerate(residual.residuals) if i != 1]
+    for factor, pulled in ((8.0, lambda f: f < 1.0), (1 / 8, lambda f: f > 1.0)):
+        off = dataclasses.replace(residual, bandwidth=dataclasses.replace(
+            residual.bandwidth, p_std=residual.bandwidth.p_std * factor, rot_std=residual.bandwidth.rot_std * factor))
+        chosen = choose_residual_scale(off, cube, records, 2, torch.Generator().manual_seed(0))
+        meta = chosen.meta["scale"]
+        assert meta["pushes"] == 6 and len(meta["nll"]) == len(RESIDUAL_SCALES)
+        assert meta["chosen"] == RESIDUAL_SCALES[min(range(len(meta["nll"])), key=meta["nll"].__getitem__)]
+        assert pulled(meta["chosen"]), (factor, meta)
+        assert chosen.bandwidth.p_std == pytest.approx(off.bandwidth.p_std * meta["chosen"])
+    with pytest.raises(InvalidParameterError, match="trained in this session"):
+        choose_residual_scale(load_residual_model(residual.save(tmp_path / "r.npz")), cube, records, 2)

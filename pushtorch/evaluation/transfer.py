@@ -39,8 +39,8 @@ from pushtorch.models.pooled import ShapeParts, pool_parts
 from pushtorch.models.residual import NOVELTY_WIDENINGS
 from pushtorch.objects import ObjectModel
 
-__all__ = ["RESIDUAL_WIDENINGS", "SCALES", "WIDENINGS", "choose_novelty_widening", "choose_residual_widening",
-           "choose_widening"]
+__all__ = ["RESIDUAL_SCALES", "RESIDUAL_SCALE_PUSHES", "RESIDUAL_WIDENINGS", "SCALES", "WIDENINGS",
+           "choose_novelty_widening", "choose_residual_scale", "choose_residual_widening", "choose_widening"]
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +50,10 @@ WIDENINGS = (0.0, 0.1, 0.3, 1.0, 3.0)
 #: The residual model's grid of ``κ``: corrections learnt on other shapes may be far off (measured on the engine
 #: gap's cube and cylinder, each one's residuals scored on the other's pushes: best at 10 and 30)
 RESIDUAL_WIDENINGS = (0.0, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
+#: The factors tried on a residual model's kernel stds after training (:func:`choose_residual_scale`), and the
+#: training pushes per action it holds out to choose one
+RESIDUAL_SCALES = (0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 3.0)
+RESIDUAL_SCALE_PUSHES = 8
 #: Importance samples per expert of each scored density's normaliser in the search (the scores' default is 64): a
 #: quarter of the cost; the search compares means over many pushes, not single scores
 SEARCH_SAMPLES = 16
@@ -137,15 +141,91 @@ def choose_widening(model: PushModel, objects: list[ObjectModel], records: list,
 def _held_out_pushes(obj: ObjectModel, records, count: int, voxel_size: float, generator: torch.Generator):
     """Up to ``count`` of ``obj``'s valid pushes in ``records``, drawn at random: each ``(cloud, action, robot
     start, start, truth)``, the single-shot cloud at the push's start."""
-    from pushtorch.perception import capture_partial_cloud
-
     valid = records.take(records.valid)
     for i in torch.randperm(len(valid), generator=generator)[:count].tolist():
-        push = valid.take(torch.tensor([i]))
-        start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
-        robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
-        truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
-        yield capture_partial_cloud(obj, start, voxel_size=voxel_size), push.action[0].float(), robot, start, truth
+        yield _push_case(obj, valid.take(torch.tensor([i])), voxel_size)
+
+
+def _push_case(obj: ObjectModel, push, voxel_size: float):
+    """One push's ``(cloud, action, robot start, start, truth)`` (``push``: records of one push), the single-shot
+    cloud at its start."""
+    from pushtorch.perception import capture_partial_cloud
+
+    start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
+    robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
+    truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
+    return capture_partial_cloud(obj, start, voxel_size=voxel_size), push.action[0].float(), robot, start, truth
+
+
+def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action: int = RESIDUAL_SCALE_PUSHES,
+                          generator: torch.Generator | None = None, scales=RESIDUAL_SCALES):
+    """The residual model of one object with its kernels' stds scaled by the factor of highest held-out
+    *predictive* likelihood; the search is kept in ``meta["scale"]``.
+
+    The kernels' stds are chosen in training by leave-one-push-out likelihood of each residual applied to its own
+    push's rollout, at that push's own friction and mass. A prediction does not know them: it mixes an ensemble of
+    rollouts at friction and mass drawn from the training pushes' with every residual kernel, and that mixture can
+    be wider or narrower than the truths' spread. Here ``pushes_per_action`` training pushes of each action are
+    each held out in turn (:meth:`~pushtorch.models.residual.ResidualModel.without_pushes`: their residuals and
+    their manipulator kernels, so neither their correction nor their physics is drawn), predicted as a test push
+    is, from the single-shot cloud at the push's start and its robot start, and the true outcome scored under the
+    density with its stds times each of ``scales`` (one prediction per push, the same rollouts). The factor of
+    lowest mean nll is kept.
+
+    Raises:
+        InvalidParameterError: a pooled model, a model read from its file, records that are not its own, or no
+            held-out push that could be predicted.
+    """
+    if residual.shapes is not None:
+        raise InvalidParameterError("choosing the residual kernels' scale holds out pushes of one object's model; "
+                                    "a pooled model holds out whole shapes (choose_residual_widening)")
+    if isinstance(pushes_per_action, bool) or int(pushes_per_action) != pushes_per_action or pushes_per_action < 1:
+        raise InvalidParameterError(f"the pushes held out per action must be a whole number >= 1, got "
+                                    f"{pushes_per_action!r}")
+    from pushtorch.prediction.residual import predict_residual, rescaled
+
+    generator = generator or torch.Generator().manual_seed(0)
+    grid = [float(f) for f in scales]
+    valid = records.take(records.valid)
+    scores, skipped = [], 0
+    for a, motion in enumerate(residual.model.motions):
+        push = motion.manipulator.push
+        if push is None:
+            raise InvalidParameterError("choosing the residual kernels' scale needs a model trained in this session "
+                                        "(its kernels know their pushes), not a loaded one")
+        action = motion.action.detach().double().cpu()
+        pushes = valid.take((valid.action.double() - action).abs().amax(-1) <= 1e-6)
+        if int(push.max()) >= len(pushes):
+            raise InvalidParameterError(f"the records hold {len(pushes)} pushes of action {action.tolist()}, the "
+                                        f"model's kernels come from {int(push.max()) + 1}: give the model's own")
+        kept = push.cpu().unique()
+        for p in kept[torch.randperm(len(kept), generator=generator)[:int(pushes_per_action)]].tolist():
+            try:
+                held_out = residual.without_pushes(a, torch.tensor([p]))
+            except InvalidParameterError:  # its push gave every kernel of the action
+                skipped += 1
+                continue
+            cloud, act, robot, start, truth = _push_case(obj, pushes.take(torch.tensor([p])),
+                                                         residual.settings.voxel_size)
+            try:
+                prediction = predict_residual(held_out, cloud, act, generator, robot_start=robot)
+            except (ModelError, InvalidPoseError):  # no body, or the bumper meets no observed feature there
+                skipped += 1
+                continue
+            scores.append(torch.tensor([float(nll(rescaled(prediction, f), truth, start, prediction.start,
+                                                  obj.symmetry)[0]) for f in grid], dtype=torch.float64))
+    if not scores:
+        raise InvalidParameterError(f"no held-out push of {obj.name} could be predicted to choose the residual "
+                                    "kernels' scale")
+    mean = torch.stack(scores).mean(0)
+    best = int(mean.argmin())
+    log.info("residual kernels' scale %g for %s (held-out nll %.2f against %s at 1, %d pushes)", grid[best],
+             obj.name, float(mean[best]), f"{float(mean[grid.index(1.0)]):.2f}" if 1.0 in grid else "—", len(scores))
+    bandwidth = replace(residual.bandwidth, p_std=residual.bandwidth.p_std * grid[best],
+                        rot_std=residual.bandwidth.rot_std * grid[best])
+    chosen = {"chosen": grid[best], "grid": grid, "nll": mean.tolist(), "pushes": len(scores), "skipped": skipped,
+              "pushes_per_action": int(pushes_per_action)}
+    return replace(residual, bandwidth=bandwidth, meta={**residual.meta, "scale": chosen})
 
 
 def _residual_scores(residual, obj: ObjectModel, records, count: int, generator: torch.Generator,

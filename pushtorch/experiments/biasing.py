@@ -92,7 +92,8 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
         part: keys ``name``, ``bias``, ``objects``, ``training_object_of``, ``conditions``,
             ``test_conditions``, ``truth_samples``, ``yaw_range_deg``; optional ``ensemble`` (the
             ``physics_ensemble`` density peer's rollouts), ``residual`` (true: the ``pushtorch_residual`` model
-            too) and ``residual_ensemble`` (its rollouts per prediction).
+            too), ``residual_ensemble`` (its rollouts per prediction), ``residual_scale_pushes`` (held-out
+            training pushes per action that choose its kernels' scale) and ``residual_novelty_pushes``.
         ctx: the experiment context (model settings of this part).
         model_cfg: ``friction``, ``mass``: the trained priors (a name or a list each; their product).
 
@@ -118,7 +119,8 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     residuals = None
     if part.get("residual"):
         size = int(part.get("residual_ensemble") or DEFAULT_ENSEMBLE)
-        fitted = {tfm: train_residual(ctx, load_object(tfm[0]), *tfm[1:], size) for tfm in trained}
+        scale_pushes = part.get("residual_scale_pushes")
+        fitted = {tfm: train_residual(ctx, load_object(tfm[0]), *tfm[1:], size, scale_pushes) for tfm in trained}
         if int(part.get("residual_novelty_pushes", 0)) > 0:  # one novelty widening across the training objects
             fitted = widen_residuals_by_novelty(ctx, fitted, int(part["residual_novelty_pushes"]))
         residuals = {models[tfm].name: fitted[tfm] for tfm in trained}

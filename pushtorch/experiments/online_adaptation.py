@@ -391,7 +391,8 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             group = _Group(ctx, name, obj, poses, clouds, starts, models, general_prior)
             if part.get("residual"):
                 group.residual = train_residual(ctx, trained_on, *pairs["general"],
-                                                int(part.get("residual_ensemble") or DEFAULT_ENSEMBLE))
+                                                int(part.get("residual_ensemble") or DEFAULT_ENSEMBLE),
+                                                part.get("residual_scale_pushes"))
             files = {}
             for level in as_names(part["conditions"][bias]):
                 path = contained_path(ctx.run_dir, "online", f"{name}_{obj.name}_{bias}_{level}.json",

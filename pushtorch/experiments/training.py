@@ -184,15 +184,21 @@ def train_models(ctx: ExperimentContext, keys) -> dict[tuple[str, str, str], Pus
     return {(t, f, m): train_model(ctx, load_object(t), f, m) for t, f, m in keys}
 
 
-def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str, ensemble: int):
+def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass: str, ensemble: int,
+                   scale_pushes: int | None = None):
     """The residual model (:mod:`pushtorch.models.residual`) of :func:`train_model`'s model, its residuals taken
     against the physics engine (``ctx.physics``: the peers' simulator, never the world's unless configured so),
-    cached as ``<run_dir>/models/<key>_residual_vs_<engine>.npz``.
+    cached as ``<run_dir>/models/<key>_residual_vs_<engine>.npz``. Its kernels' scale is chosen on
+    ``scale_pushes`` held-out training pushes per action (default
+    :data:`~pushtorch.evaluation.transfer.RESIDUAL_SCALE_PUSHES`; 0: not chosen), predicted as test pushes are
+    (:func:`pushtorch.evaluation.transfer.choose_residual_scale`).
 
     A push model read from its file no longer knows which push each kernel came from, so a residual not yet
     cached trains the push model again from the same cached pushes and seed (the same model, bit for bit)."""
+    from pushtorch.evaluation.transfer import RESIDUAL_SCALE_PUSHES, choose_residual_scale
     from pushtorch.models.residual import load_residual_model, train_residual_model, with_ensemble
 
+    scale_pushes = RESIDUAL_SCALE_PUSHES if scale_pushes is None else int(scale_pushes)
     model = train_model(ctx, obj, friction, mass)
     key = _model_key(obj.name, friction, mass)
     path = _residual_path(ctx, key)
@@ -200,7 +206,8 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
         try:
             cached = load_residual_model(path)
             if cached.sim == ctx.physics and cached.model.name == model.name and cached.outcomes is not None \
-                    and cached.model.settings == model.settings and cached.model.meta == model.meta:
+                    and cached.model.settings == model.settings and cached.model.meta == model.meta \
+                    and (cached.meta.get("scale") or {}).get("pushes_per_action", 0) == scale_pushes:
                 return saved_as(with_ensemble(cached, ensemble), _read_residual, str(path), int(ensemble))
         except RecordFormatError as exc:
             log.warning("retraining the residual of %s: %s", key, exc)
@@ -213,6 +220,9 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
     log.info("training the residual of %s against %s on %d pushes", key, ctx.physics.engine,
              int(records.valid.sum()))
     residual = train_residual_model(fresh, obj, records, ctx.physics, ensemble)
+    if scale_pushes > 0:
+        residual = choose_residual_scale(residual, obj, records, scale_pushes,
+                                         torch.Generator().manual_seed(stable_seed(ctx.seed, "residual_scale", key)))
     residual.save(path)
     return saved_as(residual, _read_residual, str(path), int(ensemble))
 

@@ -229,19 +229,43 @@ class ResidualModel:
         if self.shapes is None or not 0 <= shape < len(self.shape_names):
             raise InvalidParameterError(f"shape {shape} is not one of this model's pooled training shapes "
                                         f"({self.shape_names})")
+        return self._keeping([of != shape for of in self.shapes], f"only {self.shape_names[shape]} was pushed")
+
+    def without_pushes(self, action: int, pushes: Tensor) -> ResidualModel:
+        """This model without the kernels that training pushes ``pushes`` of action ``action`` gave (indices
+        among the action's valid pushes, as its kernels' ``push`` holds them): their residuals and their push
+        model's manipulator kernels. What holds a push out to choose the kernels' scale
+        (:func:`pushtorch.evaluation.transfer.choose_residual_scale`).
+
+        Raises:
+            InvalidParameterError: a model read from its file (its kernels no longer know their pushes), or
+                pushes that gave every kernel of the action."""
+        push = self.model.motions[action].manipulator.push
+        if push is None:
+            raise InvalidParameterError("holding a push out needs a model trained in this session (its kernels "
+                                        "know their pushes), not a loaded one")
+        keep = [torch.ones(r.p.shape[0], dtype=torch.bool) for r in self.residuals]
+        keep[action] = ~torch.isin(push.cpu(), torch.as_tensor(pushes).reshape(-1).cpu())
+        return self._keeping(keep, f"pushes {torch.as_tensor(pushes).reshape(-1).tolist()} gave every kernel")
+
+    def _keeping(self, keep: list[Tensor], why: str) -> ResidualModel:
+        """This model with each action's kernels where ``keep (J_a,)`` holds (residuals, outcomes, shapes and the
+        push model's manipulator kernels alike)."""
         motions, residuals = [], []
-        for motion, residual, of in zip(self.model.motions, self.residuals, self.shapes, strict=True):
-            keep = (of != shape).nonzero().reshape(-1)
-            if not len(keep):
-                raise InvalidParameterError(f"only {self.shape_names[shape]} was pushed with action "
-                                            f"{motion.action.tolist()}: holding it out leaves no kernel")
-            motions.append(dataclasses.replace(motion, manipulator=motion.manipulator.take(keep.to(
+        for motion, residual, mask in zip(self.model.motions, self.residuals, keep, strict=True):
+            index = mask.cpu().nonzero().reshape(-1)
+            if not len(index):
+                raise InvalidParameterError(f"{why} of action {motion.action.tolist()}: holding them out leaves "
+                                            "no kernel")
+            motions.append(dataclasses.replace(motion, manipulator=motion.manipulator.take(index.to(
                 motion.manipulator.r.device))))
-            residuals.append(residual.take(keep))
-        outcomes = None if self.outcomes is None else [o[of != shape] for o, of in zip(self.outcomes, self.shapes,
+            residuals.append(residual.take(index))
+        outcomes = None if self.outcomes is None else [o[m.to(o.device)] for o, m in zip(self.outcomes, keep,
+                                                                                           strict=True)]
+        shapes = None if self.shapes is None else [of[m.to(of.device)] for of, m in zip(self.shapes, keep,
                                                                                          strict=True)]
         return dataclasses.replace(self, model=dataclasses.replace(self.model, motions=motions), residuals=residuals,
-                                   shapes=[of[of != shape] for of in self.shapes], outcomes=outcomes)
+                                   shapes=shapes, outcomes=outcomes)
 
     def condition_on(self, observations, seed: int | None = None, prior: tuple | None = None,
                      bandwidth=None) -> ResidualModel:
