@@ -370,14 +370,15 @@ def test_rollouts_pair_with_the_kernels_whose_training_rollout_did_the_same(trai
 
 
 def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(trained, residual, tmp_path):
-    """The novelty widening: a prediction's rollouts' median outcome novelty ``n`` widens the residual kernels by
-    ``sqrt(1 + ν·n)`` (0: as trained), the density stays normalised, ``ν`` is chosen across training objects from
-    the grid, and the model file keeps it."""
+    """The novelty widening: a prediction's rollouts' median outcome novelty ``n`` adds a share ``ν·n / (1 + ν·n)``
+    of the residuals' spread to the kernels' variances (0: as trained; never wider than the spread), the density
+    stays normalised, ``ν`` is chosen across training objects from the grid, and the model file keeps it."""
     import dataclasses
 
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import choose_novelty_widening
-    from pushtorch.models.residual import NOVELTY_WIDENINGS, load_residual_model
+    from pushtorch.models.residual import NOVELTY_WIDENINGS, load_residual_model, residual_spread
+    from pushtorch.prediction.residual import novelty_factors, rescaled
 
     cube, records, model = trained
     assert residual.novelty_widening == 0.0
@@ -387,8 +388,19 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
     wide = dataclasses.replace(residual, novelty_widening=3.0)
     widened = predict_residual(wide, cloud, model.actions[2], 3)
     assert widened.outcome_novelty == plain.outcome_novelty  # the same rollouts
-    assert widened.widened_by == pytest.approx(math.sqrt(1 + 3.0 * plain.outcome_novelty))
-    assert widened.density.bandwidth.p_std == pytest.approx(plain.density.bandwidth.p_std * widened.widened_by)
+    share = 3.0 * plain.outcome_novelty / (1 + 3.0 * plain.outcome_novelty)
+    spread_p, spread_r = residual_spread(residual.residuals[2])
+    assert widened.residual_spread == pytest.approx((spread_p, spread_r)) and spread_p > 0 and spread_r > 0
+    assert widened.density.bandwidth.p_std == pytest.approx(math.sqrt(plain.density.bandwidth.p_std**2
+                                                                      + share * spread_p**2))
+    assert widened.density.bandwidth.rot_std == pytest.approx(math.sqrt(plain.density.bandwidth.rot_std**2
+                                                                        + share * spread_r**2))
+    assert widened.widened_by == pytest.approx(widened.density.bandwidth.p_std / residual.bandwidth.p_std)
+    assert rescaled(plain, novelty_factors(plain, 3.0)).bandwidth.p_std == pytest.approx(
+        widened.density.bandwidth.p_std)  # how a widening is scored from one prediction
+    far = dataclasses.replace(residual, novelty_widening=1e9)  # saturated: the kernels' variance plus the spread's
+    assert predict_residual(far, cloud, model.actions[2], 3).density.bandwidth.p_std == pytest.approx(
+        math.sqrt(plain.density.bandwidth.p_std**2 + spread_p**2), rel=1e-6)
     assert abs(float(widened.density.log_normaliser())) < 0.05
     back = load_residual_model(wide.save(tmp_path / "widened.npz"))
     assert back.novelty_widening == 3.0
@@ -413,7 +425,7 @@ def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes
 
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import RESIDUAL_SCALES, choose_residual_scale
-    from pushtorch.models.residual import load_residual_model
+    from pushtorch.models.residual import NOVELTY_WIDENINGS, load_residual_model
 
     cube, records, model = trained
     push = model.motions[1].manipulator.push
@@ -433,5 +445,7 @@ def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes
         assert meta["chosen"] == RESIDUAL_SCALES[min(range(len(meta["nll"])), key=meta["nll"].__getitem__)]
         assert pulled(meta["chosen"]), (factor, meta)
         assert chosen.bandwidth.p_std == pytest.approx(off.bandwidth.p_std * meta["chosen"])
+        assert meta["novelty"]["grid"] == list(NOVELTY_WIDENINGS) and len(meta["novelty"]["nll"]) == \
+            len(NOVELTY_WIDENINGS)
     with pytest.raises(InvalidParameterError, match="trained in this session"):
         choose_residual_scale(load_residual_model(residual.save(tmp_path / "r.npz")), cube, records, 2)

@@ -54,7 +54,7 @@ from pushtorch.models.residual import NOVELTY_WIDENINGS, load_residual_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.prediction import transfer_distance
-from pushtorch.prediction.residual import predict_residual, rescaled
+from pushtorch.prediction.residual import novelty_factors, predict_residual, rescaled
 from pushtorch.sim.records import load_records
 
 TRAINING_OF = {"cube": "cube", "prism_thin": "cube", "prism_long": "cube", "cylinder": "cylinder",
@@ -130,8 +130,7 @@ def novelty(run: Path, pushes: int) -> None:
     generator = torch.Generator().manual_seed(0)
     for name, other in (("cube", "cylinder"), ("cylinder", "cube"), ("cube", "cube"), ("cylinder", "cylinder")):
         rows, predictions = _scored(models[name], load_object(other), run, pushes, generator,
-                                    lambda p: [math.sqrt(1 + v * p.outcome_novelty) / p.widened_by
-                                               for v in NOVELTY_WIDENINGS])
+                                    lambda p: [novelty_factors(p, v) for v in NOVELTY_WIDENINGS])
         mean = rows.mean(0)
         print(f"{name}'s residuals on {len(rows)} {other} training pushes (own pushes in-sample): nll by nu "
               + ", ".join(f"{v:g}: {x:.2f}" for v, x in zip(NOVELTY_WIDENINGS, mean, strict=True))

@@ -52,7 +52,7 @@ WIDENINGS = (0.0, 0.1, 0.3, 1.0, 3.0)
 RESIDUAL_WIDENINGS = (0.0, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
 #: The factors tried on a residual model's kernel stds after training (:func:`choose_residual_scale`), and the
 #: training pushes per action it holds out to choose one
-RESIDUAL_SCALES = (0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 3.0)
+RESIDUAL_SCALES = (0.125, 0.18, 0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 3.0)
 RESIDUAL_SCALE_PUSHES = 8
 #: Importance samples per expert of each scored density's normaliser in the search (the scores' default is 64): a
 #: quarter of the cost; the search compares means over many pushes, not single scores
@@ -182,12 +182,13 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     if isinstance(pushes_per_action, bool) or int(pushes_per_action) != pushes_per_action or pushes_per_action < 1:
         raise InvalidParameterError(f"the pushes held out per action must be a whole number >= 1, got "
                                     f"{pushes_per_action!r}")
-    from pushtorch.prediction.residual import predict_residual, rescaled
+    from pushtorch.prediction.residual import novelty_factors, predict_residual, rescaled
 
     generator = generator or torch.Generator().manual_seed(0)
     grid = [float(f) for f in scales]
     valid = records.take(records.valid)
-    scores, skipped = [], 0
+    residual = replace(residual, novelty_widening=0.0)
+    scores, cases, skipped = [], [], 0
     for a, motion in enumerate(residual.model.motions):
         push = motion.manipulator.push
         if push is None:
@@ -214,17 +215,24 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
                 continue
             scores.append(torch.tensor([float(nll(rescaled(prediction, f), truth, start, prediction.start,
                                                   obj.symmetry)[0]) for f in grid], dtype=torch.float64))
+            cases.append((prediction, truth, start))
     if not scores:
         raise InvalidParameterError(f"no held-out push of {obj.name} could be predicted to choose the residual "
                                     "kernels' scale")
     mean = torch.stack(scores).mean(0)
     best = int(mean.argmin())
+    # the same held-out pushes at every novelty widening, at the chosen scale: the own-object side of the choice
+    # of ν across objects (choose_novelty_widening), kept since a model read from its file cannot hold pushes out
+    own = torch.tensor([[float(nll(rescaled(p, novelty_factors(p, v, grid[best])), truth, start, p.start,
+                                   obj.symmetry)[0]) for v in NOVELTY_WIDENINGS] for p, truth, start in cases],
+                       dtype=torch.float64).mean(0)
     log.info("residual kernels' scale %g for %s (held-out nll %.2f against %s at 1, %d pushes)", grid[best],
              obj.name, float(mean[best]), f"{float(mean[grid.index(1.0)]):.2f}" if 1.0 in grid else "—", len(scores))
     bandwidth = replace(residual.bandwidth, p_std=residual.bandwidth.p_std * grid[best],
                         rot_std=residual.bandwidth.rot_std * grid[best])
     chosen = {"chosen": grid[best], "grid": grid, "nll": mean.tolist(), "pushes": len(scores), "skipped": skipped,
-              "pushes_per_action": int(pushes_per_action)}
+              "pushes_per_action": int(pushes_per_action),
+              "novelty": {"grid": list(NOVELTY_WIDENINGS), "nll": own.tolist()}}
     return replace(residual, bandwidth=bandwidth, meta={**residual.meta, "scale": chosen})
 
 
@@ -298,8 +306,11 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
                             generator: torch.Generator | None = None, widenings=NOVELTY_WIDENINGS) -> list:
     """Residual models of one object each, trained on the same prior, with one novelty widening ``ν`` chosen
     across them: each model predicts ``pushes_per_shape`` of every *other* training object's pushes (a shape it
-    never saw, as a pooled model's held-out shape), its kernels' stds widened by ``sqrt(1 + ν·n)`` (``n`` the
-    prediction's outcome novelty), and the ``ν`` of lowest mean nll is given to all (kept in ``meta["novelty"]``).
+    never saw, as a pooled model's held-out shape), its kernels widened at each ``ν``
+    (:mod:`pushtorch.prediction.residual`: a share ``ν·n / (1 + ν·n)`` of the residuals' spread, ``n`` the
+    prediction's outcome novelty). A model whose scale was chosen (:func:`choose_residual_scale`) adds its own
+    held-out pushes, scored then at every ``ν``: the pushes of small novelty, where widening costs. The ``ν`` of
+    lowest mean nll over all the pushes is given to all (kept in ``meta["novelty"]``).
     What an experiment with several training objects does for their residual models; a single object has no shape
     to hold out and keeps ``ν = 0``.
 
@@ -311,27 +322,37 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
                                     f"another's model: it needs two models or more, one object and one set of "
                                     f"records each, got {len(residuals)}, {len(objects)} and {len(records)}")
     _check_pushes(pushes_per_shape)
+    from pushtorch.prediction.residual import novelty_factors
+
     generator = generator or torch.Generator().manual_seed(0)
     grid = [float(v) for v in widenings]
     scores, skipped = [], 0
     for i, residual in enumerate(residuals):
         for j, (obj, other) in enumerate(zip(objects, records, strict=True)):
             if j != i:
-                more, missed = _residual_scores(
-                    replace(residual, novelty_widening=0.0), obj, other, pushes_per_shape, generator,
-                    lambda p: [math.sqrt(p.widened_by**2 + v * p.outcome_novelty) / p.widened_by for v in grid])
+                more, missed = _residual_scores(replace(residual, novelty_widening=0.0), obj, other,
+                                                pushes_per_shape, generator,
+                                                lambda p: [novelty_factors(p, v) for v in grid])
                 scores += more
                 skipped += missed
     if not scores:
         raise InvalidParameterError("no push of another training object could be predicted to choose the "
                                     "residual's novelty widening")
-    mean = torch.stack(scores).mean(0)
+    total, count = torch.stack(scores).sum(0), len(scores)
+    own_pushes = 0
+    for residual in residuals:  # each model's own held-out pushes, scored when its scale was chosen
+        own = (residual.meta.get("scale") or {})
+        if (own.get("novelty") or {}).get("grid") == grid:
+            total = total + torch.tensor(own["novelty"]["nll"], dtype=torch.float64) * int(own["pushes"])
+            own_pushes += int(own["pushes"])
+    mean = total / (count + own_pushes)
     best = int(mean.argmin())
-    log.info("residual novelty widening %g across %s (held-out nll %.2f against %.2f unwidened, %d pushes)",
-             grid[best], [o.name for o in objects], float(mean[best]),
-             float(mean[grid.index(0.0)]) if 0.0 in grid else math.nan, len(scores))
+    log.info("residual novelty widening %g across %s (held-out nll %.2f against %.2f unwidened; %d pushes of "
+             "other objects, %d of their own)", grid[best], [o.name for o in objects], float(mean[best]),
+             float(mean[grid.index(0.0)]) if 0.0 in grid else math.nan, count, own_pushes)
     chosen = {"chosen": grid[best], "across": [o.name for o in objects], "grid": grid, "nll": mean.tolist(),
-              "pushes": len(scores), "pushes_per_shape": int(pushes_per_shape), "skipped": skipped}
+              "pushes": count, "own_pushes": own_pushes, "pushes_per_shape": int(pushes_per_shape),
+              "skipped": skipped}
     return [replace(r, novelty_widening=grid[best], meta={**r.meta, "novelty": chosen}) for r in residuals]
 
 

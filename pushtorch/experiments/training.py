@@ -207,7 +207,7 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
             cached = load_residual_model(path)
             if cached.sim == ctx.physics and cached.model.name == model.name and cached.outcomes is not None \
                     and cached.model.settings == model.settings and cached.model.meta == model.meta \
-                    and (cached.meta.get("scale") or {}).get("pushes_per_action", 0) == scale_pushes:
+                    and _scale_chosen(cached, scale_pushes):
                 return saved_as(with_ensemble(cached, ensemble), _read_residual, str(path), int(ensemble))
         except RecordFormatError as exc:
             log.warning("retraining the residual of %s: %s", key, exc)
@@ -227,6 +227,18 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
     return saved_as(residual, _read_residual, str(path), int(ensemble))
 
 
+def _scale_chosen(residual, pushes: int) -> bool:
+    """Whether a cached residual model's kernels' scale was chosen as asked: on ``pushes`` held-out pushes per
+    action over today's grid (0: not chosen)."""
+    from pushtorch.evaluation.transfer import RESIDUAL_SCALES
+    from pushtorch.models.residual import NOVELTY_WIDENINGS
+
+    chosen = residual.meta.get("scale") or {}
+    return chosen.get("pushes_per_action", 0) == pushes and (not pushes or (
+        chosen.get("grid") == list(RESIDUAL_SCALES)
+        and (chosen.get("novelty") or {}).get("grid") == list(NOVELTY_WIDENINGS)))
+
+
 def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: int) -> dict:
     """``{(object, friction, mass): residual model}`` with one novelty widening chosen across the training objects
     of each prior (:func:`pushtorch.evaluation.transfer.choose_novelty_widening`: each object's model scores
@@ -234,6 +246,7 @@ def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: in
     training object keeps its models as they are; a model whose file already holds the choice across the same
     objects is kept as read."""
     from pushtorch.evaluation.transfer import choose_novelty_widening
+    from pushtorch.models.residual import NOVELTY_WIDENINGS
 
     out = dict(trained)
     by_prior: dict[tuple[str, str], list] = {}
@@ -244,6 +257,7 @@ def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: in
         models = [trained[(t, f, m)] for t in names]
         if len(names) < 2 or all((r.meta.get("novelty") or {}).get("across") == names
                                  and (r.meta.get("novelty") or {}).get("pushes_per_shape") == int(pushes)
+                                 and (r.meta.get("novelty") or {}).get("grid") == list(NOVELTY_WIDENINGS)
                                  for r in models):
             continue
         objects = [load_object(t) for t in names]

@@ -9,13 +9,15 @@ this push's manipulator contact (the paper's Eq. contact_frame_probability, as i
 ``A_h`` how alike rollout ``i``'s outcome is to kernel ``j``'s training rollout's
 (:func:`pushtorch.models.residual.outcome_log_affinity`; 1 at the model's ``outcome_width = inf``): a correction
 learnt where the simulator did one thing is applied where it does the same. The kernels' stds are the model's,
-widened by ``sqrt(1 + κ·d² + ν·n)`` where this contact is ``d`` contact-kernel stds from the nearest training
-contact (``κ`` the model's ``widening``, chosen across a pool's training shapes; 0 for a model of one object) and
-the rollouts did something ``n`` training-outcome stds² from what any training rollout did (the median over the
-rollouts of :func:`pushtorch.models.residual.outcome_novelty`; ``ν`` the model's ``novelty_widening``, chosen
-across an experiment's training objects, 0 unless chosen). Its mode is the mixture's highest kernel centre.
-It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one expert
-with exponent 1, so ``log_prob``, ``sample`` and the coverage work as for pushtorch's own prediction.
+widened by ``sqrt(1 + κ·d²)`` where this contact is ``d`` contact-kernel stds from the nearest training contact
+(``κ`` the model's ``widening``, chosen across a pool's training shapes; 0 for a model of one object); where the
+rollouts did something ``n`` training-outcome stds² from what any training rollout did (the median over the
+rollouts of :func:`pushtorch.models.residual.outcome_novelty`), a share ``ν·n / (1 + ν·n)`` of the action's
+residuals' spread (:func:`pushtorch.models.residual.residual_spread`) is added to their variances (``ν`` the
+model's ``novelty_widening``, chosen across an experiment's training objects, 0 unless chosen): a correction
+learnt where the simulator did something else is a guess of the size corrections have, no wider. Its mode is
+the mixture's highest kernel centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one
+expert with exponent 1, so ``log_prob``, ``sample`` and the coverage work as for pushtorch's own prediction.
 """
 
 from __future__ import annotations
@@ -34,12 +36,20 @@ from pushtorch.kde.normaliser import NO_CUTOFF
 from pushtorch.models.clearance import check_start
 from pushtorch.models.motion import contact_distances, contact_log_weights
 from pushtorch.models.push_condition import PushCondition, features_for, push_conditions
-from pushtorch.models.residual import ResidualModel, corrected, outcome_log_affinity, outcome_novelty, rollout_outcome
+from pushtorch.models.residual import (
+    ResidualModel,
+    corrected,
+    novelty_share,
+    outcome_log_affinity,
+    outcome_novelty,
+    residual_spread,
+    rollout_outcome,
+)
 from pushtorch.models.settings import as_generator
 from pushtorch.perception import PointCloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
 
-__all__ = ["ResidualPrediction", "predict_residual", "rescaled"]
+__all__ = ["ResidualPrediction", "novelty_factors", "predict_residual", "rescaled"]
 
 
 @dataclass
@@ -67,10 +77,14 @@ class ResidualPrediction:
     #: ``d²``: the squared distance, in contact-kernel stds, from this push's manipulator contact to the nearest
     #: training contact of the action (:func:`~pushtorch.models.motion.contact_distances`)
     contact_distance2: float = 0.0
-    #: ``sqrt(1 + κ·d² + ν·n)``, the factor the residual kernels' stds were widened by (1: the model does not widen)
+    #: the factor the residual kernels' position std was widened by, by contact distance and novelty together
+    #: (1: the model does not widen)
     widened_by: float = 1.0
     #: ``n``: the rollouts' median novelty (:func:`~pushtorch.models.residual.outcome_novelty`), 0 without outcomes
     outcome_novelty: float = 0.0
+    #: the action's residuals' spread, (m, rad) (:func:`~pushtorch.models.residual.residual_spread`), towards which
+    #: novelty widens the kernels
+    residual_spread: tuple[float, float] = (0.0, 0.0)
 
 
 def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Generator | int | None = None,
@@ -144,10 +158,14 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     log_weights = log_weights[:, keep]
     d2 = float(contact_distances(condition.manipulator_frame, motion.manipulator, condition.robot_start,
                                  model.settings.contact_bandwidth, condition.contact_patch).amin())
-    # corrections learnt far from this contact, or where the simulator did something else, are less sure
-    scale = math.sqrt(1.0 + residual.widening * d2 + residual.novelty_widening * novelty)
-    bandwidth = dataclasses.replace(residual.bandwidth, p_std=residual.bandwidth.p_std * scale,
-                                    rot_std=residual.bandwidth.rot_std * scale, cutoff_std=NO_CUTOFF)
+    # corrections learnt far from this contact are less sure; where the simulator did something else, they are
+    # guesses of the size corrections have
+    scale = math.sqrt(1.0 + residual.widening * d2)
+    spread = residual_spread(kernels)
+    share = novelty_share(residual.novelty_widening, novelty)
+    p_std = math.sqrt((residual.bandwidth.p_std * scale) ** 2 + share * spread[0] ** 2)
+    rot_std = math.sqrt((residual.bandwidth.rot_std * scale) ** 2 + share * spread[1] ** 2)
+    bandwidth = dataclasses.replace(residual.bandwidth, p_std=p_std, rot_std=rot_std, cutoff_std=NO_CUTOFF)
     # the mode: the kernel centre of highest density
     best = int(_mixture(means, log_weights, bandwidth, None).unnormalised_log_prob(
         means.vector().unsqueeze(-2)).reshape(-1).argmax())
@@ -156,7 +174,7 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     thrown = int((~records.valid).sum())
     return ResidualPrediction(residual.name, motion.action, condition, body_start.to(dtype), mode, density,
                               se3.Pose.unchecked(finals.p.to(dtype), finals.q.to(dtype)), drawn, thrown, log_w, d2,
-                              scale, novelty)
+                              p_std / residual.bandwidth.p_std, novelty, spread)
 
 
 def _mixture(means: se3.Pose, log_weights: torch.Tensor, bandwidth, mode: torch.Tensor | None) -> FinalPoseDistribution:
@@ -165,10 +183,23 @@ def _mixture(means: se3.Pose, log_weights: torch.Tensor, bandwidth, mode: torch.
                                  torch.ones(1, dtype=means.p.dtype), mode, Evaluation.DENSE, means, kernels="full")
 
 
-def rescaled(prediction: ResidualPrediction, factor: float) -> FinalPoseDistribution:
-    """``prediction``'s density with its kernels' stds times ``factor`` (same kernels, weights and mode): what
-    scoring a widening on held-out pushes needs without rolling them out again."""
+def rescaled(prediction: ResidualPrediction, factor: float | tuple[float, float]) -> FinalPoseDistribution:
+    """``prediction``'s density with its kernels' stds times ``factor`` (or times ``(position, rotation)``
+    factors; same kernels, weights and mode): what scoring a widening on held-out pushes needs without rolling
+    them out again."""
     density = prediction.density
-    bandwidth = dataclasses.replace(density.bandwidth, p_std=density.bandwidth.p_std * factor,
-                                    rot_std=density.bandwidth.rot_std * factor)
+    p_factor, rot_factor = factor if isinstance(factor, tuple) else (factor, factor)
+    bandwidth = dataclasses.replace(density.bandwidth, p_std=density.bandwidth.p_std * p_factor,
+                                    rot_std=density.bandwidth.rot_std * rot_factor)
     return _mixture(density.means, density.log_weights, bandwidth, prediction.final_pose.vector())
+
+
+def novelty_factors(prediction: ResidualPrediction, novelty_widening: float, scale: float = 1.0
+                    ) -> tuple[float, float]:
+    """The ``(position, rotation)`` factors on the stds of ``prediction`` (made by a model of novelty widening 0)
+    that give its kernels' stds times ``scale`` widened at ``novelty_widening`` (module docstring), for
+    :func:`rescaled`: how a widening is scored from one prediction."""
+    share = novelty_share(novelty_widening, prediction.outcome_novelty)
+    bandwidth = prediction.density.bandwidth
+    return (math.sqrt(scale**2 + share * prediction.residual_spread[0] ** 2 / bandwidth.p_std**2),
+            math.sqrt(scale**2 + share * prediction.residual_spread[1] ** 2 / bandwidth.rot_std**2))
