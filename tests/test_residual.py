@@ -371,13 +371,13 @@ def test_rollouts_pair_with_the_kernels_whose_training_rollout_did_the_same(trai
 
 def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(trained, residual, tmp_path):
     """The novelty widening: a prediction's rollouts' median outcome novelty ``n`` adds a share ``ν·n / (1 + ν·n)``
-    of the residuals' spread to the kernels' variances (0: as trained; never wider than the spread), the density
+    of the training outcomes' spread to the kernels' variances (0: as trained; never wider than the spread), the density
     stays normalised, ``ν`` is chosen across training objects from the grid, and the model file keeps it."""
     import dataclasses
 
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import choose_novelty_widening
-    from pushtorch.models.residual import NOVELTY_WIDENINGS, load_residual_model, residual_spread
+    from pushtorch.models.residual import NOVELTY_WIDENINGS, load_residual_model, outcome_spread
     from pushtorch.prediction.residual import novelty_factors, rescaled
 
     cube, records, model = trained
@@ -389,8 +389,8 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
     widened = predict_residual(wide, cloud, model.actions[2], 3)
     assert widened.outcome_novelty == plain.outcome_novelty  # the same rollouts
     share = 3.0 * plain.outcome_novelty / (1 + 3.0 * plain.outcome_novelty)
-    spread_p, spread_r = residual_spread(residual.residuals[2])
-    assert widened.residual_spread == pytest.approx((spread_p, spread_r)) and spread_p > 0 and spread_r > 0
+    spread_p, spread_r = outcome_spread(residual.outcomes[2])
+    assert widened.outcome_spread == pytest.approx((spread_p, spread_r)) and spread_p > 0 and spread_r > 0
     assert widened.density.bandwidth.p_std == pytest.approx(math.sqrt(plain.density.bandwidth.p_std**2
                                                                       + share * spread_p**2))
     assert widened.density.bandwidth.rot_std == pytest.approx(math.sqrt(plain.density.bandwidth.rot_std**2
@@ -439,9 +439,9 @@ def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes
     for factor, pulled in ((8.0, lambda f: f < 1.0), (1 / 8, lambda f: f > 1.0)):
         off = dataclasses.replace(residual, bandwidth=dataclasses.replace(
             residual.bandwidth, p_std=residual.bandwidth.p_std * factor, rot_std=residual.bandwidth.rot_std * factor))
-        chosen = choose_residual_scale(off, cube, records, 2, torch.Generator().manual_seed(0))
+        chosen = choose_residual_scale(off, cube, records, 1, torch.Generator().manual_seed(0))
         meta = chosen.meta["scale"]
-        assert meta["pushes"] == 6 and len(meta["nll"]) == len(RESIDUAL_SCALES)
+        assert meta["pushes"] == 3 and len(meta["nll"]) == len(RESIDUAL_SCALES)
         assert meta["chosen"] == RESIDUAL_SCALES[min(range(len(meta["nll"])), key=meta["nll"].__getitem__)]
         assert pulled(meta["chosen"]), (factor, meta)
         assert chosen.bandwidth.p_std == pytest.approx(off.bandwidth.p_std * meta["chosen"])

@@ -36,7 +36,7 @@ from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.evaluation.likelihood import nll, product_density
 from pushtorch.models.model import PushModel
 from pushtorch.models.pooled import ShapeParts, pool_parts
-from pushtorch.models.residual import NOVELTY_WIDENINGS
+from pushtorch.models.residual import NOVELTY_FORM, NOVELTY_WIDENINGS
 from pushtorch.objects import ObjectModel
 
 __all__ = ["RESIDUAL_SCALES", "RESIDUAL_SCALE_PUSHES", "RESIDUAL_WIDENINGS", "SCALES", "WIDENINGS",
@@ -232,7 +232,7 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
                         rot_std=residual.bandwidth.rot_std * grid[best])
     chosen = {"chosen": grid[best], "grid": grid, "nll": mean.tolist(), "pushes": len(scores), "skipped": skipped,
               "pushes_per_action": int(pushes_per_action),
-              "novelty": {"grid": list(NOVELTY_WIDENINGS), "nll": own.tolist()}}
+              "novelty": {"grid": list(NOVELTY_WIDENINGS), "form": NOVELTY_FORM, "nll": own.tolist()}}
     return replace(residual, bandwidth=bandwidth, meta={**residual.meta, "scale": chosen})
 
 
@@ -342,7 +342,7 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     own_pushes = 0
     for residual in residuals:  # each model's own held-out pushes, scored when its scale was chosen
         own = (residual.meta.get("scale") or {})
-        if (own.get("novelty") or {}).get("grid") == grid:
+        if (own.get("novelty") or {}).get("grid") == grid and own["novelty"].get("form") == NOVELTY_FORM:
             total = total + torch.tensor(own["novelty"]["nll"], dtype=torch.float64) * int(own["pushes"])
             own_pushes += int(own["pushes"])
     mean = total / (count + own_pushes)
@@ -350,9 +350,9 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     log.info("residual novelty widening %g across %s (held-out nll %.2f against %.2f unwidened; %d pushes of "
              "other objects, %d of their own)", grid[best], [o.name for o in objects], float(mean[best]),
              float(mean[grid.index(0.0)]) if 0.0 in grid else math.nan, count, own_pushes)
-    chosen = {"chosen": grid[best], "across": [o.name for o in objects], "grid": grid, "nll": mean.tolist(),
-              "pushes": count, "own_pushes": own_pushes, "pushes_per_shape": int(pushes_per_shape),
-              "skipped": skipped}
+    chosen = {"chosen": grid[best], "across": [o.name for o in objects], "grid": grid, "form": NOVELTY_FORM,
+              "nll": mean.tolist(), "pushes": count, "own_pushes": own_pushes,
+              "pushes_per_shape": int(pushes_per_shape), "skipped": skipped}
     return [replace(r, novelty_widening=grid[best], meta={**r.meta, "novelty": chosen}) for r in residuals]
 
 

@@ -46,7 +46,7 @@ from pushtorch.sim.settings import SimSettings
 Tensor = torch.Tensor
 
 __all__ = ["DEFAULT_ENSEMBLE", "NOVELTY_WIDENINGS", "OUTCOME_LADDER", "RESIDUAL_LADDER", "ResidualModel",
-           "novelty_share", "residual_spread",
+           "NOVELTY_FORM", "novelty_share", "outcome_spread",
            "choose_bandwidth", "corrected", "engine_version", "load_any_model", "load_residual_model",
            "outcome_log_affinity", "outcome_novelty", "residual_of", "rollout_outcome", "train_residual_model",
            "with_ensemble"]
@@ -66,8 +66,11 @@ OUTCOME_LADDER = (0.25, 0.5, 1.0, 2.0, 4.0, math.inf)
 
 #: The novelty widenings ``ν`` tried: a prediction whose rollouts did something ``n`` training-outcome stds² from
 #: what any training rollout did (:func:`outcome_novelty`, their median) adds a share ``ν·n / (1 + ν·n)`` of the
-#: residuals' own spread (:func:`residual_spread`) to its kernels' variances (0: never).
+#: training outcomes' spread (:func:`outcome_spread`) to its kernels' variances (0: never).
 NOVELTY_WIDENINGS = (0.0, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
+#: Which form of the novelty widening a model's choice of ``ν`` was made for (kept beside it in its ``meta``; a
+#: cached choice of another form is made again): 2, a share of the outcomes' spread added to the variances
+NOVELTY_FORM = 2
 
 _IDENTITY_Q = torch.tensor([1.0, 0.0, 0.0, 0.0])
 
@@ -110,19 +113,21 @@ def outcome_novelty(queries: Tensor, kernels: Tensor) -> Tensor:
     return _outcome_d2(queries, kernels).amin(1)
 
 
-def residual_spread(kernels: se3.Pose) -> tuple[float, float]:
-    """How large corrections are, whatever the push: the rms per component of the residuals ``kernels (J,)``'
-    translations (m) and of their rotation angles (rad, per axis: the angle over √3). What a prediction's kernels
-    widen towards where its rollouts did something no training rollout did: a correction known to be about this
-    large, but not which."""
-    p = kernels.p.double().reshape(-1, 3)
-    angle = se3.angle_between(kernels.q.double().reshape(-1, 4),
-                              _IDENTITY_Q.to(torch.float64).expand(p.shape[0], 4))
-    return float(p.pow(2).mean().sqrt()), float(angle.pow(2).mean().div(3.0).sqrt())
+def outcome_spread(outcomes: Tensor) -> tuple[float, float]:
+    """How differently the training pushes of an action turned out: the std of their rollouts' displacement per
+    planar component (m; the rms of the two) and of their turn (rad), from ``outcomes (J, 3)``
+    (:func:`rollout_outcome`). What a prediction's kernels widen towards where its rollouts did something no
+    training rollout did: there the correction is unknown, and the outcome no surer than pushes of the action
+    differ."""
+    o = outcomes.double().reshape(-1, 3)
+    if o.shape[0] < 2:
+        return 0.0, 0.0
+    turn = torch.atan2(torch.sin(o[:, 2] - o[0, 2]), torch.cos(o[:, 2] - o[0, 2]))  # unwrapped about the first
+    return float(o[:, :2].var(0).mean().sqrt()), float(turn.std())
 
 
 def novelty_share(novelty_widening: float, novelty: float) -> float:
-    """``ν·n / (1 + ν·n)``: the share of the residuals' spread added to a prediction's kernel variances at the
+    """``ν·n / (1 + ν·n)``: the share of the outcomes' spread added to a prediction's kernel variances at the
     model's novelty widening ``ν`` and the prediction's outcome novelty ``n`` (0 at either 0, towards 1 as the
     rollouts do something ever further from every training rollout)."""
     x = float(novelty_widening) * float(novelty)
@@ -176,7 +181,7 @@ class ResidualModel:
             did the same (:func:`outcome_log_affinity`; ``inf``: not at all), chosen with the stds.
         novelty_widening: ``ν``: a prediction whose rollouts' outcomes lie a median ``n`` (:func:`outcome_novelty`)
             from every training rollout's adds a share :func:`novelty_share` of the action's
-            :func:`residual_spread` to the residual kernels' variances (0: never;
+            :func:`outcome_spread` to the residual kernels' variances (0: never;
             :func:`pushtorch.evaluation.transfer.choose_novelty_widening` chooses it across training objects).
     """
 

@@ -12,10 +12,10 @@ learnt where the simulator did one thing is applied where it does the same. The 
 widened by ``sqrt(1 + κ·d²)`` where this contact is ``d`` contact-kernel stds from the nearest training contact
 (``κ`` the model's ``widening``, chosen across a pool's training shapes; 0 for a model of one object); where the
 rollouts did something ``n`` training-outcome stds² from what any training rollout did (the median over the
-rollouts of :func:`pushtorch.models.residual.outcome_novelty`), a share ``ν·n / (1 + ν·n)`` of the action's
-residuals' spread (:func:`pushtorch.models.residual.residual_spread`) is added to their variances (``ν`` the
-model's ``novelty_widening``, chosen across an experiment's training objects, 0 unless chosen): a correction
-learnt where the simulator did something else is a guess of the size corrections have, no wider. Its mode is
+rollouts of :func:`pushtorch.models.residual.outcome_novelty`), a share ``ν·n / (1 + ν·n)`` of the spread of
+the action's training outcomes (:func:`pushtorch.models.residual.outcome_spread`) is added to their variances
+(``ν`` the model's ``novelty_widening``, chosen across an experiment's training objects, 0 unless chosen): where
+the simulator did something else the correction is unknown, and the outcome no surer than pushes differ. Its mode is
 the mixture's highest kernel centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one
 expert with exponent 1, so ``log_prob``, ``sample`` and the coverage work as for pushtorch's own prediction.
 """
@@ -42,7 +42,7 @@ from pushtorch.models.residual import (
     novelty_share,
     outcome_log_affinity,
     outcome_novelty,
-    residual_spread,
+    outcome_spread,
     rollout_outcome,
 )
 from pushtorch.models.settings import as_generator
@@ -82,9 +82,9 @@ class ResidualPrediction:
     widened_by: float = 1.0
     #: ``n``: the rollouts' median novelty (:func:`~pushtorch.models.residual.outcome_novelty`), 0 without outcomes
     outcome_novelty: float = 0.0
-    #: the action's residuals' spread, (m, rad) (:func:`~pushtorch.models.residual.residual_spread`), towards which
-    #: novelty widens the kernels
-    residual_spread: tuple[float, float] = (0.0, 0.0)
+    #: the spread of the action's training outcomes, (m, rad) (:func:`~pushtorch.models.residual.outcome_spread`),
+    #: towards which novelty widens the kernels
+    outcome_spread: tuple[float, float] = (0.0, 0.0)
 
 
 def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Generator | int | None = None,
@@ -158,10 +158,10 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     log_weights = log_weights[:, keep]
     d2 = float(contact_distances(condition.manipulator_frame, motion.manipulator, condition.robot_start,
                                  model.settings.contact_bandwidth, condition.contact_patch).amin())
-    # corrections learnt far from this contact are less sure; where the simulator did something else, they are
-    # guesses of the size corrections have
+    # corrections learnt far from this contact are less sure; where the simulator did something else, the outcome
+    # is no surer than the action's pushes differ
     scale = math.sqrt(1.0 + residual.widening * d2)
-    spread = residual_spread(kernels)
+    spread = (0.0, 0.0) if residual.outcomes is None else outcome_spread(residual.outcomes[a])
     share = novelty_share(residual.novelty_widening, novelty)
     p_std = math.sqrt((residual.bandwidth.p_std * scale) ** 2 + share * spread[0] ** 2)
     rot_std = math.sqrt((residual.bandwidth.rot_std * scale) ** 2 + share * spread[1] ** 2)
@@ -201,5 +201,5 @@ def novelty_factors(prediction: ResidualPrediction, novelty_widening: float, sca
     :func:`rescaled`: how a widening is scored from one prediction."""
     share = novelty_share(novelty_widening, prediction.outcome_novelty)
     bandwidth = prediction.density.bandwidth
-    return (math.sqrt(scale**2 + share * prediction.residual_spread[0] ** 2 / bandwidth.p_std**2),
-            math.sqrt(scale**2 + share * prediction.residual_spread[1] ** 2 / bandwidth.rot_std**2))
+    return (math.sqrt(scale**2 + share * prediction.outcome_spread[0] ** 2 / bandwidth.p_std**2),
+            math.sqrt(scale**2 + share * prediction.outcome_spread[1] ** 2 / bandwidth.rot_std**2))
