@@ -182,7 +182,7 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     if isinstance(pushes_per_action, bool) or int(pushes_per_action) != pushes_per_action or pushes_per_action < 1:
         raise InvalidParameterError(f"the pushes held out per action must be a whole number >= 1, got "
                                     f"{pushes_per_action!r}")
-    from pushtorch.prediction.residual import novelty_factors, predict_residual, rescaled
+    from pushtorch.prediction.residual import novelty_factors
 
     generator = generator or torch.Generator().manual_seed(0)
     grid = [float(f) for f in scales]
@@ -206,16 +206,13 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
             except InvalidParameterError:  # its push gave every kernel of the action
                 skipped += 1
                 continue
-            cloud, act, robot, start, truth = _push_case(obj, pushes.take(torch.tensor([p])),
-                                                         residual.settings.voxel_size)
-            try:
-                prediction = predict_residual(held_out, cloud, act, generator, robot_start=robot)
-            except (ModelError, InvalidPoseError):  # no body, or the bumper meets no observed feature there
+            case = _push_case(obj, pushes.take(torch.tensor([p])), residual.settings.voxel_size)
+            scored = _predicted_scores(held_out, obj, case, generator, lambda _: grid)
+            if scored is None:
                 skipped += 1
                 continue
-            scores.append(torch.tensor([float(nll(rescaled(prediction, f), truth, start, prediction.start,
-                                                  obj.symmetry)[0]) for f in grid], dtype=torch.float64))
-            cases.append((prediction, truth, start))
+            scores.append(scored[1])
+            cases.append((scored[0], case[4], case[3]))
     if not scores:
         raise InvalidParameterError(f"no held-out push of {obj.name} could be predicted to choose the residual "
                                     "kernels' scale")
@@ -223,9 +220,8 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     best = int(mean.argmin())
     # the same held-out pushes at every novelty widening, at the chosen scale: the own-object side of the choice
     # of ν across objects (choose_novelty_widening), kept since a model read from its file cannot hold pushes out
-    own = torch.tensor([[float(nll(rescaled(p, novelty_factors(p, v, grid[best])), truth, start, p.start,
-                                   obj.symmetry)[0]) for v in NOVELTY_WIDENINGS] for p, truth, start in cases],
-                       dtype=torch.float64).mean(0)
+    own = torch.stack([_nll_at(p, truth, start, obj, [novelty_factors(p, v, grid[best]) for v in NOVELTY_WIDENINGS])
+                       for p, truth, start in cases]).mean(0)
     log.info("residual kernels' scale %g for %s (held-out nll %.2f against %s at 1, %d pushes)", grid[best],
              obj.name, float(mean[best]), f"{float(mean[grid.index(1.0)]):.2f}" if 1.0 in grid else "—", len(scores))
     bandwidth = replace(residual.bandwidth, p_std=residual.bandwidth.p_std * grid[best],
@@ -241,19 +237,37 @@ def _residual_scores(residual, obj: ObjectModel, records, count: int, generator:
     """Each held-out push's nll under ``residual``'s prediction with its kernels' stds times each of
     ``factors(prediction)``, from one prediction per push (the same rollouts), and how many pushes could not be
     predicted."""
-    from pushtorch.prediction.residual import predict_residual, rescaled
-
     scores, skipped = [], 0
-    for cloud, action, robot, start, truth in _held_out_pushes(obj, records, count, residual.settings.voxel_size,
-                                                                generator):
-        try:
-            prediction = predict_residual(residual, cloud, action, generator, robot_start=robot)
-        except (ModelError, InvalidPoseError):  # no body, or the bumper meets no observed feature there
+    for case in _held_out_pushes(obj, records, count, residual.settings.voxel_size, generator):
+        scored = _predicted_scores(residual, obj, case, generator, factors)
+        if scored is None:
             skipped += 1
-            continue
-        scores.append(torch.tensor([float(nll(rescaled(prediction, f), truth, start, prediction.start,
-                                              obj.symmetry)[0]) for f in factors(prediction)], dtype=torch.float64))
+        else:
+            scores.append(scored[1])
     return scores, skipped
+
+
+def _predicted_scores(residual, obj: ObjectModel, case, generator: torch.Generator, factors):
+    """One push ``case`` (:func:`_push_case`) predicted by ``residual`` from its cloud and robot start, and its
+    true outcome's nll with the kernels' stds times each of ``factors(prediction)``: ``(prediction, (F,))``, or
+    None where the push cannot be predicted (no body, or the bumper meets no observed feature there)."""
+    from pushtorch.prediction.residual import predict_residual
+
+    cloud, action, robot, start, truth = case
+    try:
+        prediction = predict_residual(residual, cloud, action, generator, robot_start=robot)
+    except (ModelError, InvalidPoseError):
+        return None
+    return prediction, _nll_at(prediction, truth, start, obj, factors(prediction))
+
+
+def _nll_at(prediction, truth: se3.Pose, start: se3.Pose, obj: ObjectModel, factors) -> torch.Tensor:
+    """``(F,)`` float64 the nll of ``truth`` (moved from ``start``) under ``prediction``'s density with its
+    kernels' stds times each of ``factors`` (:func:`pushtorch.prediction.residual.rescaled`)."""
+    from pushtorch.prediction.residual import rescaled
+
+    return torch.tensor([float(nll(rescaled(prediction, f), truth, start, prediction.start, obj.symmetry)[0])
+                         for f in factors], dtype=torch.float64)
 
 
 def choose_residual_widening(residual, objects: list[ObjectModel], records: list, pushes_per_shape: int = 6,
