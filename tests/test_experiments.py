@@ -508,6 +508,8 @@ def test_tiny_quickstart_recording_opens_ready_to_review(tiny_run):
     assert any(p.endswith("/motion/best_log_prob") for p in series)
 
 
+@pytest.mark.slow  # about 30 s in the suite (the whole tiny run again); a killed run's resume stays in the default
+# suite (test_records, test_bad_inputs)
 def test_rerun_in_the_same_directory_reuses_models_and_predictions(tiny_run):
     cfg, out, _ = tiny_run
     models = sorted((out / "models").glob("*.npz"))
@@ -791,6 +793,7 @@ def test_a_ray_cluster_that_loses_a_node_finishes_with_every_record_once(tiny_ru
     assert friction(tmp_path / "two_nodes") and friction(tmp_path / "two_nodes") == friction(out)
 
 
+@pytest.mark.slow  # the console scripts themselves stay in the default suite (test_layout)
 def test_train_and_predict_apps_on_the_runs_data(tiny_run, tmp_path):
     _, out, _ = tiny_run
     base = {"object": {"name": "cube", "path": None, "scale": 1.0},
