@@ -437,7 +437,7 @@ def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes
     assert [r.p.shape[0] for i, r in enumerate(without.residuals) if i != 1] == \
         [r.p.shape[0] for i, r in enumerate(residual.residuals) if i != 1]
     for factor, pulled in ((8.0, lambda f: f < 1.0), (1 / 8, lambda f: f > 1.0)):
-        off = dataclasses.replace(residual, bandwidth=dataclasses.replace(
+        off = dataclasses.replace(residual, novelty_widening=0.3, bandwidth=dataclasses.replace(
             residual.bandwidth, p_std=residual.bandwidth.p_std * factor, rot_std=residual.bandwidth.rot_std * factor))
         chosen = choose_residual_scale(off, cube, records, 1, torch.Generator().manual_seed(0))
         meta = chosen.meta["scale"]
@@ -445,6 +445,7 @@ def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes
         assert meta["chosen"] == RESIDUAL_SCALES[min(range(len(meta["nll"])), key=meta["nll"].__getitem__)]
         assert pulled(meta["chosen"]), (factor, meta)
         assert chosen.bandwidth.p_std == pytest.approx(off.bandwidth.p_std * meta["chosen"])
+        assert chosen.novelty_widening == 0.3  # scored unwidened, returned as given
         assert meta["novelty"]["grid"] == list(NOVELTY_WIDENINGS) and len(meta["novelty"]["nll"]) == \
             len(NOVELTY_WIDENINGS)
     with pytest.raises(InvalidParameterError, match="trained in this session"):

@@ -187,7 +187,7 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     generator = generator or torch.Generator().manual_seed(0)
     grid = [float(f) for f in scales]
     valid = records.take(records.valid)
-    residual = replace(residual, novelty_widening=0.0)
+    unwidened = replace(residual, novelty_widening=0.0)  # predicted as trained; every widening scored after
     scores, cases, skipped = [], [], 0
     for a, motion in enumerate(residual.model.motions):
         push = motion.manipulator.push
@@ -202,7 +202,7 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
         kept = push.cpu().unique()
         for p in kept[torch.randperm(len(kept), generator=generator)[:int(pushes_per_action)]].tolist():
             try:
-                held_out = residual.without_pushes(a, torch.tensor([p]))
+                held_out = unwidened.without_pushes(a, torch.tensor([p]))
             except InvalidParameterError:  # its push gave every kernel of the action
                 skipped += 1
                 continue
