@@ -36,7 +36,7 @@ from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.evaluation.likelihood import nll, product_density
 from pushtorch.models.model import PushModel
 from pushtorch.models.pooled import ShapeParts, pool_parts
-from pushtorch.models.residual import NOVELTY_FORM, NOVELTY_WIDENINGS
+from pushtorch.models.residual import NOVELTY_FORM, NOVELTY_WIDENINGS, novelty_scored_as_now
 from pushtorch.objects import ObjectModel
 
 __all__ = ["RESIDUAL_SCALES", "RESIDUAL_SCALE_PUSHES", "RESIDUAL_WIDENINGS", "SCALES", "WIDENINGS",
@@ -356,7 +356,7 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     own_pushes = 0
     for residual in residuals:  # each model's own held-out pushes, scored when its scale was chosen
         own = (residual.meta.get("scale") or {})
-        if (own.get("novelty") or {}).get("grid") == grid and own["novelty"].get("form") == NOVELTY_FORM:
+        if novelty_scored_as_now(own.get("novelty"), grid):
             total = total + torch.tensor(own["novelty"]["nll"], dtype=torch.float64) * int(own["pushes"])
             own_pushes += int(own["pushes"])
     mean = total / (count + own_pushes)

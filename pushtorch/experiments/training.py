@@ -231,13 +231,11 @@ def _scale_chosen(residual, pushes: int) -> bool:
     """Whether a cached residual model's kernels' scale was chosen as asked: on ``pushes`` held-out pushes per
     action over today's grid (0: not chosen)."""
     from pushtorch.evaluation.transfer import RESIDUAL_SCALES
-    from pushtorch.models.residual import NOVELTY_FORM, NOVELTY_WIDENINGS
+    from pushtorch.models.residual import novelty_scored_as_now
 
     chosen = residual.meta.get("scale") or {}
     return chosen.get("pushes_per_action", 0) == pushes and (not pushes or (
-        chosen.get("grid") == list(RESIDUAL_SCALES)
-        and (chosen.get("novelty") or {}).get("grid") == list(NOVELTY_WIDENINGS)
-        and chosen["novelty"].get("form") == NOVELTY_FORM))
+        chosen.get("grid") == list(RESIDUAL_SCALES) and novelty_scored_as_now(chosen.get("novelty"))))
 
 
 def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: int) -> dict:
@@ -247,7 +245,7 @@ def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: in
     training object keeps its models as they are; a model whose file already holds the choice across the same
     objects is kept as read."""
     from pushtorch.evaluation.transfer import choose_novelty_widening
-    from pushtorch.models.residual import NOVELTY_FORM, NOVELTY_WIDENINGS
+    from pushtorch.models.residual import novelty_scored_as_now
 
     out = dict(trained)
     by_prior: dict[tuple[str, str], list] = {}
@@ -258,8 +256,7 @@ def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: in
         models = [trained[(t, f, m)] for t in names]
         if len(names) < 2 or all((r.meta.get("novelty") or {}).get("across") == names
                                  and (r.meta.get("novelty") or {}).get("pushes_per_shape") == int(pushes)
-                                 and (r.meta.get("novelty") or {}).get("grid") == list(NOVELTY_WIDENINGS)
-                                 and (r.meta.get("novelty") or {}).get("form") == NOVELTY_FORM
+                                 and novelty_scored_as_now(r.meta.get("novelty"))
                                  for r in models):
             continue
         objects = [load_object(t) for t in names]

@@ -46,7 +46,7 @@ from pushtorch.sim.settings import SimSettings
 Tensor = torch.Tensor
 
 __all__ = ["DEFAULT_ENSEMBLE", "NOVELTY_WIDENINGS", "OUTCOME_LADDER", "RESIDUAL_LADDER", "ResidualModel",
-           "NOVELTY_FORM", "novelty_share", "outcome_spread",
+           "NOVELTY_FORM", "novelty_scored_as_now", "novelty_share", "outcome_spread",
            "choose_bandwidth", "corrected", "engine_version", "load_any_model", "load_residual_model",
            "outcome_log_affinity", "outcome_novelty", "residual_of", "rollout_outcome", "train_residual_model",
            "with_ensemble"]
@@ -124,6 +124,14 @@ def outcome_spread(outcomes: Tensor) -> tuple[float, float]:
         return 0.0, 0.0
     turn = torch.atan2(torch.sin(o[:, 2] - o[0, 2]), torch.cos(o[:, 2] - o[0, 2]))  # unwrapped about the first
     return float(o[:, :2].var(0).mean().sqrt()), float(turn.std())
+
+
+def novelty_scored_as_now(entry: dict | None, grid=NOVELTY_WIDENINGS) -> bool:
+    """Whether a model's ``meta`` entry of novelty-widening scores (``meta["novelty"]``, or the own held-out
+    pushes' ``meta["scale"]["novelty"]``) was made over ``grid`` and for today's :data:`NOVELTY_FORM`: one made
+    otherwise is made again."""
+    entry = entry or {}
+    return entry.get("grid") == [float(v) for v in grid] and entry.get("form") == NOVELTY_FORM
 
 
 def novelty_share(novelty_widening: float, novelty: float) -> float:
