@@ -13,6 +13,19 @@ settings.register_profile("dev", max_examples=200, deadline=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
+def pytest_configure(config):
+    """Under pytest-xdist, each test process's torch gets its share of the cores (one thread each with two
+    workers on two cores): every worker running torch on every core oversubscribes them, and OpenMP threads that
+    wait for a busy core cost far more than the parallelism gains. Processes a test starts choose their own."""
+    workers = int(getattr(config, "workerinput", {}).get("workercount", 0))
+    if workers > 1:
+        import torch
+
+        from pushtorch.parallel import available_cores
+
+        torch.set_num_threads(max(1, available_cores() // workers))
+
+
 @pytest.fixture(scope="session")
 def small_model(tmp_path_factory):
     """``small_model(name)``: a model of a catalogue object trained on 8 real pybullet pushes per action at small

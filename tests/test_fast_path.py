@@ -687,6 +687,7 @@ import sys, torch
 from torch._dynamo.utils import counters
 import pushtorch.kde.fused as fused
 from pushtorch.kde.kernel_sums import dense_sums
+torch.set_num_threads(int(sys.argv[4]))  # as a task matches its submitter: the compiled code's guards hold it
 fused.declare_long_run()
 fused._shared_folder.append(__import__("pathlib").Path(sys.argv[1]))
 fused.share_compiled()
@@ -729,7 +730,7 @@ def test_a_shared_compiled_function_loads_in_another_process_and_gives_the_same_
     assert torch.equal(made, reference)
     torch.save(args, tmp_path / "args.pt")
     subprocess.run([sys.executable, "-c", _LOAD_SHARED, str(tmp_path / "shared"), str(tmp_path / "args.pt"),
-                    str(tmp_path / "out.pt")], check=True, timeout=300)
+                    str(tmp_path / "out.pt"), str(torch.get_num_threads())], check=True, timeout=300)
     out = torch.load(tmp_path / "out.pt")
     assert out["loaded_graphs"] == 0 and out["graphs"] == 1  # loaded, not traced; float64 traced there
     assert torch.equal(out["value"], reference)
