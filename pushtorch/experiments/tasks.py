@@ -86,15 +86,25 @@ def saved_models() -> dict[int, tuple[Any, Callable, tuple]]:
 
 
 def warm_up(model) -> None:
-    """Compile the fast path's fused functions in this process, once, by one prediction of a cube with ``model``:
-    workers forked afterwards inherit the compiled code. Without it every worker of every part compiles them
-    again (torch.compile traces per process: seconds each on a small host). Nothing to do where the fast path
-    runs eagerly (:func:`pushtorch.kde.fast_path_compiled`)."""
+    """Compile the fast path's fused functions in this process, once, by predictions of a cube with ``model`` on
+    one torch thread, as the workers run, one of them keeping its annealing history, as the workers that log
+    examples do: workers forked afterwards inherit the compiled code. Without it every worker of every part
+    compiles them again (torch.compile traces per process: seconds each on a small host); compiled on the
+    parent's threads, the same (Inductor's guards hold the thread count: a 1-thread worker compiled again, 8 s
+    of a 2-core host's first prediction against 0.4). Nothing to do where the fast path runs eagerly
+    (:func:`pushtorch.kde.fast_path_compiled`)."""
+    import torch
+
     from pushtorch.kde import fast_path_compiled
 
     if _WARM or not fast_path_compiled(model.motions[0].action.device):
         return
-    _predict_a_cube(model)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        _predict_a_cube(model, history=True)
+    finally:
+        torch.set_num_threads(threads)
     _WARM.append(True)
 
 
