@@ -135,6 +135,7 @@ _RULES: list[tuple[str, Rule]] = [
     ("**.workers", _int(0, 1024)),
     ("**.shard_size", _int(1, 100_000)),
     ("**.progress", _BOOL),
+    ("experiment.compile", _BOOL),  # whether the experiment compiles the fast path (apps.experiment)
     ("**.log_examples", _int(0, 100)),
     ("recording.conditions", Rule("conditions", nullable=True)),  # experiments.common.LogConditions
     ("**.test_conditions", _int(1, 100_000)),

@@ -21,8 +21,15 @@ from pushtorch.kde import declare_long_run
 log = logging.getLogger("pushtorch")
 
 
+def compiles(cfg: DictConfig) -> bool:
+    """Whether an experiment compiles the fast path: an experiment predicts many times, so compiling pays, unless
+    its config says ``experiment.compile: false`` (the main job: docs/speed.md, "The main job's time")."""
+    return bool(cfg.experiment.get("compile", True))
+
+
 def _run_experiment(cfg: DictConfig, out_dir: Path) -> dict:
     name = cfg.experiment.name
+    declare_long_run(compiles(cfg))
     run = experiment_runner(name)  # an unknown name: InvalidParameterError listing the known ones
     log.info("experiment %s → %s", name, out_dir)
     return run(cfg, out_dir, current_overrides())
@@ -36,7 +43,6 @@ def _app(cfg: DictConfig) -> dict:
 def main() -> None:
     """Console-script entry point (``pushtorch ...``); a user error exits with status 2 and one line."""
     compose_or_exit("pushtorch", "config")
-    declare_long_run()  # an experiment predicts many times: compiling the fast path pays
     _app()
     exit_without_collecting()
 
