@@ -56,7 +56,7 @@ from pushtorch.experiments.common import (
 from pushtorch.experiments.prediction_sets import observe
 from pushtorch.experiments.suite import run_suite
 from pushtorch.experiments.tasks import prefetch
-from pushtorch.experiments.training import train_residual
+from pushtorch.experiments.training import train_models, train_residual
 from pushtorch.io import atomic_write_bytes
 from pushtorch.models.conditioning import Observation
 from pushtorch.models.library import ModelLibrary
@@ -227,7 +227,7 @@ def _observed(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: 
     as all at once). Everything is seeded by the case, so the recording's re-run of a case is that case."""
     ctx, obj, name, models = group.ctx, group.obj, group.name, group.models
     condition, other = f"{bias}:{level}", ("mass" if bias == "friction" else "friction")
-    default = str(part.get(f"default_{other}", "paper_default"))
+    default = _default(part, bias)
     gen = torch.Generator().manual_seed(stable_seed(ctx.seed, name, obj.name, condition, i))
     priors = {bias: ctx.prior(bias, level), other: ctx.prior(other, default)}
     mu = float(priors["friction"].sample((1,), gen)[0])
@@ -375,6 +375,10 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     # the cases whose posterior timeline the recording shows (the first ones; worst/best choices need the truth)
     logged = sorted(set(ctx.log_examples.known_before_truth(n_cases)) or {0})
     groups, tasks = {}, []
+    # every model the groups condition, trained first as tasks where there is room (a run of this part alone
+    # trained them one after the other here)
+    train_models(ctx, sorted({(training_of.get(obj.name, obj.name), *_levels(part, bias)[level])
+                              for obj in objects for bias in biases for level in ("general", *LEVELS)}))
     for obj in objects:
         trained_on = load_object(training_of.get(obj.name, obj.name))
         poses = sample_test_poses(obj, n_cases, part["yaw_range_deg"], stable_seed(ctx.seed, name, "poses", obj.name))
@@ -382,10 +386,8 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
         starts = [[_start(obj, poses.take(i), stable_seed(ctx.seed, name, obj.name, i, j, "start"))
                    for j in range(int(ctx.actions.shape[0]))] for i in range(n_cases)]
         for bias in biases:
-            other = "mass" if bias == "friction" else "friction"
-            default = str(part.get(f"default_{other}", "paper_default"))
-            pairs = {level: ((level, default) if bias == "friction" else (default, level))
-                     for level in ("general", *LEVELS)}
+            default = _default(part, bias)
+            pairs = _levels(part, bias)
             models = {level: train_model(ctx, trained_on, *fm) for level, fm in pairs.items()}
             general_prior = (ctx.prior("friction", pairs["general"][0]), ctx.prior("mass", pairs["general"][1]))
             group = _Group(ctx, name, obj, poses, clouds, starts, models, general_prior)
@@ -437,6 +439,19 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     return records, {"online_separability": separability}
 
 
+def _default(part: Mapping[str, Any], bias: str) -> str:
+    """The prior name of the parameter ``bias`` leaves fixed: ``default_mass`` or ``default_friction``, the
+    paper's by default."""
+    return str(part.get(f"default_{'mass' if bias == 'friction' else 'friction'}", "paper_default"))
+
+
+def _levels(part: Mapping[str, Any], bias: str) -> dict[str, tuple[str, str]]:
+    """The (friction, mass) prior names of the library's models under ``bias``: each level of it, the other
+    parameter at its default."""
+    default = _default(part, bias)
+    return {level: ((level, default) if bias == "friction" else (default, level)) for level in ("general", *LEVELS)}
+
+
 def _cached(path, made_from) -> dict | None:
     """A condition's scores written earlier, if they were made from ``made_from``."""
     cached = json.loads(path.read_text()) if path.is_file() else None
@@ -449,8 +464,7 @@ def _run_conditions(grouped: tuple, part: Mapping[str, Any], observed: list[int]
     atomically. The group's predictions that do not depend on the condition are made once for all of its
     conditions (its memo)."""
     group, files, bias = grouped
-    other = "mass" if bias == "friction" else "friction"
-    default = str(part.get(f"default_{other}", "paper_default"))
+    other, default = ("mass" if bias == "friction" else "friction"), _default(part, bias)
     for level in levels:
         path, made_from = files[level]
         scores = _Scores()
