@@ -90,9 +90,9 @@ def warm_up(model) -> None:
     one torch thread, as the workers run, one of them keeping its annealing history, as the workers that log
     examples do: workers forked afterwards inherit the compiled code. Without it every worker of every part
     compiles them again (torch.compile traces per process: seconds each on a small host); compiled on the
-    parent's threads, the same (Inductor's guards hold the thread count: a 1-thread worker compiled again, 8 s
-    of a 2-core host's first prediction against 0.4). Nothing to do where the fast path runs eagerly
-    (:func:`pushtorch.kde.fast_path_compiled`)."""
+    parent's threads, the same (Inductor's guards hold the thread count: a 1-thread worker compiled again, its
+    first prediction 20 s on a 2-core host against 0.45 s, ``tools/bench_worker_compile.py``). Nothing to do
+    where the fast path runs eagerly (:func:`pushtorch.kde.fast_path_compiled`)."""
     import torch
 
     from pushtorch.kde import fast_path_compiled
