@@ -302,7 +302,7 @@ TINY = [
     "model.settings.feature_radius=0.02",
     "experiment.parts.model_selection.test_conditions=1",
     "experiment.parts.model_selection.truth_samples=1",
-    "experiment.parts.pose_estimation.objects=[cube]",
+    "experiment.parts.pose_estimation.objects=[cube,cylinder]",
     "experiment.parts.pose_estimation.runs=2",
     "experiment.parts.friction_biasing.objects=[cube,prism_thin]",
     "experiment.parts.friction_biasing.model.friction=[low,high]",
@@ -341,9 +341,11 @@ def test_tiny_quickstart_writes_tidy_results(tiny_run):
     results = json.loads((out / "results.json").read_text())
     assert set(results) == {"experiment", "world", "physics", "config", "overrides", "wall_s", "records",
                             "model_bandwidths", "separability", "tasks"}
-    # two cores: the models, the groups of predictions and the online conditions ran in local worker processes
+    # two cores: the models, the pose estimates, the groups of predictions and the online conditions ran in local
+    # worker processes
     kinds = {key.split(" | ")[0] for key in results["tasks"] if key.endswith("(local workers)")}
-    assert {"models trained", "groups predicted, pushed and scored", "groups of conditions scored"} <= kinds
+    assert {"models trained", "objects' poses estimated", "groups predicted, pushed and scored",
+            "groups of conditions scored"} <= kinds
     # the default world: the truth in MuJoCo, the physics peers in pybullet (no peer has the truth's physics)
     assert results["world"] == {"engine": "mujoco"} and results["physics"] == {"engine": "pybullet"}
     # every trained model chose its bandwidths from its training pushes, and the run says which
@@ -581,7 +583,7 @@ def test_the_pybullet_world_runs_beside_the_mujoco_one_in_one_folder(tiny_run, t
 # slow: about 30 s each in the suite (a serial run of the part); the default suite keeps the same claim for Ray and
 # local task workers (test_executors: the same shards and records either way)
 @pytest.mark.slow
-@pytest.mark.parametrize("part", ["friction_biasing", "online_adaptation"])
+@pytest.mark.parametrize("part", ["pose_estimation", "friction_biasing", "online_adaptation"])
 def test_the_parts_steps_in_worker_processes_give_the_records_of_a_serial_run(tiny_run, tmp_path, part):
     """The default run fills a part's caches in forked task workers, and its loop reads each group as its task
     ends; experiment.workers=1 does every step in this process, in the loop's order. The records are the same."""
@@ -593,8 +595,9 @@ def test_the_parts_steps_in_worker_processes_give_the_records_of_a_serial_run(ti
 
     def records(run):
         every = json.loads((run / "results.json").read_text())["records"]
-        if part == "online_adaptation":
-            return sorted(json.dumps(r, sort_keys=True) for r in every if r["task"] == "online")
+        if part in ("online_adaptation", "pose_estimation"):
+            task = "online" if part == "online_adaptation" else "pose"
+            return sorted(json.dumps(r, sort_keys=True) for r in every if r["task"] == task)
         return sorted(json.dumps(r, sort_keys=True) for r in every
                       if r["task"] == "prediction" and (r["model"] or "").startswith("friction"))
 

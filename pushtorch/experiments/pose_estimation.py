@@ -42,6 +42,7 @@ from pushtorch.experiments.common import (
     summarise,
 )
 from pushtorch.experiments.suite import run_suite
+from pushtorch.experiments.tasks import prefetched
 from pushtorch.paths import contained_path
 
 __all__ = ["run", "run_part"]
@@ -61,7 +62,6 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
         every estimate's linear error for the report (``{"pose_errors": {object: [cm, ...]}}``).
     """
     from pushtorch.models.position import centroid_pose
-    from pushtorch.prediction import estimate_pose
 
     part = plain(part)
     name = part.get("name", "pose_estimation")
@@ -70,24 +70,12 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     errors: dict[str, list[float]] = {}
     objects = load_test_objects(cfg, as_names(part["objects"]))
     bar = progress_bar(ctx, len(objects) * runs, f"{name}: pose estimates")
-    for obj in objects:
-        truth = obj.resting_pose(0.0, 0.0, math.radians(float(part["yaw_deg"])))
-        cloud, observed = observe(obj, truth, ctx.settings)
-        path = contained_path(ctx.run_dir, "predictions", f"{name}_{obj.name}.npz", what="experiment or object name")
-        made_from = fingerprint(name=name, object=obj.name, seed=ctx.seed, runs=runs,
-                                yaw=float(part["yaw_deg"]), settings=asdict(ctx.settings))
-        estimated = _cached_estimates(path, made_from)
-        if estimated is None:
-            position = _position_model(obj, ctx, stable_seed(ctx.seed, name, obj.name, "frames"))
-            estimates = []
-            for r in range(runs):
-                generator = torch.Generator().manual_seed(stable_seed(ctx.seed, name, obj.name, r))
-                estimates.append(estimate_pose(position, observed, ctx.settings, generator).pose)
-                bar.update(1)
-            estimated = se3.Pose.stack([se3.Pose.unchecked(e.p.float(), e.q.float()) for e in estimates])
-            save_arrays(path, {"p": estimated.p, "q": estimated.q}, {"fingerprint": made_from})
-        else:
-            bar.update(runs)
+    # every object's estimates in worker processes, where there are cores to spare: the loop reads each object's
+    # cache as soon as its task ended
+    ahead = prefetched(ctx, lambda task_ctx, obj: _estimates(task_ctx, name, part, obj), objects,
+                       on_done=lambda _: bar.update(runs), what="objects' poses estimated")
+    for obj, done in ahead:
+        truth, cloud, estimated = _estimates(ctx, name, part, obj, None if done else bar)
         acc = accuracy(estimated, truth.expand(runs), obj)
         records.append(summarise("pose", obj.name, "position_model", acc))
         centroid = centroid_pose(cloud.points)
@@ -97,6 +85,33 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             _log_pose_example(ctx, obj, truth, cloud.points, estimated, acc.hacc, centroid)
     bar.close()
     return records, {"pose_hacc": errors}
+
+
+def _estimates(ctx: ExperimentContext, name: str, part: Mapping[str, Any], obj, bar=None):
+    """One object's true pose, observed cloud and ``runs`` estimates of its pose (cached in the run folder under
+    what made them)."""
+    from pushtorch.prediction import estimate_pose
+
+    runs = int(part["runs"])
+    truth = obj.resting_pose(0.0, 0.0, math.radians(float(part["yaw_deg"])))
+    cloud, observed = observe(obj, truth, ctx.settings)
+    path = contained_path(ctx.run_dir, "predictions", f"{name}_{obj.name}.npz", what="experiment or object name")
+    made_from = fingerprint(name=name, object=obj.name, seed=ctx.seed, runs=runs,
+                            yaw=float(part["yaw_deg"]), settings=asdict(ctx.settings))
+    estimated = _cached_estimates(path, made_from)
+    if estimated is None:
+        position = _position_model(obj, ctx, stable_seed(ctx.seed, name, obj.name, "frames"))
+        estimates = []
+        for r in range(runs):
+            generator = torch.Generator().manual_seed(stable_seed(ctx.seed, name, obj.name, r))
+            estimates.append(estimate_pose(position, observed, ctx.settings, generator).pose)
+            if bar is not None:
+                bar.update(1)
+        estimated = se3.Pose.stack([se3.Pose.unchecked(e.p.float(), e.q.float()) for e in estimates])
+        save_arrays(path, {"p": estimated.p, "q": estimated.q}, {"fingerprint": made_from})
+    elif bar is not None:
+        bar.update(runs)
+    return truth, cloud, estimated
 
 
 def _position_model(obj, ctx: ExperimentContext, seed: int):
