@@ -226,7 +226,7 @@ def _observed(group: _Group, part: Mapping[str, Any], bias: str, level: str, i: 
     of conditioned libraries (``chain[k]`` has seen ``k`` of them; one observation at a time, the same posterior
     as all at once). Everything is seeded by the case, so the recording's re-run of a case is that case."""
     ctx, obj, name, models = group.ctx, group.obj, group.name, group.models
-    condition, other = f"{bias}:{level}", ("mass" if bias == "friction" else "friction")
+    condition, other = f"{bias}:{level}", _other(bias)
     default = _default(part, bias)
     gen = torch.Generator().manual_seed(stable_seed(ctx.seed, name, obj.name, condition, i))
     priors = {bias: ctx.prior(bias, level), other: ctx.prior(other, default)}
@@ -439,10 +439,15 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     return records, {"online_separability": separability}
 
 
+def _other(bias: str) -> str:
+    """The parameter ``bias`` leaves fixed: mass under friction, friction under mass."""
+    return "mass" if bias == "friction" else "friction"
+
+
 def _default(part: Mapping[str, Any], bias: str) -> str:
     """The prior name of the parameter ``bias`` leaves fixed: ``default_mass`` or ``default_friction``, the
     paper's by default."""
-    return str(part.get(f"default_{'mass' if bias == 'friction' else 'friction'}", "paper_default"))
+    return str(part.get(f"default_{_other(bias)}", "paper_default"))
 
 
 def _levels(part: Mapping[str, Any], bias: str) -> dict[str, tuple[str, str]]:
@@ -464,7 +469,7 @@ def _run_conditions(grouped: tuple, part: Mapping[str, Any], observed: list[int]
     atomically. The group's predictions that do not depend on the condition are made once for all of its
     conditions (its memo)."""
     group, files, bias = grouped
-    other, default = ("mass" if bias == "friction" else "friction"), _default(part, bias)
+    other, default = _other(bias), _default(part, bias)
     for level in levels:
         path, made_from = files[level]
         scores = _Scores()

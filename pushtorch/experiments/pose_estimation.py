@@ -70,12 +70,15 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     errors: dict[str, list[float]] = {}
     objects = load_test_objects(cfg, as_names(part["objects"]))
     bar = progress_bar(ctx, len(objects) * runs, f"{name}: pose estimates")
-    # every object's estimates in worker processes, where there are cores to spare: the loop reads each object's
-    # cache as soon as its task ended
-    ahead = prefetched(ctx, lambda task_ctx, obj: _estimates(task_ctx, name, part, obj), objects,
-                       on_done=lambda _: bar.update(runs), what="objects' poses estimated")
+    # each object's cloud observed once, here (the tasks inherit it); every object's estimates in worker processes,
+    # where there are cores to spare: the loop reads each object's cache as soon as its task ended
+    truths = {obj.name: obj.resting_pose(0.0, 0.0, math.radians(float(part["yaw_deg"]))) for obj in objects}
+    observed = {obj.name: observe(obj, truths[obj.name], ctx.settings) for obj in objects}
+    ahead = prefetched(ctx, lambda task_ctx, obj: _estimates(task_ctx, name, part, obj, observed[obj.name][1]),
+                       objects, on_done=lambda _: bar.update(runs), what="objects' poses estimated")
     for obj, done in ahead:
-        truth, cloud, estimated = _estimates(ctx, name, part, obj, None if done else bar)
+        truth, cloud = truths[obj.name], observed[obj.name][0]
+        estimated = _estimates(ctx, name, part, obj, observed[obj.name][1], None if done else bar)
         acc = accuracy(estimated, truth.expand(runs), obj)
         records.append(summarise("pose", obj.name, "position_model", acc))
         centroid = centroid_pose(cloud.points)
@@ -87,14 +90,12 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
     return records, {"pose_hacc": errors}
 
 
-def _estimates(ctx: ExperimentContext, name: str, part: Mapping[str, Any], obj, bar=None):
-    """One object's true pose, observed cloud and ``runs`` estimates of its pose (cached in the run folder under
-    what made them)."""
+def _estimates(ctx: ExperimentContext, name: str, part: Mapping[str, Any], obj, observed, bar=None) -> se3.Pose:
+    """``runs`` estimates of one object's pose from the features ``observed`` of its cloud (cached in the run
+    folder under what made them)."""
     from pushtorch.prediction import estimate_pose
 
     runs = int(part["runs"])
-    truth = obj.resting_pose(0.0, 0.0, math.radians(float(part["yaw_deg"])))
-    cloud, observed = observe(obj, truth, ctx.settings)
     path = contained_path(ctx.run_dir, "predictions", f"{name}_{obj.name}.npz", what="experiment or object name")
     made_from = fingerprint(name=name, object=obj.name, seed=ctx.seed, runs=runs,
                             yaw=float(part["yaw_deg"]), settings=asdict(ctx.settings))
@@ -111,7 +112,7 @@ def _estimates(ctx: ExperimentContext, name: str, part: Mapping[str, Any], obj, 
         save_arrays(path, {"p": estimated.p, "q": estimated.q}, {"fingerprint": made_from})
     elif bar is not None:
         bar.update(runs)
-    return truth, cloud, estimated
+    return estimated
 
 
 def _position_model(obj, ctx: ExperimentContext, seed: int):
