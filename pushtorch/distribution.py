@@ -49,7 +49,7 @@ from pushtorch.streams import KeyedStream
 
 Tensor = torch.Tensor
 
-__all__ = ["KERNELS", "FinalPoseDistribution"]
+__all__ = ["KERNELS", "DefensiveMixture", "FinalPoseDistribution"]
 
 #: The kernels a distribution evaluates: the model's cut-off kernels, or the full ones they approximate.
 KERNELS = ("cut", "full")
@@ -432,3 +432,67 @@ class FinalPoseDistribution(Distribution):
     def __repr__(self) -> str:
         return (f"FinalPoseDistribution(batch_shape={tuple(self.batch_shape)}, experts={self.num_experts}, "
                 f"kernels={self.means.p.shape[-2]} {self.kernels}, method={self.method.value!r})")
+
+
+class DefensiveMixture(Distribution):
+    """``(1 − ε) · narrow + ε · wide``: a density with a defensive component (Hesterberg 1995), what the residual
+    model predicts where its corrections may not hold (:mod:`pushtorch.prediction.residual`; docs/method.md, "The
+    residual model"). Both parts are normalised :class:`FinalPoseDistribution` of one batch shape; the wide part
+    is the same kernels wider, so the mode is the narrow part's.
+
+    Raises:
+        InvalidParameterError: a share outside ``(0, 1)`` or parts of different batch shapes.
+    """
+
+    arg_constraints: dict = {}
+    support = constraints.independent(constraints.real, 1)
+    has_rsample = False
+
+    def __init__(self, narrow: FinalPoseDistribution, wide: FinalPoseDistribution, share: float,
+                 validate_args: bool | None = None) -> None:
+        if not 0.0 < float(share) < 1.0:
+            raise InvalidParameterError(f"a defensive share lies in (0, 1), got {share!r}")
+        if narrow.batch_shape != wide.batch_shape:
+            raise InvalidParameterError(f"the parts' batch shapes differ: {tuple(narrow.batch_shape)} and "
+                                        f"{tuple(wide.batch_shape)}")
+        self.narrow, self.wide, self.share = narrow, wide, float(share)
+        super().__init__(batch_shape=narrow.batch_shape, event_shape=torch.Size([7]),
+                         validate_args=narrow._validate_args if validate_args is None else validate_args)
+
+    @property
+    def mode(self) -> Tensor:
+        """``(*B, 7)`` the narrow part's mode."""
+        return self.narrow.mode
+
+    def log_prob(self, value: Tensor) -> Tensor:
+        """Normalised log density (nats) at poses ``(..., *B, 7)`` → ``(..., *B)``, as the parts'."""
+        return torch.logaddexp(self.narrow.log_prob(value) + math.log1p(-self.share),
+                               self.wide.log_prob(value) + math.log(self.share))
+
+    def unnormalised_log_prob(self, value: Tensor) -> Tensor:
+        """:meth:`log_prob` (the parts' constants differ, so the mixture is scored whole)."""
+        return self.log_prob(value)
+
+    def sample(self, sample_shape: torch.Size | tuple = (), generator: torch.Generator | None = None) -> Tensor:
+        """Poses ``(*sample_shape, *B, 7)``: each draw from the wide part with probability ``ε``, else the narrow
+        (without a ``generator`` one seeded with DEFAULT_SEED: the same draws every call). Sizes as
+        :meth:`FinalPoseDistribution.sample`."""
+        sample_shape = torch.Size(sample_shape)
+        generator = as_generator(generator, self.narrow.means.p.device)
+        narrow = self.narrow.sample(sample_shape, generator)
+        wide = self.wide.sample(sample_shape, generator)
+        pick = torch.rand(narrow.shape[:-1], generator=generator, device=narrow.device) < self.share
+        return torch.where(pick.unsqueeze(-1), wide, narrow)
+
+    def to(self, device=None, dtype=None) -> DefensiveMixture:
+        """This mixture on another device and/or floating dtype."""
+        return DefensiveMixture(self.narrow.to(device, dtype), self.wide.to(device, dtype), self.share,
+                                self._validate_args)
+
+    def with_kernels(self, kernels: str) -> DefensiveMixture:
+        """Both parts with ``kernels`` (:meth:`FinalPoseDistribution.with_kernels`)."""
+        return DefensiveMixture(self.narrow.with_kernels(kernels), self.wide.with_kernels(kernels), self.share,
+                                self._validate_args)
+
+    def __repr__(self) -> str:
+        return f"DefensiveMixture(share={self.share:g}, narrow={self.narrow!r}, wide={self.wide!r})"

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from pushtorch import se3
 from pushtorch.errors import PushtorchError
+from pushtorch.models.residual import DEFENSIVE_PARTS as DEFENSIVE_PARTS_GRID
 from pushtorch.models.residual import corrected, residual_of, train_residual_model, with_ensemble
 from pushtorch.models.settings import ModelSettings
 from pushtorch.models.training import train_push_model
@@ -308,7 +309,7 @@ def test_a_pooled_residual_takes_every_shapes_pushes_holds_one_out_and_widens_ac
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import RESIDUAL_WIDENINGS, choose_residual_widening
     from pushtorch.models.pooled import train_pooled_model
-    from pushtorch.models.residual import load_residual_model
+    from pushtorch.models.residual import DEFENSIVE_PARTS, load_residual_model
     from pushtorch.sim import Normal, load_records, object_spec, plan_training_pushes, run_plan
 
     cube, cube_records = cube_pushes_of(6, 1)
@@ -333,9 +334,11 @@ def test_a_pooled_residual_takes_every_shapes_pushes_holds_one_out_and_widens_ac
     widened = choose_residual_widening(residual, shapes, records, pushes_per_shape=1,
                                        generator=torch.Generator().manual_seed(0))
     assert widened.widening in RESIDUAL_WIDENINGS and widened.meta["widening"]["pushes"] > 0
-    assert len(widened.meta["widening"]["nll"]) == len(RESIDUAL_WIDENINGS)
+    assert len(widened.meta["widening"]["nll"]) == len(RESIDUAL_WIDENINGS) * len(DEFENSIVE_PARTS)
+    assert widened.defensive in DEFENSIVE_PARTS
     back = load_residual_model(widened.save(tmp_path / "pooled_residual.npz"))
-    assert (back.widening, back.shape_names) == (widened.widening, widened.shape_names)
+    assert (back.widening, back.shape_names, back.defensive) == (widened.widening, widened.shape_names,
+                                                                 widened.defensive)
     assert all(torch.equal(a, b) for a, b in zip(back.shapes, widened.shapes, strict=True))
     cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=0.4))
     one, two = (predict_residual(m, cloud, pooled.actions[1], 4) for m in (widened, back))
@@ -377,7 +380,7 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
 
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import choose_novelty_widening
-    from pushtorch.models.residual import NOVELTY_WIDENINGS, load_residual_model, outcome_spread
+    from pushtorch.models.residual import DEFENSIVE_PARTS, NOVELTY_WIDENINGS, load_residual_model, outcome_spread
     from pushtorch.prediction.residual import novelty_factors, rescaled
 
     cube, records, model = trained
@@ -409,11 +412,78 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
     # one widening across training objects (here the cube's model twice: each scores the other's pushes)
     chosen = choose_novelty_widening([residual, residual], [cube, cube], [records, records], pushes_per_shape=2,
                                      generator=torch.Generator().manual_seed(0))
-    assert len({m.novelty_widening for m in chosen}) == 1 and chosen[0].novelty_widening in NOVELTY_WIDENINGS
+    assert len({(m.novelty_widening, m.defensive) for m in chosen}) == 1
+    assert chosen[0].novelty_widening in NOVELTY_WIDENINGS and chosen[0].defensive in DEFENSIVE_PARTS
     meta = chosen[0].meta["novelty"]
-    assert meta["pushes"] == 4 and len(meta["nll"]) == len(NOVELTY_WIDENINGS) and meta["across"] == ["cube", "cube"]
+    assert meta["pushes"] == 4 and meta["across"] == ["cube", "cube"]
+    assert len(meta["nll"]) == len(NOVELTY_WIDENINGS) * len(DEFENSIVE_PARTS)
+    best = min(range(len(meta["nll"])), key=meta["nll"].__getitem__)  # the pair of lowest held-out nll
+    assert (chosen[0].novelty_widening, chosen[0].defensive) == (NOVELTY_WIDENINGS[best // len(DEFENSIVE_PARTS)],
+                                                                 DEFENSIVE_PARTS[best % len(DEFENSIVE_PARTS)])
     with pytest.raises(InvalidParameterError, match="two models or more"):
         choose_novelty_widening([residual], [cube], [records])
+
+
+def test_a_defensive_part_keeps_far_truths_likely_and_the_density_normalised(trained, residual, tmp_path):
+    """A defensive part ``(ε0, λ, w)``: the density is ``(1 − ε)`` of the kernels and ``ε`` of the same kernels with
+    ``w`` and ``w · DEFENSIVE_TURN`` added to their stds in quadrature (``ε = ε0 + (1 − ε0)·λn / (1 + λn)``),
+    normalised, with the same mode and rollouts; a truth far from every kernel is likelier under it and one at the
+    mode barely less; the draws come from both parts; it is scored from one prediction as predicted
+    (``rescaled``); the file keeps it; a share outside (0, 1) is refused."""
+    import dataclasses
+
+    from pushtorch.distribution import DefensiveMixture
+    from pushtorch.errors import InvalidParameterError
+    from pushtorch.models.residual import DEFENSIVE_TURN, load_residual_model
+    from pushtorch.prediction.residual import defensive_factors, rescaled
+
+    cube, records, model = trained
+    cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=-0.2))
+    plain = predict_residual(residual, cloud, model.actions[0], 5)
+    guarded = dataclasses.replace(residual, defensive=(0.1, 0.0, 0.03))  # a share of 0.1 whatever the novelty
+    prediction = predict_residual(guarded, cloud, model.actions[0], 5)
+    density = prediction.density
+    assert isinstance(density, DefensiveMixture) and density.share == 0.1
+    torch.testing.assert_close(prediction.final_pose.vector(), plain.final_pose.vector(), rtol=0, atol=0)
+    torch.testing.assert_close(density.mode, plain.density.mode, rtol=0, atol=0)
+    narrow = density.narrow.bandwidth
+    assert density.wide.bandwidth.p_std == pytest.approx(math.hypot(narrow.p_std, 0.03))
+    assert density.wide.bandwidth.rot_std == pytest.approx(math.hypot(narrow.rot_std, 0.03 * DEFENSIVE_TURN))
+    assert density.wide.bandwidth.p_std > 2 * narrow.p_std
+    mode = prediction.final_pose.vector()
+    far = mode.clone()
+    far[:2] += 0.04  # a truth the corrections missed by 5.7 cm
+    assert float(density.log_prob(far)) > float(plain.density.log_prob(far)) + 5.0
+    assert float(plain.density.log_prob(mode)) - float(density.log_prob(mode)) < -math.log(0.9) + 1e-4
+    # normalised: two normalised parts, weighed 1 − ε and ε
+    assert abs(float(density.narrow.log_normaliser())) < 0.05 and abs(float(density.wide.log_normaliser())) < 0.05
+    draws = density.wide.sample((64,), torch.Generator().manual_seed(1))
+    torch.testing.assert_close(density.log_prob(draws), torch.logaddexp(
+        density.narrow.log_prob(draws) + math.log(0.9), density.wide.log_prob(draws) + math.log(0.1)))
+    samples = density.sample((2000,), torch.Generator().manual_seed(2))
+    wide_ones = ((samples[:, :2] - mode[:2]).norm(dim=-1) > 4 * narrow.p_std).float().mean()
+    assert 0.02 < float(wide_ones) < 0.2  # about ε of the draws from the wide part, beyond the narrow one's reach
+    f = (1.0, 1.0)
+    scored = rescaled(plain, f, (0.1, defensive_factors(plain, f, 0.03)))
+    torch.testing.assert_close(scored.log_prob(far), density.log_prob(far))
+    back = load_residual_model(guarded.save(tmp_path / "guarded.npz"))
+    assert back.defensive == (0.1, 0.0, 0.03)
+    with pytest.raises(InvalidParameterError, match="defensive share"):
+        DefensiveMixture(density.narrow, density.wide, 1.0)
+    # a share that grows with the rollouts' novelty n: λn / (1 + λn)
+    n = prediction.outcome_novelty
+    assert n > 0
+    novel = predict_residual(dataclasses.replace(residual, defensive=(0.0, 0.5 / n, 0.03)), cloud, model.actions[0], 5)
+    assert novel.density.share == pytest.approx(1 / 3)
+
+
+@given(st.sampled_from(DEFENSIVE_PARTS_GRID), st.floats(0.0, 1e12), st.floats(0.0, 1e12))
+def test_a_defensive_share_lies_in_its_bounds_and_grows_with_novelty(part, n, more):
+    from pushtorch.models.residual import MAX_DEFENSIVE_SHARE, defensive_share
+
+    low, high = defensive_share(part, n), defensive_share(part, n + more)
+    assert part[0] - 1e-12 <= low <= high <= MAX_DEFENSIVE_SHARE
+    assert (low == 0.0) == (part[0] == 0.0 and (part[1] == 0.0 or n == 0.0))
 
 
 def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes_are(trained, residual, tmp_path):
@@ -425,7 +495,7 @@ def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes
 
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import RESIDUAL_SCALES, choose_residual_scale
-    from pushtorch.models.residual import NOVELTY_WIDENINGS, load_residual_model
+    from pushtorch.models.residual import DEFENSIVE_PARTS, NOVELTY_WIDENINGS, load_residual_model
 
     cube, records, model = trained
     push = model.motions[1].manipulator.push
@@ -447,6 +517,6 @@ def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes
         assert chosen.bandwidth.p_std == pytest.approx(off.bandwidth.p_std * meta["chosen"])
         assert chosen.novelty_widening == 0.3  # scored unwidened, returned as given
         assert meta["novelty"]["grid"] == list(NOVELTY_WIDENINGS) and len(meta["novelty"]["nll"]) == \
-            len(NOVELTY_WIDENINGS)
+            len(NOVELTY_WIDENINGS) * len(DEFENSIVE_PARTS)
     with pytest.raises(InvalidParameterError, match="trained in this session"):
         choose_residual_scale(load_residual_model(residual.save(tmp_path / "r.npz")), cube, records, 2)

@@ -20,6 +20,12 @@ A pooled residual model (:mod:`pushtorch.models.residual`) widens its residual k
 :func:`choose_residual_widening` chooses its ``κ`` the same way: each shape held out in turn
 (:meth:`~pushtorch.models.residual.ResidualModel.without_shape`), its pushes predicted and rolled out once, every
 ``κ`` scored on the same rollouts.
+
+A residual model's density also has a defensive part (:class:`~pushtorch.distribution.DefensiveMixture`): a share
+of the same kernels, centimetres wider, that grows with the prediction's outcome novelty
+(:func:`pushtorch.models.residual.defensive_share`). It is chosen with ``κ``
+(:func:`choose_residual_widening`) or with the novelty widening ``ν`` (:func:`choose_novelty_widening`), on the
+same held-out pushes of shapes the model did not see and the same rollouts, every pair scored.
 """
 
 from __future__ import annotations
@@ -36,7 +42,13 @@ from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.evaluation.likelihood import nll, product_density
 from pushtorch.models.model import PushModel
 from pushtorch.models.pooled import ShapeParts, pool_parts
-from pushtorch.models.residual import NOVELTY_FORM, NOVELTY_WIDENINGS, novelty_scored_as_now
+from pushtorch.models.residual import (
+    DEFENSIVE_PARTS,
+    NOVELTY_FORM,
+    NOVELTY_WIDENINGS,
+    defensive_share,
+    novelty_scored_as_now,
+)
 from pushtorch.objects import ObjectModel
 
 __all__ = ["RESIDUAL_SCALES", "RESIDUAL_SCALE_PUSHES", "RESIDUAL_WIDENINGS", "SCALES", "WIDENINGS",
@@ -187,7 +199,7 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     generator = generator or torch.Generator().manual_seed(0)
     grid = [float(f) for f in scales]
     valid = records.take(records.valid)
-    unwidened = replace(residual, novelty_widening=0.0)  # predicted as trained; every widening scored after
+    unwidened = replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0))  # as trained; the rest after
     scores, cases, skipped = [], [], 0
     for a, motion in enumerate(residual.model.motions):
         push = motion.manipulator.push
@@ -207,7 +219,7 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
                 skipped += 1
                 continue
             case = _push_case(obj, pushes.take(torch.tensor([p])), residual.settings.voxel_size)
-            scored = _predicted_scores(held_out, obj, case, generator, lambda _: grid)
+            scored = _predicted_scores(held_out, obj, case, generator, lambda _: [(f, None) for f in grid])
             if scored is None:
                 skipped += 1
                 continue
@@ -218,24 +230,26 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
                                     "kernels' scale")
     mean = torch.stack(scores).mean(0)
     best = int(mean.argmin())
-    # the same held-out pushes at every novelty widening, at the chosen scale: the own-object side of the choice
-    # of ν across objects (choose_novelty_widening), kept since a model read from its file cannot hold pushes out
-    own = torch.stack([_nll_at(p, truth, start, obj, [novelty_factors(p, v, grid[best]) for v in NOVELTY_WIDENINGS])
-                       for p, truth, start in cases]).mean(0)
+    # the same held-out pushes at every novelty widening and defensive part, at the chosen scale: the own-object
+    # side of the choice of ν across objects (choose_novelty_widening), kept since a model read from its file
+    # cannot hold pushes out
+    own = torch.stack([_nll_at(p, truth, start, obj, _with_defensive(
+        p, [novelty_factors(p, v, grid[best]) for v in NOVELTY_WIDENINGS])) for p, truth, start in cases]).mean(0)
     log.info("residual kernels' scale %g for %s (held-out nll %.2f against %s at 1, %d pushes)", grid[best],
              obj.name, float(mean[best]), f"{float(mean[grid.index(1.0)]):.2f}" if 1.0 in grid else "—", len(scores))
     bandwidth = replace(residual.bandwidth, p_std=residual.bandwidth.p_std * grid[best],
                         rot_std=residual.bandwidth.rot_std * grid[best])
     chosen = {"chosen": grid[best], "grid": grid, "nll": mean.tolist(), "pushes": len(scores), "skipped": skipped,
               "pushes_per_action": int(pushes_per_action),
-              "novelty": {"grid": list(NOVELTY_WIDENINGS), "form": NOVELTY_FORM, "nll": own.tolist()}}
+              "novelty": {"grid": list(NOVELTY_WIDENINGS), "form": NOVELTY_FORM,
+                          "defensive": [list(d) for d in DEFENSIVE_PARTS], "nll": own.tolist()}}
     return replace(residual, bandwidth=bandwidth, meta={**residual.meta, "scale": chosen})
 
 
 def _residual_scores(residual, obj: ObjectModel, records, count: int, generator: torch.Generator,
                      factors) -> tuple[list[torch.Tensor], int]:
-    """Each held-out push's nll under ``residual``'s prediction with its kernels' stds times each of
-    ``factors(prediction)``, from one prediction per push (the same rollouts), and how many pushes could not be
+    """Each held-out push's nll under ``residual``'s prediction with each of the widenings ``factors(prediction)``
+    (:func:`_nll_at`), from one prediction per push (the same rollouts), and how many pushes could not be
     predicted."""
     scores, skipped = [], 0
     for case in _held_out_pushes(obj, records, count, residual.settings.voxel_size, generator):
@@ -249,8 +263,9 @@ def _residual_scores(residual, obj: ObjectModel, records, count: int, generator:
 
 def _predicted_scores(residual, obj: ObjectModel, case, generator: torch.Generator, factors):
     """One push ``case`` (:func:`_push_case`) predicted by ``residual`` from its cloud and robot start, and its
-    true outcome's nll with the kernels' stds times each of ``factors(prediction)``: ``(prediction, (F,))``, or
-    None where the push cannot be predicted (no body, or the bumper meets no observed feature there)."""
+    true outcome's nll under each of the densities ``factors(prediction)`` (``(factor, defensive)`` pairs, as
+    :func:`_nll_at`): ``(prediction, (F,))``, or None where the push cannot be predicted (no body, or the bumper
+    meets no observed feature there)."""
     from pushtorch.prediction.residual import predict_residual
 
     cloud, action, robot, start, truth = case
@@ -263,16 +278,32 @@ def _predicted_scores(residual, obj: ObjectModel, case, generator: torch.Generat
 
 def _nll_at(prediction, truth: se3.Pose, start: se3.Pose, obj: ObjectModel, factors) -> torch.Tensor:
     """``(F,)`` float64 the nll of ``truth`` (moved from ``start``) under ``prediction``'s density with its
-    kernels' stds times each of ``factors`` (:func:`pushtorch.prediction.residual.rescaled`)."""
+    kernels' stds times each ``factor`` of ``factors`` and its ``defensive`` part (``(factor, defensive)`` pairs,
+    :func:`pushtorch.prediction.residual.rescaled`)."""
     from pushtorch.prediction.residual import rescaled
 
-    return torch.tensor([float(nll(rescaled(prediction, f), truth, start, prediction.start, obj.symmetry)[0])
-                         for f in factors], dtype=torch.float64)
+    return torch.tensor([float(nll(rescaled(prediction, f, d), truth, start, prediction.start, obj.symmetry)[0])
+                         for f, d in factors], dtype=torch.float64)
+
+
+def _with_defensive(prediction, factors: list) -> list:
+    """``(factor, defensive)`` pairs for :func:`_nll_at`: each of ``factors`` with each of
+    :data:`~pushtorch.models.residual.DEFENSIVE_PARTS` (factor-major)."""
+    from pushtorch.prediction.residual import defensive_factors
+
+    out = []
+    for f in factors:
+        f = f if isinstance(f, tuple) else (f, f)
+        for part in DEFENSIVE_PARTS:
+            share = defensive_share(part, prediction.outcome_novelty)
+            out.append((f, None if share == 0 else (share, defensive_factors(prediction, f, part[2]))))
+    return out
 
 
 def choose_residual_widening(residual, objects: list[ObjectModel], records: list, pushes_per_shape: int = 6,
                              generator: torch.Generator | None = None, widenings=RESIDUAL_WIDENINGS):
-    """The pooled ``residual`` model with its ``widening`` chosen by leave-one-shape-out likelihood (module
+    """The pooled ``residual`` model with its ``widening`` and its defensive part
+    (:data:`~pushtorch.models.residual.DEFENSIVE_PARTS`) chosen together by leave-one-shape-out likelihood (module
     docstring); the search is kept in ``meta["widening"]``.
 
     Args:
@@ -291,7 +322,7 @@ def choose_residual_widening(residual, objects: list[ObjectModel], records: list
     _check_pushes(pushes_per_shape)
     generator = generator or torch.Generator().manual_seed(0)
     grid = [float(k) for k in widenings]
-    base = replace(residual, widening=0.0)
+    base = replace(residual, widening=0.0, defensive=(0.0, 0.0, 0.0))
     scores, skipped = [], 0
     for s, (obj, shape_records) in enumerate(zip(objects, records, strict=True)):
         try:
@@ -300,7 +331,8 @@ def choose_residual_widening(residual, objects: list[ObjectModel], records: list
             skipped += 1
             continue
         more, missed = _residual_scores(held_out, obj, shape_records, pushes_per_shape, generator,
-                                        lambda p: [math.sqrt(1.0 + k * p.contact_distance2) for k in grid])
+                                        lambda p: _with_defensive(p, [math.sqrt(1.0 + k * p.contact_distance2)
+                                                                      for k in grid]))
         scores += more
         skipped += missed
     if not scores:
@@ -308,12 +340,14 @@ def choose_residual_widening(residual, objects: list[ObjectModel], records: list
                                     "residual's widening")
     mean = torch.stack(scores).mean(0)
     best = int(mean.argmin())
-    log.info("residual widening: kappa=%g (held-out nll %.2f against %.2f unwidened, %d pushes)", grid[best],
-             float(mean[best]), float(mean[grid.index(0.0)]) if 0.0 in grid else math.nan, len(scores))
+    kappa, part = grid[best // len(DEFENSIVE_PARTS)], DEFENSIVE_PARTS[best % len(DEFENSIVE_PARTS)]
+    log.info("residual widening: kappa=%g, defensive part %s (held-out nll %.2f against %.2f unwidened, %d "
+             "pushes)", kappa, part, float(mean[best]), float(mean[0]) if grid[0] == 0.0 else math.nan, len(scores))
     meta = dict(residual.meta)
-    meta["widening"] = {"chosen": grid[best], "grid": grid, "nll": mean.tolist(), "pushes": len(scores),
+    meta["widening"] = {"chosen": kappa, "defensive_chosen": list(part), "grid": grid,
+                        "defensive": [list(d) for d in DEFENSIVE_PARTS], "nll": mean.tolist(), "pushes": len(scores),
                         "skipped": skipped}
-    return replace(residual, widening=grid[best], meta=meta)
+    return replace(residual, widening=kappa, defensive=part, meta=meta)
 
 
 def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records: list, pushes_per_shape: int = 6,
@@ -322,9 +356,11 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     across them: each model predicts ``pushes_per_shape`` of every *other* training object's pushes (a shape it
     never saw, as a pooled model's held-out shape), its kernels widened at each ``ν``
     (:mod:`pushtorch.prediction.residual`: a share ``ν·n / (1 + ν·n)`` of the residuals' spread, ``n`` the
-    prediction's outcome novelty). A model whose scale was chosen (:func:`choose_residual_scale`) adds its own
-    held-out pushes, scored then at every ``ν``: the pushes of small novelty, where widening costs. The ``ν`` of
-    lowest mean nll over all the pushes is given to all (kept in ``meta["novelty"]``).
+    prediction's outcome novelty), and with each defensive part ``(ε0, λ, w)`` of
+    :data:`~pushtorch.models.residual.DEFENSIVE_PARTS`. A model whose scale was chosen
+    (:func:`choose_residual_scale`) adds its own held-out pushes, scored then at every pair: the pushes of small
+    novelty, where widening costs. The pair of lowest mean nll over all the pushes is given to all (kept in
+    ``meta["novelty"]``).
     What an experiment with several training objects does for their residual models; a single object has no shape
     to hold out and keeps ``ν = 0``.
 
@@ -344,9 +380,9 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     for i, residual in enumerate(residuals):
         for j, (obj, other) in enumerate(zip(objects, records, strict=True)):
             if j != i:
-                more, missed = _residual_scores(replace(residual, novelty_widening=0.0), obj, other,
-                                                pushes_per_shape, generator,
-                                                lambda p: [novelty_factors(p, v) for v in grid])
+                more, missed = _residual_scores(replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0)), obj,
+                                                other, pushes_per_shape, generator,
+                                                lambda p: _with_defensive(p, [novelty_factors(p, v) for v in grid]))
                 scores += more
                 skipped += missed
     if not scores:
@@ -361,13 +397,17 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
             own_pushes += int(own["pushes"])
     mean = total / (count + own_pushes)
     best = int(mean.argmin())
-    log.info("residual novelty widening %g across %s (held-out nll %.2f against %.2f unwidened; %d pushes of "
-             "other objects, %d of their own)", grid[best], [o.name for o in objects], float(mean[best]),
-             float(mean[grid.index(0.0)]) if 0.0 in grid else math.nan, count, own_pushes)
-    chosen = {"chosen": grid[best], "across": [o.name for o in objects], "grid": grid, "form": NOVELTY_FORM,
-              "nll": mean.tolist(), "pushes": count, "own_pushes": own_pushes,
-              "pushes_per_shape": int(pushes_per_shape), "skipped": skipped}
-    return [replace(r, novelty_widening=grid[best], meta={**r.meta, "novelty": chosen}) for r in residuals]
+    nu, part = grid[best // len(DEFENSIVE_PARTS)], DEFENSIVE_PARTS[best % len(DEFENSIVE_PARTS)]
+    log.info("residual novelty widening %g, defensive part %s across %s (held-out nll %.2f against %.2f "
+             "unwidened; %d pushes of other objects, %d of their own)", nu, part,
+             [o.name for o in objects], float(mean[best]), float(mean[0]) if grid[0] == 0.0 else math.nan, count,
+             own_pushes)
+    chosen = {"chosen": nu, "defensive_chosen": list(part), "across": [o.name for o in objects], "grid": grid,
+              "defensive": [list(d) for d in DEFENSIVE_PARTS], "form": NOVELTY_FORM, "nll": mean.tolist(),
+              "pushes": count, "own_pushes": own_pushes, "pushes_per_shape": int(pushes_per_shape),
+              "skipped": skipped}
+    return [replace(r, novelty_widening=nu, defensive=part,
+                    meta={**r.meta, "novelty": chosen}) for r in residuals]
 
 
 def _check_pushes(pushes_per_shape) -> None:

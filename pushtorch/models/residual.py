@@ -45,11 +45,11 @@ from pushtorch.sim.settings import SimSettings
 
 Tensor = torch.Tensor
 
-__all__ = ["DEFAULT_ENSEMBLE", "NOVELTY_WIDENINGS", "OUTCOME_LADDER", "RESIDUAL_LADDER", "ResidualModel",
-           "NOVELTY_FORM", "novelty_scored_as_now", "novelty_share", "outcome_spread",
-           "choose_bandwidth", "corrected", "engine_version", "load_any_model", "load_residual_model",
-           "outcome_log_affinity", "outcome_novelty", "residual_of", "rollout_outcome", "train_residual_model",
-           "with_ensemble"]
+__all__ = ["DEFAULT_ENSEMBLE", "DEFENSIVE_PARTS", "DEFENSIVE_TURN", "MAX_DEFENSIVE_SHARE", "NOVELTY_FORM",
+           "NOVELTY_WIDENINGS", "OUTCOME_LADDER", "RESIDUAL_LADDER", "ResidualModel", "choose_bandwidth", "corrected",
+           "defensive_share", "engine_version", "load_any_model", "load_residual_model", "novelty_scored_as_now",
+           "novelty_share", "outcome_log_affinity", "outcome_novelty", "outcome_spread", "residual_of",
+           "rollout_outcome", "train_residual_model", "with_ensemble"]
 
 #: Rollouts per prediction unless the model says otherwise, chosen by held-out likelihood on generated training
 #: shapes among the sizes within 3× a pushtorch prediction (tools/residual_ensemble.py on an Intel Xeon, 2 cores:
@@ -68,9 +68,26 @@ OUTCOME_LADDER = (0.25, 0.5, 1.0, 2.0, 4.0, math.inf)
 #: what any training rollout did (:func:`outcome_novelty`, their median) adds a share ``ν·n / (1 + ν·n)`` of the
 #: training outcomes' spread (:func:`outcome_spread`) to its kernels' variances (0: never).
 NOVELTY_WIDENINGS = (0.0, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
+#: The defensive parts tried with each widening, ``(ε0, λ, w)``: a share ``ε = ε0 + (1 − ε0)·λn / (1 + λn)`` of
+#: the density (:func:`defensive_share`, ``n`` the prediction's outcome novelty) is the same kernels with ``w`` (m)
+#: and ``w · DEFENSIVE_TURN`` (rad) added to their stds in quadrature (:class:`~pushtorch.distribution.
+#: DefensiveMixture`; ``(0, 0, 0)``: none). Chosen with ``ν`` (and a pool's ``κ``) on pushes of shapes the model
+#: did not see. The share grows with novelty: a constant one large enough for another shape's pushes made the own
+#: object's 90 % regions hold every truth. The widths are absolute: the training rollouts' outcomes spread by
+#: millimetres where one action's pushes move the object alike, while a correction learnt on another shape misses
+#: by centimetres.
+DEFENSIVE_PARTS = ((0.0, 0.0, 0.0),) + tuple((floor, rate, width) for floor in (0.0, 0.03)
+                                             for rate in (0.0, 0.1, 1.0, 10.0) for width in (0.01, 0.03, 0.1)
+                                             if floor or rate)
+#: The largest defensive share: the narrow part keeps a weight however new the rollouts
+MAX_DEFENSIVE_SHARE = 0.999
+#: Radians of a defensive part's rotation width per metre of its position width: the paper's motion kernels' ratio
+#: (1 cm to 0.05 rad, §Motion Model's bandwidths)
+DEFENSIVE_TURN = 5.0
 #: Which form of the novelty widening a model's choice of ``ν`` was made for (kept beside it in its ``meta``; a
-#: cached choice of another form is made again): 2, a share of the outcomes' spread added to the variances
-NOVELTY_FORM = 2
+#: cached choice of another form is made again): 2, a share of the outcomes' spread added to the variances; 3, as 2
+#: and chosen jointly with a defensive part (:data:`DEFENSIVE_PARTS`)
+NOVELTY_FORM = 3
 
 _IDENTITY_Q = torch.tensor([1.0, 0.0, 0.0, 0.0])
 
@@ -126,12 +143,20 @@ def outcome_spread(outcomes: Tensor) -> tuple[float, float]:
     return float(o[:, :2].var(0).mean().sqrt()), float(turn.std())
 
 
-def novelty_scored_as_now(entry: dict | None, grid=NOVELTY_WIDENINGS) -> bool:
+def novelty_scored_as_now(entry: dict | None, grid=NOVELTY_WIDENINGS, parts=DEFENSIVE_PARTS) -> bool:
     """Whether a model's ``meta`` entry of novelty-widening scores (``meta["novelty"]``, or the own held-out
-    pushes' ``meta["scale"]["novelty"]``) was made over ``grid`` and for today's :data:`NOVELTY_FORM`: one made
-    otherwise is made again."""
+    pushes' ``meta["scale"]["novelty"]``) was made over ``grid`` × the defensive ``parts`` and for today's
+    :data:`NOVELTY_FORM`: one made otherwise is made again."""
     entry = entry or {}
-    return entry.get("grid") == [float(v) for v in grid] and entry.get("form") == NOVELTY_FORM
+    return (entry.get("grid") == [float(v) for v in grid] and entry.get("form") == NOVELTY_FORM
+            and entry.get("defensive") == [[float(v) for v in part] for part in parts])
+
+
+def defensive_share(part: tuple[float, float, float], novelty: float) -> float:
+    """``ε0 + (1 − ε0)·λn / (1 + λn)``, at most :data:`MAX_DEFENSIVE_SHARE`: the share of a prediction's density in
+    the defensive ``part = (ε0, λ, w)`` (:data:`DEFENSIVE_PARTS`) at the prediction's outcome novelty ``n``."""
+    floor, rate, _ = part
+    return min(floor + (1.0 - floor) * novelty_share(rate, novelty), MAX_DEFENSIVE_SHARE)
 
 
 def novelty_share(novelty_widening: float, novelty: float) -> float:
@@ -191,6 +216,10 @@ class ResidualModel:
             from every training rollout's adds a share :func:`novelty_share` of the action's
             :func:`outcome_spread` to the residual kernels' variances (0: never;
             :func:`pushtorch.evaluation.transfer.choose_novelty_widening` chooses it across training objects).
+        defensive: ``(ε0, λ, w)``: a share :func:`defensive_share` of the density, growing with the prediction's
+            outcome novelty, is the same kernels with ``w`` (m) and ``w ·`` :data:`DEFENSIVE_TURN` (rad) added in
+            quadrature to their stds, for the predictions whose corrections do not hold (zeros: none; chosen with
+            ``ν`` or ``κ``, :data:`DEFENSIVE_PARTS`).
     """
 
     model: PushModel
@@ -206,6 +235,7 @@ class ResidualModel:
     outcomes: list[Tensor] | None = None
     outcome_width: float = math.inf
     novelty_widening: float = 0.0
+    defensive: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @property
     def name(self) -> str:
@@ -326,7 +356,7 @@ class ResidualModel:
                                "widening": self.widening, "shape_names": self.shape_names,
                                "outcome_width": None if math.isinf(self.outcome_width) else self.outcome_width,
                                "novelty_widening": self.novelty_widening,
-                               "meta": self.meta}}
+                               "defensive": list(self.defensive), "meta": self.meta}}
         return write_model_file(path, *self.model.file_parts(arrays, header))
 
 
@@ -555,10 +585,14 @@ def _residual_from_parts(path, header: dict, arrays: dict, dtype: torch.dtype, o
         novelty = float(spec.get("novelty_widening", 0.0))
         if not math.isfinite(novelty) or novelty < 0:
             raise ValueError(f"a novelty widening of {novelty}")
+        defensive = tuple(float(v) for v in spec.get("defensive", (0.0, 0.0, 0.0)))
+        if len(defensive) != 3 or not (0.0 <= defensive[0] < 1.0 and all(math.isfinite(v) and v >= 0
+                                                                          for v in defensive)):
+            raise ValueError(f"a defensive part {defensive}")
         return ResidualModel(model, residuals, bandwidth, sim, str(spec["engine_version"]), int(spec["ensemble"]),
                              dict(spec.get("meta") or {}), shapes, [str(n) for n in spec.get("shape_names", [])],
                              widening, outcomes, width if outcomes is not None else math.inf,
-                             novelty if outcomes is not None else 0.0)
+                             novelty if outcomes is not None else 0.0, defensive)
     except RecordFormatError:
         raise
     except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError, InvalidParameterError) as exc:

@@ -17,7 +17,14 @@ the action's training outcomes (:func:`pushtorch.models.residual.outcome_spread`
 (``ν`` the model's ``novelty_widening``, chosen across an experiment's training objects, 0 unless chosen): where
 the simulator did something else the correction is unknown, and the outcome no surer than pushes differ. Its mode is
 the mixture's highest kernel centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one
-expert with exponent 1, so ``log_prob``, ``sample`` and the coverage work as for pushtorch's own prediction.
+expert with exponent 1, so ``log_prob``, ``sample`` and the coverage work as for pushtorch's own prediction. A
+model with a defensive part (``defensive = (ε0, λ, w)``, chosen with ``ν`` on pushes of shapes it did not see)
+predicts ``(1 − ε)`` of that density and ``ε`` of the same kernels with ``w`` (m) and ``w ·``
+:data:`~pushtorch.models.residual.DEFENSIVE_TURN` (rad) added to their stds in quadrature
+(:class:`~pushtorch.distribution.DefensiveMixture`, the same mode), ``ε = ε0 + (1 − ε0)·λn / (1 + λn)``
+(:func:`~pushtorch.models.residual.defensive_share`): where the rollouts did something new the corrections may
+not hold at all, and a truth far from every corrected rollout costs ``−log ε`` and its distance in centimetres,
+not its distance in the narrow kernels' millimetres.
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ from dataclasses import dataclass, field
 import torch
 
 from pushtorch import se3
-from pushtorch.distribution import FinalPoseDistribution
+from pushtorch.distribution import DefensiveMixture, FinalPoseDistribution
 from pushtorch.errors import ModelError
 from pushtorch.kde import Evaluation
 from pushtorch.kde.normaliser import NO_CUTOFF
@@ -37,8 +44,10 @@ from pushtorch.models.clearance import check_start
 from pushtorch.models.motion import contact_distances, contact_log_weights
 from pushtorch.models.push_condition import PushCondition, features_for, push_conditions
 from pushtorch.models.residual import (
+    DEFENSIVE_TURN,
     ResidualModel,
     corrected,
+    defensive_share,
     novelty_share,
     outcome_log_affinity,
     outcome_novelty,
@@ -49,7 +58,7 @@ from pushtorch.models.settings import as_generator
 from pushtorch.perception import PointCloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
 
-__all__ = ["ResidualPrediction", "novelty_factors", "predict_residual", "rescaled"]
+__all__ = ["ResidualPrediction", "defensive_factors", "novelty_factors", "predict_residual", "rescaled"]
 
 
 @dataclass
@@ -69,7 +78,7 @@ class ResidualPrediction:
     condition: PushCondition
     start: se3.Pose
     final_pose: se3.Pose
-    density: FinalPoseDistribution
+    density: FinalPoseDistribution | DefensiveMixture
     rollouts: se3.Pose
     physics: torch.Tensor
     thrown: int
@@ -171,6 +180,12 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
         means.vector().unsqueeze(-2)).reshape(-1).argmax())
     mode = means.take(best)
     density = _mixture(means, log_weights, bandwidth, mode.vector())
+    share = defensive_share(residual.defensive, novelty)
+    if share > 0:  # where the corrections may not hold: the same kernels, centimetres wider
+        w = residual.defensive[2]
+        wide = dataclasses.replace(bandwidth, p_std=math.hypot(p_std, w),
+                                   rot_std=math.hypot(rot_std, w * DEFENSIVE_TURN))
+        density = DefensiveMixture(density, _mixture(means, log_weights, wide, mode.vector()), share)
     thrown = int((~records.valid).sum())
     return ResidualPrediction(residual.name, motion.action, condition, body_start.to(dtype), mode, density,
                               se3.Pose.unchecked(finals.p.to(dtype), finals.q.to(dtype)), drawn, thrown, log_w, d2,
@@ -183,15 +198,29 @@ def _mixture(means: se3.Pose, log_weights: torch.Tensor, bandwidth, mode: torch.
                                  torch.ones(1, dtype=means.p.dtype), mode, Evaluation.DENSE, means, kernels="full")
 
 
-def rescaled(prediction: ResidualPrediction, factor: float | tuple[float, float]) -> FinalPoseDistribution:
-    """``prediction``'s density with its kernels' stds times ``factor`` (or times ``(position, rotation)``
-    factors; same kernels, weights and mode): what scoring a widening on held-out pushes needs without rolling
-    them out again."""
+def _kernels(prediction: ResidualPrediction) -> FinalPoseDistribution:
+    """The prediction's kernels, without a defensive part."""
     density = prediction.density
-    p_factor, rot_factor = factor if isinstance(factor, tuple) else (factor, factor)
-    bandwidth = dataclasses.replace(density.bandwidth, p_std=density.bandwidth.p_std * p_factor,
-                                    rot_std=density.bandwidth.rot_std * rot_factor)
-    return _mixture(density.means, density.log_weights, bandwidth, prediction.final_pose.vector())
+    return density.narrow if isinstance(density, DefensiveMixture) else density
+
+
+def rescaled(prediction: ResidualPrediction, factor: float | tuple[float, float],
+             defensive: tuple[float, tuple[float, float]] | None = None) -> FinalPoseDistribution | DefensiveMixture:
+    """``prediction``'s density with its kernels' stds times ``factor`` (or times ``(position, rotation)``
+    factors; same kernels, weights and mode), and with ``defensive = (ε, wide factors)`` a share ``ε`` of the same
+    kernels times the wide factors (:func:`defensive_factors`): what scoring a widening on held-out pushes needs
+    without rolling them out again."""
+    density = _kernels(prediction)
+
+    def times(f):
+        p_factor, rot_factor = f if isinstance(f, tuple) else (f, f)
+        bandwidth = dataclasses.replace(density.bandwidth, p_std=density.bandwidth.p_std * p_factor,
+                                        rot_std=density.bandwidth.rot_std * rot_factor)
+        return _mixture(density.means, density.log_weights, bandwidth, prediction.final_pose.vector())
+
+    if defensive is None or defensive[0] == 0:
+        return times(factor)
+    return DefensiveMixture(times(factor), times(defensive[1]), defensive[0])
 
 
 def novelty_factors(prediction: ResidualPrediction, novelty_widening: float, scale: float = 1.0
@@ -200,6 +229,16 @@ def novelty_factors(prediction: ResidualPrediction, novelty_widening: float, sca
     that give its kernels' stds times ``scale`` widened at ``novelty_widening`` (module docstring), for
     :func:`rescaled`: how a widening is scored from one prediction."""
     share = novelty_share(novelty_widening, prediction.outcome_novelty)
-    bandwidth = prediction.density.bandwidth
+    bandwidth = _kernels(prediction).bandwidth
     return (math.sqrt(scale**2 + share * prediction.outcome_spread[0] ** 2 / bandwidth.p_std**2),
             math.sqrt(scale**2 + share * prediction.outcome_spread[1] ** 2 / bandwidth.rot_std**2))
+
+
+def defensive_factors(prediction: ResidualPrediction, factors: tuple[float, float], width: float
+                      ) -> tuple[float, float]:
+    """The factors on ``prediction``'s stds of a defensive part of ``width`` (``w``, m) over kernels scaled by
+    ``factors``: ``w`` and ``w ·`` :data:`~pushtorch.models.residual.DEFENSIVE_TURN` added to their stds in
+    quadrature, as :func:`predict_residual` adds them."""
+    bandwidth = _kernels(prediction).bandwidth
+    return (math.hypot(factors[0], width / bandwidth.p_std),
+            math.hypot(factors[1], width * DEFENSIVE_TURN / bandwidth.rot_std))
