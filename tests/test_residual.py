@@ -411,17 +411,20 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
     torch.testing.assert_close(again.final_pose.vector(), widened.final_pose.vector(), rtol=0, atol=0)
     # one widening across training objects (here the cube's model twice: each scores the other's pushes)
     chosen = choose_novelty_widening([residual, residual], [cube, cube], [records, records], pushes_per_shape=2,
-                                     generator=torch.Generator().manual_seed(0))
+                                     generator=torch.Generator().manual_seed(0), shapes=[cube],
+                                     shape_records=[records])  # and a shape no model was trained on
     assert len({(m.novelty_widening, m.defensive) for m in chosen}) == 1
     assert chosen[0].novelty_widening in NOVELTY_WIDENINGS and chosen[0].defensive in DEFENSIVE_PARTS
     meta = chosen[0].meta["novelty"]
-    assert meta["pushes"] == 4 and meta["across"] == ["cube", "cube"]
+    assert meta["pushes"] == 8 and meta["across"] == ["cube", "cube"] and meta["shapes"] == ["cube"]
     assert len(meta["nll"]) == len(NOVELTY_WIDENINGS) * len(DEFENSIVE_PARTS)
     best = min(range(len(meta["nll"])), key=meta["nll"].__getitem__)  # the pair of lowest held-out nll
     assert (chosen[0].novelty_widening, chosen[0].defensive) == (NOVELTY_WIDENINGS[best // len(DEFENSIVE_PARTS)],
                                                                  DEFENSIVE_PARTS[best % len(DEFENSIVE_PARTS)])
     with pytest.raises(InvalidParameterError, match="two models or more"):
         choose_novelty_widening([residual], [cube], [records])
+    with pytest.raises(InvalidParameterError, match="one set per extra shape"):
+        choose_novelty_widening([residual, residual], [cube, cube], [records, records], shapes=[cube])
 
 
 def test_a_defensive_part_keeps_far_truths_likely_and_the_density_normalised(trained, residual, tmp_path):

@@ -351,7 +351,8 @@ def choose_residual_widening(residual, objects: list[ObjectModel], records: list
 
 
 def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records: list, pushes_per_shape: int = 6,
-                            generator: torch.Generator | None = None, widenings=NOVELTY_WIDENINGS) -> list:
+                            generator: torch.Generator | None = None, widenings=NOVELTY_WIDENINGS,
+                            shapes: list[ObjectModel] = (), shape_records: list = ()) -> list:
     """Residual models of one object each, trained on the same prior, with one novelty widening ``ν`` chosen
     across them: each model predicts ``pushes_per_shape`` of every *other* training object's pushes (a shape it
     never saw, as a pooled model's held-out shape), its kernels widened at each ``ν``
@@ -359,26 +360,32 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     prediction's outcome novelty), and with each defensive part ``(ε0, λ, w)`` of
     :data:`~pushtorch.models.residual.DEFENSIVE_PARTS`. A model whose scale was chosen
     (:func:`choose_residual_scale`) adds its own held-out pushes, scored then at every pair: the pushes of small
-    novelty, where widening costs. The pair of lowest mean nll over all the pushes is given to all (kept in
-    ``meta["novelty"]``).
+    novelty, where widening costs. Each model also predicts ``pushes_per_shape`` pushes of each of ``shapes``
+    (generated training shapes, with their ``shape_records``, that no model was trained on): rollouts of
+    intermediate novelty, between the own object's and another training object's. The pair of lowest mean nll over
+    all the pushes is given to all (kept in ``meta["novelty"]``).
     What an experiment with several training objects does for their residual models; a single object has no shape
     to hold out and keeps ``ν = 0``.
 
     Raises:
         InvalidParameterError: fewer than two models, objects or records not one per model, or no push predicted.
     """
-    if len(residuals) < 2 or len(objects) != len(residuals) or len(records) != len(residuals):
+    if len(residuals) < 2 or len(objects) != len(residuals) or len(records) != len(residuals) \
+            or len(shapes) != len(shape_records):
         raise InvalidParameterError("choosing the residual's novelty widening holds each training object out of "
                                     f"another's model: it needs two models or more, one object and one set of "
-                                    f"records each, got {len(residuals)}, {len(objects)} and {len(records)}")
+                                    f"records each (and one set per extra shape), got {len(residuals)}, "
+                                    f"{len(objects)} and {len(records)} ({len(shapes)} shapes, "
+                                    f"{len(shape_records)} sets)")
     _check_pushes(pushes_per_shape)
     from pushtorch.prediction.residual import novelty_factors
 
     generator = generator or torch.Generator().manual_seed(0)
     grid = [float(v) for v in widenings]
     scores, skipped = [], 0
+    others = list(zip(objects, records, strict=True)) + list(zip(shapes, shape_records, strict=True))
     for i, residual in enumerate(residuals):
-        for j, (obj, other) in enumerate(zip(objects, records, strict=True)):
+        for j, (obj, other) in enumerate(others):
             if j != i:
                 more, missed = _residual_scores(replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0)), obj,
                                                 other, pushes_per_shape, generator,
@@ -399,10 +406,11 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     best = int(mean.argmin())
     nu, part = grid[best // len(DEFENSIVE_PARTS)], DEFENSIVE_PARTS[best % len(DEFENSIVE_PARTS)]
     log.info("residual novelty widening %g, defensive part %s across %s (held-out nll %.2f against %.2f "
-             "unwidened; %d pushes of other objects, %d of their own)", nu, part,
+             "unwidened; %d pushes of other objects and shapes, %d of their own)", nu, part,
              [o.name for o in objects], float(mean[best]), float(mean[0]) if grid[0] == 0.0 else math.nan, count,
              own_pushes)
-    chosen = {"chosen": nu, "defensive_chosen": list(part), "across": [o.name for o in objects], "grid": grid,
+    chosen = {"chosen": nu, "defensive_chosen": list(part), "across": [o.name for o in objects],
+              "shapes": [o.name for o in shapes], "grid": grid,
               "defensive": [list(d) for d in DEFENSIVE_PARTS], "form": NOVELTY_FORM, "nll": mean.tolist(),
               "pushes": count, "own_pushes": own_pushes, "pushes_per_shape": int(pushes_per_shape),
               "skipped": skipped}

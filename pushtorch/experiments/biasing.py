@@ -93,7 +93,9 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
             ``test_conditions``, ``truth_samples``, ``yaw_range_deg``; optional ``ensemble`` (the
             ``physics_ensemble`` density peer's rollouts), ``residual`` (true: the ``pushtorch_residual`` model
             too), ``residual_ensemble`` (its rollouts per prediction), ``residual_scale_pushes`` (held-out
-            training pushes per action that choose its kernels' scale) and ``residual_novelty_pushes``.
+            training pushes per action that choose its kernels' scale), ``residual_novelty_pushes`` and
+            ``residual_novelty_shapes`` (generated shapes, ``shapes:<kind>:<count>``, whose pushes join the
+            choice of the novelty widening and defensive part).
         ctx: the experiment context (model settings of this part).
         model_cfg: ``friction``, ``mass``: the trained priors (a name or a list each; their product).
 
@@ -122,7 +124,8 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
         scale_pushes = part.get("residual_scale_pushes")
         fitted = {tfm: train_residual(ctx, load_object(tfm[0]), *tfm[1:], size, scale_pushes) for tfm in trained}
         if int(part.get("residual_novelty_pushes", 0)) > 0:  # one novelty widening across the training objects
-            fitted = widen_residuals_by_novelty(ctx, fitted, int(part["residual_novelty_pushes"]))
+            fitted = widen_residuals_by_novelty(ctx, fitted, int(part["residual_novelty_pushes"]),
+                                                part.get("residual_novelty_shapes"))
         residuals = {models[tfm].name: fitted[tfm] for tfm in trained}
     records: list[dict] = []
     thrown: list[dict] = []

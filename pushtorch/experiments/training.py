@@ -206,7 +206,7 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
         try:
             cached = load_residual_model(path)
             if cached.sim == ctx.physics and cached.model.name == model.name and cached.outcomes is not None \
-                    and cached.model.settings == model.settings and cached.model.meta == model.meta \
+                    and cached.model.settings == model.settings and _asked(cached.model.meta) == _asked(model.meta) \
                     and _scale_chosen(cached, scale_pushes):
                 return saved_as(with_ensemble(cached, ensemble), _read_residual, str(path), int(ensemble))
         except RecordFormatError as exc:
@@ -227,6 +227,12 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
     return saved_as(residual, _read_residual, str(path), int(ensemble))
 
 
+def _asked(meta: dict) -> dict:
+    """A model's meta without what its training searched (:data:`_SEARCHED`): the searches' reports differ between
+    versions (a push model file cached by an earlier one), and their outcome is in the model's settings."""
+    return {k: v for k, v in meta.items() if k not in _SEARCHED}
+
+
 def _scale_chosen(residual, pushes: int) -> bool:
     """Whether a cached residual model's kernels' scale was chosen as asked: on ``pushes`` held-out pushes per
     action over today's grid (0: not chosen)."""
@@ -238,14 +244,18 @@ def _scale_chosen(residual, pushes: int) -> bool:
         chosen.get("grid") == list(RESIDUAL_SCALES) and novelty_scored_as_now(chosen.get("novelty"))))
 
 
-def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: int) -> dict:
-    """``{(object, friction, mass): residual model}`` with one novelty widening chosen across the training objects
-    of each prior (:func:`pushtorch.evaluation.transfer.choose_novelty_widening`: each object's model scores
-    ``pushes`` of every other's training pushes per object), each saved back to its file. A prior with one
-    training object keeps its models as they are; a model whose file already holds the choice across the same
-    objects is kept as read."""
+def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: int, shapes: str | None = None) -> dict:
+    """``{(object, friction, mass): residual model}`` with one novelty widening and defensive part chosen across
+    the training objects of each prior (:func:`pushtorch.evaluation.transfer.choose_novelty_widening`: each
+    object's model scores ``pushes`` of every other's training pushes per object, and as many of each generated
+    shape of ``shapes``, a ``shapes:<kind>:<count>`` entry, pushed under the same prior), each saved back to its
+    file. A prior with one training object keeps its models as they are; a model whose file already holds the
+    choice across the same objects and shapes is kept as read."""
     from pushtorch.evaluation.transfer import choose_novelty_widening
     from pushtorch.models.residual import novelty_scored_as_now
+    from pushtorch.objects.shapes import training_shapes
+
+    generated = training_shapes(shapes) if shapes else []
 
     out = dict(trained)
     by_prior: dict[tuple[str, str], list] = {}
@@ -255,14 +265,17 @@ def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: in
         names = sorted(names)
         models = [trained[(t, f, m)] for t in names]
         if len(names) < 2 or all((r.meta.get("novelty") or {}).get("across") == names
+                                 and (r.meta.get("novelty") or {}).get("shapes", []) == [o.name for o in generated]
                                  and (r.meta.get("novelty") or {}).get("pushes_per_shape") == int(pushes)
                                  and novelty_scored_as_now(r.meta.get("novelty"))
                                  for r in models):
             continue
         objects = [load_object(t) for t in names]
         records = [training_records(ctx, o, f, m, progress=False) for o in objects]
+        shape_records = [training_records(ctx, o, f, m, progress=False) for o in generated]
         generator = torch.Generator().manual_seed(stable_seed(ctx.seed, "residual_novelty", f, m, *names))
-        widened = choose_novelty_widening(models, objects, records, pushes, generator)
+        widened = choose_novelty_widening(models, objects, records, pushes, generator, shapes=generated,
+                                          shape_records=shape_records)
         for t, residual in zip(names, widened, strict=True):
             path = _residual_path(ctx, _model_key(t, f, m))
             residual.save(path)
@@ -329,7 +342,7 @@ def train_pooled_residual(ctx: ExperimentContext, shapes: list[ObjectModel], fri
     same pushes and seed to recover which push each kernel came from (the same kernels, checked)."""
     from pushtorch.evaluation.transfer import choose_residual_widening
     from pushtorch.models.pooled import train_pooled_model
-    from pushtorch.models.residual import load_residual_model, train_residual_model, with_ensemble
+    from pushtorch.models.residual import DEFENSIVE_PARTS, load_residual_model, train_residual_model, with_ensemble
 
     model = train_pooled(ctx, shapes, friction, mass, widening_pushes, name)
     key = _model_key(name, friction, mass)
@@ -337,8 +350,10 @@ def train_pooled_residual(ctx: ExperimentContext, shapes: list[ObjectModel], fri
     if path.is_file():
         try:
             cached = load_residual_model(path)
-            if cached.sim == ctx.physics and cached.model.meta == model.meta and cached.outcomes is not None \
-                    and cached.model.settings == model.settings and cached.shape_names == [s.name for s in shapes]:
+            if cached.sim == ctx.physics and _asked(cached.model.meta) == _asked(model.meta) \
+                    and cached.outcomes is not None and cached.model.settings == model.settings \
+                    and cached.shape_names == [s.name for s in shapes] \
+                    and (cached.meta.get("widening") or {}).get("defensive") == [list(d) for d in DEFENSIVE_PARTS]:
                 return saved_as(with_ensemble(cached, ensemble), _read_residual, str(path), int(ensemble))
         except RecordFormatError as exc:
             log.warning("retraining the residual of %s: %s", key, exc)
