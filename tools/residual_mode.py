@@ -1,0 +1,93 @@
+"""Where a residual prediction's point prediction should sit, measured on held-out *training* pushes: the
+mixture's highest kernel centre (``"centre"``), or that centre moved by mean shift up to the local mode of the same
+kernels at the model's motion width (``ModelSettings.motion_bandwidth``, where pushtorch anneals its own mode;
+``"motion"``). A diagnosis for docs/method.md ("The residual model"), never a choice on a test object.
+
+For a run folder of the engine gap (``python -m pushtorch experiment=engine_gap``; its training pushes cached),
+each training object's residual model is trained again in this process (the run's settings and seeds), and
+``--pushes`` of its pushes per action are each held out (``ResidualModel.without_pushes``), predicted from the
+single-shot cloud at the push's start and its robot start, and scored by H_acc of the displacement under each
+point. The last line is ``centre_hacc=<..> motion_hacc=<..> paired_se=<..> pushes=<n>``.
+
+    .venv/bin/python tools/residual_mode.py runs/engine_gap_pybullet [--pushes 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from pushtorch import se3
+from pushtorch.evaluation.metrics import accuracy, displaced
+from pushtorch.experiments.context import context_from_config, stable_seed
+from pushtorch.experiments.training import training_records
+from pushtorch.kde import PoseKDE
+from pushtorch.kde.normaliser import NO_CUTOFF
+from pushtorch.models.residual import train_residual_model
+from pushtorch.models.training import train_push_model
+from pushtorch.objects import load_object
+from pushtorch.perception import capture_partial_cloud
+from pushtorch.prediction.residual import predict_residual
+
+
+def polished(prediction, bandwidth, steps: int = 20) -> se3.Pose:
+    """The kernel centre of highest density under ``bandwidth`` after mean shift from every kernel centre."""
+    density = prediction.density
+    density = getattr(density, "narrow", density)  # the kernels, without a defensive part
+    means = density.means
+    kde = PoseKDE(se3.Pose.unchecked(means.p.unsqueeze(0), means.q.unsqueeze(0)), bandwidth, density.log_weights)
+    x = se3.Pose.unchecked(means.p.unsqueeze(0), means.q.unsqueeze(0))
+    for _ in range(steps):
+        x = kde.mean_shift(x)
+    best = int(kde.log_prob(x).reshape(-1).argmax())
+    return se3.Pose.unchecked(x.p[0, best], x.q[0, best])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path)
+    parser.add_argument("--pushes", type=int, default=10)
+    args = parser.parse_args()
+    cfg = OmegaConf.load(args.run / "resolved_config.yaml")
+    ctx = context_from_config(cfg, args.run)
+    wide = ctx.settings.motion_bandwidth
+    wide = type(wide)(wide.p_std, wide.rot_std, cutoff_std=NO_CUTOFF, alpha_t=wide.alpha_t)
+    rows = []
+    for name in ("cube", "cylinder"):
+        obj = load_object(name)
+        records = training_records(ctx, obj, "paper_default", "paper_default", progress=False)
+        key = f"{name}_paper_default_paper_default"
+        model = train_push_model(obj, records, ctx.settings, name=key,
+                                 generator=torch.Generator().manual_seed(stable_seed(ctx.seed, "fit", key)))
+        residual = train_residual_model(model, obj, records, ctx.physics, 4)
+        valid = records.take(records.valid)
+        generator = torch.Generator().manual_seed(0)
+        for a, motion in enumerate(model.motions):
+            action = motion.action.detach().double()
+            pushes = valid.take((valid.action.double() - action).abs().amax(-1) <= 1e-6)
+            kept = motion.manipulator.push.unique()
+            for p in kept[torch.randperm(len(kept), generator=generator)[:args.pushes]].tolist():
+                held = residual.without_pushes(a, torch.tensor([p]))
+                push = pushes.take(torch.tensor([p]))
+                start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
+                robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
+                truth = se3.Pose.unchecked(push.object_final.p[0].float(), push.object_final.q[0].float())
+                cloud = capture_partial_cloud(obj, start, voxel_size=ctx.settings.voxel_size)
+                pred = predict_residual(held, cloud, push.action[0].float(), generator, robot_start=robot)
+                row = []
+                for point in (pred.final_pose, polished(pred, wide)):
+                    row.append(float(accuracy(displaced(pred.start, point, start), truth, obj).hacc))
+                rows.append(row)
+                print(name, a, p, [round(v, 4) for v in row], flush=True)
+    t = torch.tensor(rows, dtype=torch.float64)
+    diff = t[:, 1] - t[:, 0]
+    print(f"centre_hacc={float(t[:, 0].mean()):.4f} motion_hacc={float(t[:, 1].mean()):.4f} "
+          f"paired_se={float(diff.std() / math.sqrt(len(diff))):.4f} pushes={len(rows)}")
+
+
+if __name__ == "__main__":
+    main()
