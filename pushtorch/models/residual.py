@@ -18,7 +18,8 @@ contact and friction are not the world's. The residual model keeps both:
   model's own (or a given robot start); the cloud's body is rolled out for an ensemble of ``(μ, m)`` drawn from
   the training pushes' physics, in one call; each rollout is corrected by every residual kernel, weighted by
   its contact weight, and the density is the mixture of these kernels (:data:`RESIDUAL_LADDER` widths chosen
-  by leave-one-push-out likelihood).
+  by leave-one-push-out likelihood), with a defensive share of the same kernels centimetres wider that grows
+  with how new the rollouts are (:data:`DEFENSIVE_PARTS`, :func:`defensive_share`).
 
 Decisions are in docs/method.md, "The residual model".
 """
@@ -72,10 +73,8 @@ NOVELTY_WIDENINGS = (0.0, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
 #: the density (:func:`defensive_share`, ``n`` the prediction's outcome novelty) is the same kernels with ``w`` (m)
 #: and ``w · DEFENSIVE_TURN`` (rad) added to their stds in quadrature (:class:`~pushtorch.distribution.
 #: DefensiveMixture`; ``(0, 0, 0)``: none). Chosen with ``ν`` (and a pool's ``κ``) on pushes of shapes the model
-#: did not see. The share grows with novelty: a constant one large enough for another shape's pushes made the own
-#: object's 90 % regions hold every truth. The widths are absolute: the training rollouts' outcomes spread by
-#: millimetres where one action's pushes move the object alike, while a correction learnt on another shape misses
-#: by centimetres.
+#: did not see. The share grows with novelty (a constant one made the own objects' 90 % regions hold every truth);
+#: the widths are absolute (one action's training outcomes spread by millimetres, another shape's miss by cm).
 DEFENSIVE_PARTS = ((0.0, 0.0, 0.0),) + tuple((floor, rate, width) for floor in (0.0, 0.03)
                                              for rate in (0.0, 0.1, 1.0, 10.0) for width in (0.01, 0.03, 0.1)
                                              if floor or rate)
