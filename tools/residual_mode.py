@@ -31,13 +31,12 @@ from pushtorch.models.residual import train_residual_model
 from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
-from pushtorch.prediction.residual import predict_residual
+from pushtorch.prediction.residual import narrow_density, predict_residual
 
 
 def polished(prediction, bandwidth, steps: int = 20) -> se3.Pose:
     """The kernel centre of highest density under ``bandwidth`` after mean shift from every kernel centre."""
-    density = prediction.density
-    density = getattr(density, "narrow", density)  # the kernels, without a defensive part
+    density = narrow_density(prediction)
     means = density.means
     kde = PoseKDE(se3.Pose.unchecked(means.p.unsqueeze(0), means.q.unsqueeze(0)), bandwidth, density.log_weights)
     x = se3.Pose.unchecked(means.p.unsqueeze(0), means.q.unsqueeze(0))

@@ -58,7 +58,8 @@ from pushtorch.models.settings import as_generator
 from pushtorch.perception import PointCloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
 
-__all__ = ["ResidualPrediction", "defensive_factors", "novelty_factors", "predict_residual", "rescaled"]
+__all__ = ["ResidualPrediction", "defensive_factors", "narrow_density", "novelty_factors", "predict_residual",
+           "rescaled"]
 
 
 @dataclass
@@ -198,8 +199,8 @@ def _mixture(means: se3.Pose, log_weights: torch.Tensor, bandwidth, mode: torch.
                                  torch.ones(1, dtype=means.p.dtype), mode, Evaluation.DENSE, means, kernels="full")
 
 
-def _kernels(prediction: ResidualPrediction) -> FinalPoseDistribution:
-    """The prediction's kernels, without a defensive part."""
+def narrow_density(prediction: ResidualPrediction) -> FinalPoseDistribution:
+    """The prediction's kernels as a density, without its defensive part (the density itself where it has none)."""
     density = prediction.density
     return density.narrow if isinstance(density, DefensiveMixture) else density
 
@@ -210,7 +211,7 @@ def rescaled(prediction: ResidualPrediction, factor: float | tuple[float, float]
     factors; same kernels, weights and mode), and with ``defensive = (ε, wide factors)`` a share ``ε`` of the same
     kernels times the wide factors (:func:`defensive_factors`): what scoring a widening on held-out pushes needs
     without rolling them out again."""
-    density = _kernels(prediction)
+    density = narrow_density(prediction)
 
     def times(f):
         p_factor, rot_factor = f if isinstance(f, tuple) else (f, f)
@@ -229,7 +230,7 @@ def novelty_factors(prediction: ResidualPrediction, novelty_widening: float, sca
     that give its kernels' stds times ``scale`` widened at ``novelty_widening`` (module docstring), for
     :func:`rescaled`: how a widening is scored from one prediction."""
     share = novelty_share(novelty_widening, prediction.outcome_novelty)
-    bandwidth = _kernels(prediction).bandwidth
+    bandwidth = narrow_density(prediction).bandwidth
     return (math.sqrt(scale**2 + share * prediction.outcome_spread[0] ** 2 / bandwidth.p_std**2),
             math.sqrt(scale**2 + share * prediction.outcome_spread[1] ** 2 / bandwidth.rot_std**2))
 
@@ -239,6 +240,6 @@ def defensive_factors(prediction: ResidualPrediction, factors: tuple[float, floa
     """The factors on ``prediction``'s stds of a defensive part of ``width`` (``w``, m) over kernels scaled by
     ``factors``: ``w`` and ``w ·`` :data:`~pushtorch.models.residual.DEFENSIVE_TURN` added to their stds in
     quadrature, as :func:`predict_residual` adds them."""
-    bandwidth = _kernels(prediction).bandwidth
+    bandwidth = narrow_density(prediction).bandwidth
     return (math.hypot(factors[0], width / bandwidth.p_std),
             math.hypot(factors[1], width * DEFENSIVE_TURN / bandwidth.rot_std))
