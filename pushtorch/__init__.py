@@ -39,7 +39,7 @@ _LAZY = {
     "train_pooled_model": "pushtorch.models.pooled",
     "load_model": "pushtorch.models.model",
     "train_residual_model": "pushtorch.models.residual",
-    "load_residual_model": "pushtorch.models.residual",
+    "load_residual_model": "pushtorch.models.residual_file",
     "ModelLibrary": "pushtorch.models.library",
     "Observation": "pushtorch.models.conditioning",
     "predict": "pushtorch.prediction",
@@ -60,7 +60,8 @@ if TYPE_CHECKING:  # what type checkers and IDEs see (py.typed ships with the pa
     from pushtorch.models.library import ModelLibrary
     from pushtorch.models.model import load_model
     from pushtorch.models.pooled import train_pooled_model
-    from pushtorch.models.residual import load_residual_model, train_residual_model
+    from pushtorch.models.residual import train_residual_model
+    from pushtorch.models.residual_file import load_residual_model
     from pushtorch.models.training import train_push_model
     from pushtorch.objects import load_object
     from pushtorch.perception import capture_partial_cloud

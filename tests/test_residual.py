@@ -196,7 +196,7 @@ def test_a_residual_model_file_round_trips_and_refuses_another_engine_version(tr
 
     from pushtorch.errors import RecordFormatError
     from pushtorch.models.model import load_model
-    from pushtorch.models.residual import load_residual_model
+    from pushtorch.models.residual_file import load_residual_model
 
     cube, records, model = trained
     residual = with_ensemble(residual, 3)
@@ -309,7 +309,8 @@ def test_a_pooled_residual_takes_every_shapes_pushes_holds_one_out_and_widens_ac
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import RESIDUAL_WIDENINGS, choose_residual_widening
     from pushtorch.models.pooled import train_pooled_model
-    from pushtorch.models.residual import DEFENSIVE_PARTS, load_residual_model
+    from pushtorch.models.residual import DEFENSIVE_PARTS
+    from pushtorch.models.residual_file import load_residual_model
     from pushtorch.sim import Normal, load_records, object_spec, plan_training_pushes, run_plan
 
     cube, cube_records = cube_pushes_of(6, 1)
@@ -380,7 +381,8 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
 
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import choose_novelty_widening
-    from pushtorch.models.residual import DEFENSIVE_PARTS, NOVELTY_WIDENINGS, load_residual_model, outcome_spread
+    from pushtorch.models.residual import DEFENSIVE_PARTS, NOVELTY_WIDENINGS, outcome_spread
+    from pushtorch.models.residual_file import load_residual_model
     from pushtorch.prediction.residual import novelty_factors, rescaled
 
     cube, records, model = trained
@@ -437,7 +439,8 @@ def test_a_defensive_part_keeps_far_truths_likely_and_the_density_normalised(tra
 
     from pushtorch.distribution import DefensiveMixture
     from pushtorch.errors import InvalidParameterError
-    from pushtorch.models.residual import DEFENSIVE_TURN, load_residual_model
+    from pushtorch.models.residual import DEFENSIVE_TURN
+    from pushtorch.models.residual_file import load_residual_model
     from pushtorch.prediction.residual import defensive_factors, rescaled
 
     cube, records, model = trained
@@ -498,7 +501,8 @@ def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes
 
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import RESIDUAL_SCALES, choose_residual_scale
-    from pushtorch.models.residual import DEFENSIVE_PARTS, NOVELTY_WIDENINGS, load_residual_model
+    from pushtorch.models.residual import DEFENSIVE_PARTS, NOVELTY_WIDENINGS
+    from pushtorch.models.residual_file import load_residual_model
 
     cube, records, model = trained
     push = model.motions[1].manipulator.push

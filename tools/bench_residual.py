@@ -30,7 +30,8 @@ import torch
 from bench_predict import cpu_name  # tools/ is on sys.path when a tool runs as a script
 
 from pushtorch.evaluation.baselines import physics_ensemble_prediction
-from pushtorch.models.residual import DEFAULT_ENSEMBLE, load_residual_model, train_residual_model
+from pushtorch.models.residual import DEFAULT_ENSEMBLE, train_residual_model
+from pushtorch.models.residual_file import load_residual_model
 from pushtorch.models.settings import ModelSettings
 from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object

@@ -50,7 +50,8 @@ from pushtorch import se3
 from pushtorch.evaluation.likelihood import nll
 from pushtorch.evaluation.transfer import RESIDUAL_WIDENINGS
 from pushtorch.experiments.figures import FIGURE_DATA, read_figure_data
-from pushtorch.models.residual import NOVELTY_WIDENINGS, load_residual_model
+from pushtorch.models.residual import NOVELTY_WIDENINGS
+from pushtorch.models.residual_file import load_residual_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.prediction import transfer_distance

@@ -68,7 +68,7 @@ def predict_from_config(cfg: Mapping[str, Any] | DictConfig, out_dir: str | Path
     from pushtorch.evaluation.metrics import accuracy, displaced
     from pushtorch.experiments.common import as_names, observe, plain, stable_seed
     from pushtorch.models.library import ModelLibrary
-    from pushtorch.models.residual import load_any_model
+    from pushtorch.models.residual_file import load_any_model
     from pushtorch.objects import load_object
     from pushtorch.prediction import predict
     from pushtorch.prediction.residual import ResidualPrediction

@@ -196,7 +196,8 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
     A push model read from its file no longer knows which push each kernel came from, so a residual not yet
     cached trains the push model again from the same cached pushes and seed (the same model, bit for bit)."""
     from pushtorch.evaluation.transfer import RESIDUAL_SCALE_PUSHES, choose_residual_scale
-    from pushtorch.models.residual import load_residual_model, train_residual_model, with_ensemble
+    from pushtorch.models.residual import train_residual_model, with_ensemble
+    from pushtorch.models.residual_file import load_residual_model
 
     scale_pushes = RESIDUAL_SCALE_PUSHES if scale_pushes is None else int(scale_pushes)
     model = train_model(ctx, obj, friction, mass)
@@ -291,7 +292,8 @@ def _residual_path(ctx: ExperimentContext, key: str) -> Path:
 
 def _read_residual(path: str, ensemble: int):
     """A residual model file with ``ensemble`` rollouts per prediction, as :func:`train_residual` returned it."""
-    from pushtorch.models.residual import load_residual_model, with_ensemble
+    from pushtorch.models.residual import with_ensemble
+    from pushtorch.models.residual_file import load_residual_model
 
     return with_ensemble(load_residual_model(path), ensemble)
 
@@ -342,7 +344,8 @@ def train_pooled_residual(ctx: ExperimentContext, shapes: list[ObjectModel], fri
     same pushes and seed to recover which push each kernel came from (the same kernels, checked)."""
     from pushtorch.evaluation.transfer import choose_residual_widening
     from pushtorch.models.pooled import train_pooled_model
-    from pushtorch.models.residual import DEFENSIVE_PARTS, load_residual_model, train_residual_model, with_ensemble
+    from pushtorch.models.residual import DEFENSIVE_PARTS, train_residual_model, with_ensemble
+    from pushtorch.models.residual_file import load_residual_model
 
     model = train_pooled(ctx, shapes, friction, mass, widening_pushes, name)
     key = _model_key(name, friction, mass)
