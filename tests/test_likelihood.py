@@ -26,6 +26,7 @@ from pushtorch.evaluation.likelihood import (
     nll,
     point_density,
     product_density,
+    truth_copies,
 )
 from pushtorch.features import compute_surface_features
 from pushtorch.objects import load_object
@@ -160,6 +161,10 @@ def test_a_continuous_symmetry_is_scored_at_the_nearest_turn():
     values = nll(density, finals, start, start, cylinder.symmetry)
     assert float(values.max() - values.min()) < 0.02
     assert float(values.mean()) == pytest.approx(-21.66, abs=0.05)
+    # the copies nll takes the best of, as one set: what scores a truth under many densities at once
+    copies = truth_copies(density, finals, start, start, cylinder.symmetry)
+    assert copies.p.shape[:1] == (16,)
+    torch.testing.assert_close(-density.log_prob(copies.vector()).amax(-1), values)
 
 
 # -- baselines on equal information ------------------------------------------------------------------

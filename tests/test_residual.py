@@ -309,7 +309,7 @@ def test_a_pooled_residual_takes_every_shapes_pushes_holds_one_out_and_widens_ac
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import RESIDUAL_WIDENINGS, choose_residual_widening
     from pushtorch.models.pooled import train_pooled_model
-    from pushtorch.models.residual import DEFENSIVE_PARTS
+    from pushtorch.models.residual import DEFENSIVE_PARTS, UNCORRECTED_RATES
     from pushtorch.models.residual_file import load_residual_model
     from pushtorch.sim import Normal, load_records, object_spec, plan_training_pushes, run_plan
 
@@ -335,11 +335,12 @@ def test_a_pooled_residual_takes_every_shapes_pushes_holds_one_out_and_widens_ac
     widened = choose_residual_widening(residual, shapes, records, pushes_per_shape=1,
                                        generator=torch.Generator().manual_seed(0))
     assert widened.widening in RESIDUAL_WIDENINGS and widened.meta["widening"]["pushes"] > 0
-    assert len(widened.meta["widening"]["nll"]) == len(RESIDUAL_WIDENINGS) * len(DEFENSIVE_PARTS)
-    assert widened.defensive in DEFENSIVE_PARTS
+    assert len(widened.meta["widening"]["nll"]) == len(RESIDUAL_WIDENINGS) * len(DEFENSIVE_PARTS) * len(
+        UNCORRECTED_RATES)
+    assert widened.defensive in DEFENSIVE_PARTS and widened.uncorrected in UNCORRECTED_RATES
     back = load_residual_model(widened.save(tmp_path / "pooled_residual.npz"))
-    assert (back.widening, back.shape_names, back.defensive) == (widened.widening, widened.shape_names,
-                                                                 widened.defensive)
+    assert (back.widening, back.shape_names, back.defensive, back.uncorrected) == (
+        widened.widening, widened.shape_names, widened.defensive, widened.uncorrected)
     assert all(torch.equal(a, b) for a, b in zip(back.shapes, widened.shapes, strict=True))
     cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=0.4))
     one, two = (predict_residual(m, cloud, pooled.actions[1], 4) for m in (widened, back))
@@ -381,7 +382,7 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
 
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import choose_novelty_widening
-    from pushtorch.models.residual import DEFENSIVE_PARTS, NOVELTY_WIDENINGS, outcome_spread
+    from pushtorch.models.residual import DEFENSIVE_PARTS, NOVELTY_WIDENINGS, UNCORRECTED_RATES, outcome_spread
     from pushtorch.models.residual_file import load_residual_model
     from pushtorch.prediction.residual import novelty_factors, rescaled
 
@@ -415,14 +416,16 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
     chosen = choose_novelty_widening([residual, residual], [cube, cube], [records, records], pushes_per_shape=2,
                                      generator=torch.Generator().manual_seed(0), shapes=[cube],
                                      shape_records=[records])  # and a shape no model was trained on
-    assert len({(m.novelty_widening, m.defensive) for m in chosen}) == 1
+    assert len({(m.novelty_widening, m.defensive, m.uncorrected) for m in chosen}) == 1
     assert chosen[0].novelty_widening in NOVELTY_WIDENINGS and chosen[0].defensive in DEFENSIVE_PARTS
     meta = chosen[0].meta["novelty"]
     assert meta["pushes"] == 8 and meta["across"] == ["cube", "cube"] and meta["shapes"] == ["cube"]
-    assert len(meta["nll"]) == len(NOVELTY_WIDENINGS) * len(DEFENSIVE_PARTS)
-    best = min(range(len(meta["nll"])), key=meta["nll"].__getitem__)  # the pair of lowest held-out nll
-    assert (chosen[0].novelty_widening, chosen[0].defensive) == (NOVELTY_WIDENINGS[best // len(DEFENSIVE_PARTS)],
-                                                                 DEFENSIVE_PARTS[best % len(DEFENSIVE_PARTS)])
+    rates, parts = len(UNCORRECTED_RATES), len(DEFENSIVE_PARTS)
+    assert len(meta["nll"]) == len(NOVELTY_WIDENINGS) * parts * rates
+    best = min(range(len(meta["nll"])), key=meta["nll"].__getitem__)  # the combination of lowest held-out nll
+    assert (chosen[0].novelty_widening, chosen[0].defensive, chosen[0].uncorrected) == (
+        NOVELTY_WIDENINGS[best // (parts * rates)], DEFENSIVE_PARTS[best // rates % parts],
+        UNCORRECTED_RATES[best % rates])
     with pytest.raises(InvalidParameterError, match="two models or more"):
         choose_novelty_widening([residual], [cube], [records])
     with pytest.raises(InvalidParameterError, match="one set per extra shape"):
@@ -492,6 +495,56 @@ def test_a_defensive_share_lies_in_its_bounds_and_grows_with_novelty(part, n, mo
     assert (low == 0.0) == (part[0] == 0.0 and (part[1] == 0.0 or n == 0.0))
 
 
+def test_an_uncorrected_share_puts_the_rollouts_themselves_in_the_density_and_is_scored_as_predicted(
+        trained, residual, tmp_path):
+    """An uncorrected share ``τ``: a share ``ρ = τn / (1 + τn)`` of the density is the rollouts themselves (each
+    ``ρ / N``), the corrected kernels keep ``1 − ρ``; the density stays normalised; a truth at a rollout's own
+    outcome gains, and the choice's scorer gives, from a prediction without the share, the nll of the prediction
+    with it (the same rollouts), defensive part and novelty widening included; the file keeps ``τ``."""
+    import dataclasses
+
+    from pushtorch.evaluation.likelihood import nll
+    from pushtorch.evaluation.transfer import residual_nll_grid
+    from pushtorch.models.residual import DEFENSIVE_PARTS, NOVELTY_WIDENINGS, UNCORRECTED_RATES, uncorrected_share
+    from pushtorch.models.residual_file import load_residual_model
+    from pushtorch.prediction.residual import novelty_factors
+
+    cube, records, model = trained
+    pose = cube.resting_pose(yaw=0.3)
+    cloud = capture_partial_cloud(cube, pose)
+    plain = predict_residual(residual, cloud, model.actions[1], 7)
+    n = plain.outcome_novelty
+    assert n > 0 and plain.uncorrected_share == 0.0
+    rate = 1.0 / n  # a share of one half
+    mixed = predict_residual(dataclasses.replace(residual, uncorrected=rate), cloud, model.actions[1], 7)
+    torch.testing.assert_close(mixed.rollouts.p, plain.rollouts.p, rtol=0, atol=0)  # the same rollouts
+    assert mixed.uncorrected_share == pytest.approx(0.5) == uncorrected_share(rate, n)
+    count = plain.rollouts.p.shape[0]
+    weights = mixed.density.log_weights.exp().reshape(-1)
+    assert float(weights[-count:].sum()) == pytest.approx(0.5, abs=1e-5)
+    assert float(weights.sum()) == pytest.approx(1.0, abs=1e-5)
+    torch.testing.assert_close(mixed.density.means.p[-count:], plain.rollouts.p, rtol=0, atol=1e-6)
+    assert abs(float(mixed.density.log_normaliser())) < 0.05
+    at_rollout = se3.Pose.unchecked(plain.rollouts.p[0].double(), plain.rollouts.q[0].double())
+    gain = nll(plain.density, at_rollout, plain.start, plain.start, cube.symmetry) - nll(
+        mixed.density, at_rollout, plain.start, plain.start, cube.symmetry)
+    assert float(gain) > 0
+    # the choice's scorer, from the prediction without the share, scores the prediction with it
+    truth = se3.Pose.unchecked(plain.final_pose.p.double() + torch.tensor([0.01, -0.005, 0.0], dtype=torch.float64),
+                               plain.final_pose.q.double())
+    nu, part = NOVELTY_WIDENINGS[4], (0.03, 1.0, 0.03)
+    both = dataclasses.replace(residual, novelty_widening=nu, defensive=part, uncorrected=rate)
+    predicted = predict_residual(both, cloud, model.actions[1], 7)
+    want = float(nll(predicted.density, truth, plain.start, plain.start, cube.symmetry)[0])
+    scores = residual_nll_grid(plain, truth, plain.start, cube, [novelty_factors(plain, nu)], [part], [rate])
+    assert float(scores[0]) == pytest.approx(want, abs=1e-4)
+    grid = residual_nll_grid(plain, truth, plain.start, cube, [novelty_factors(plain, v) for v in NOVELTY_WIDENINGS])
+    assert grid.shape == (len(NOVELTY_WIDENINGS) * len(DEFENSIVE_PARTS) * len(UNCORRECTED_RATES),)
+    assert bool(torch.isfinite(grid).all())
+    back = load_residual_model(both.save(tmp_path / "uncorrected.npz"))
+    assert back.uncorrected == rate
+
+
 def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes_are(trained, residual, tmp_path):
     """``choose_residual_scale``: each held-out push's own kernels leave the model (``without_pushes``: its
     residuals and its manipulator kernels, no other), and the factor of lowest held-out nll scales the stds; a
@@ -501,7 +554,7 @@ def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes
 
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import RESIDUAL_SCALES, choose_residual_scale
-    from pushtorch.models.residual import DEFENSIVE_PARTS, NOVELTY_WIDENINGS
+    from pushtorch.models.residual import DEFENSIVE_PARTS, NOVELTY_WIDENINGS, UNCORRECTED_RATES
     from pushtorch.models.residual_file import load_residual_model
 
     cube, records, model = trained
@@ -524,6 +577,6 @@ def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes
         assert chosen.bandwidth.p_std == pytest.approx(off.bandwidth.p_std * meta["chosen"])
         assert chosen.novelty_widening == 0.3  # scored unwidened, returned as given
         assert meta["novelty"]["grid"] == list(NOVELTY_WIDENINGS) and len(meta["novelty"]["nll"]) == \
-            len(NOVELTY_WIDENINGS) * len(DEFENSIVE_PARTS)
+            len(NOVELTY_WIDENINGS) * len(DEFENSIVE_PARTS) * len(UNCORRECTED_RATES)
     with pytest.raises(InvalidParameterError, match="trained in this session"):
         choose_residual_scale(load_residual_model(residual.save(tmp_path / "r.npz")), cube, records, 2)

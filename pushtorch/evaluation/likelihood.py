@@ -78,6 +78,7 @@ __all__ = [
     "point_density",
     "product_density",
     "symmetric_truths",
+    "truth_copies",
 ]
 
 #: Floors (m, rad) of a fitted mean-motion density: below any spread the simulator resolves, and they keep a
@@ -213,27 +214,46 @@ def nll(density: FinalPoseDistribution, truth_final: se3.Pose, truth_start: se3.
     Returns:
         ``(T,)`` float64.
     """
+    copies, scores = _copies(density, truth_final, truth_start, estimate_start, symmetry)
+    if scores is None:
+        return -density.log_prob(copies.vector()).amax(-1)
+    return -torch.maximum(scores[0], density.log_prob(copies.vector()).amax(-1))
+
+
+def truth_copies(density: FinalPoseDistribution, truth_final: se3.Pose, truth_start: se3.Pose,
+                 estimate_start: se3.Pose, symmetry: Symmetry) -> se3.Pose:
+    """``(T, K)`` the symmetric copies of true final poses ``(T,)`` that :func:`nll` takes the best of under
+    ``density``: every discrete copy, or about a continuous axis the 3° grid and its refinement about the grid's
+    best under ``density``. What scores one truth under many densities of alike kernels at once (their
+    ``log_prob`` at the copies, the best taken after combining them)."""
+    copies, scores = _copies(density, truth_final, truth_start, estimate_start, symmetry)
+    if scores is None:
+        return copies
+    return se3.Pose.cat([copies, scores[1]], 1)
+
+
+def _copies(density, truth_final: se3.Pose, truth_start: se3.Pose, estimate_start: se3.Pose, symmetry: Symmetry):
+    """The discrete copies and None; or, about a continuous axis, the refined copies and ``(best score on the
+    grid (T,), the grid's copies (T, G))`` (:func:`nll`, :func:`truth_copies`)."""
     final = se3.Pose.unchecked(truth_final.p.double().reshape(-1, 3), truth_final.q.double().reshape(-1, 4))
     truth0 = se3.Pose.unchecked(truth_start.p.double().reshape(3), truth_start.q.double().reshape(4))
     est0 = se3.Pose.unchecked(estimate_start.p.double().reshape(3), estimate_start.q.double().reshape(4))
     discrete = symmetry.discrete.double()
     if symmetry.continuous_axis is None:
-        copies = symmetric_truths(final, truth0, est0, discrete.expand(final.p.shape[0], *discrete.shape))
-        return -density.log_prob(copies.vector()).amax(-1)
+        return symmetric_truths(final, truth0, est0, discrete.expand(final.p.shape[0], *discrete.shape)), None
     axis = symmetry.continuous_axis.double()
     step = 2.0 * math.pi / _CONTINUOUS_STEPS
     angles = torch.arange(_CONTINUOUS_STEPS, dtype=torch.float64) * step
     turns = _axis_turns(axis, angles)  # (M, 4)
     grid = pkt.quaternion_raw_multiply(discrete.unsqueeze(1), turns.unsqueeze(0)).reshape(-1, 4)  # (K·M, 4)
-    coarse = density.log_prob(
-        symmetric_truths(final, truth0, est0, grid.expand(final.p.shape[0], *grid.shape)).vector())
+    on_grid = symmetric_truths(final, truth0, est0, grid.expand(final.p.shape[0], *grid.shape))
+    coarse = density.log_prob(on_grid.vector())
     best = coarse.argmax(-1)
     k, m = best // _CONTINUOUS_STEPS, best % _CONTINUOUS_STEPS
     fine_angles = angles[m].unsqueeze(-1) + _REFINE * step  # (T, R)
     fine = pkt.quaternion_raw_multiply(discrete[k].unsqueeze(1).expand(-1, _REFINE.numel(), 4),
                                        _axis_turns(axis, fine_angles))
-    refined = density.log_prob(symmetric_truths(final, truth0, est0, fine).vector())
-    return -torch.maximum(coarse.amax(-1), refined.amax(-1))
+    return symmetric_truths(final, truth0, est0, fine), (coarse.amax(-1), on_grid)
 
 
 def ensemble_density(finals: se3.Pose, p_std: float, rot_std: float) -> FinalPoseDistribution:

@@ -25,7 +25,11 @@ A residual model's density also has a defensive part (:class:`~pushtorch.distrib
 of the same kernels, centimetres wider, that grows with the prediction's outcome novelty
 (:func:`pushtorch.models.residual.defensive_share`). It is chosen with ``κ``
 (:func:`choose_residual_widening`) or with the novelty widening ``ν`` (:func:`choose_novelty_widening`), on the
-same held-out pushes of shapes the model did not see and the same rollouts, every pair scored.
+same held-out pushes of shapes the model did not see and the same rollouts, every pair scored. So is its
+uncorrected share (:data:`~pushtorch.models.residual.UNCORRECTED_RATES`), the rollouts themselves keeping a share
+that grows with novelty: every combination is scored from the log densities of the corrected kernels and of the
+rollouts at each distinct width, at the truth's symmetric copies, mixed at each combination's weights
+(:func:`residual_nll_grid`).
 """
 
 from __future__ import annotations
@@ -39,20 +43,23 @@ import torch
 
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
-from pushtorch.evaluation.likelihood import nll, product_density
+from pushtorch.evaluation.likelihood import nll, product_density, truth_copies
 from pushtorch.models.model import PushModel
 from pushtorch.models.pooled import ShapeParts, pool_parts
 from pushtorch.models.residual import (
     DEFENSIVE_PARTS,
     NOVELTY_FORM,
     NOVELTY_WIDENINGS,
+    UNCORRECTED_RATES,
     defensive_share,
     novelty_scored_as_now,
+    uncorrected_share,
 )
 from pushtorch.objects import ObjectModel
 
 __all__ = ["RESIDUAL_SCALES", "RESIDUAL_SCALE_PUSHES", "RESIDUAL_WIDENINGS", "SCALES", "WIDENINGS",
-           "choose_novelty_widening", "choose_residual_scale", "choose_residual_widening", "choose_widening"]
+           "choose_novelty_widening", "choose_residual_scale", "choose_residual_widening", "choose_widening",
+           "residual_nll_grid"]
 
 log = logging.getLogger(__name__)
 
@@ -199,7 +206,7 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     generator = generator or torch.Generator().manual_seed(0)
     grid = [float(f) for f in scales]
     valid = records.take(records.valid)
-    unwidened = replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0))  # as trained; the rest after
+    unwidened = replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0)  # as trained
     scores, cases, skipped = [], [], 0
     for a, motion in enumerate(residual.model.motions):
         push = motion.manipulator.push
@@ -219,7 +226,8 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
                 skipped += 1
                 continue
             case = _push_case(obj, pushes.take(torch.tensor([p])), residual.settings.voxel_size)
-            scored = _predicted_scores(held_out, obj, case, generator, lambda _: [(f, None) for f in grid])
+            scored = _predicted_scores(held_out, obj, case, generator, lambda p, truth, start: residual_nll_grid(
+                p, truth, start, obj, grid, [(0.0, 0.0, 0.0)], [0.0]))
             if scored is None:
                 skipped += 1
                 continue
@@ -230,11 +238,12 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
                                     "kernels' scale")
     mean = torch.stack(scores).mean(0)
     best = int(mean.argmin())
-    # the same held-out pushes at every novelty widening and defensive part, at the chosen scale: the own-object
-    # side of the choice of ν across objects (choose_novelty_widening), kept since a model read from its file
-    # cannot hold pushes out
-    own = torch.stack([_nll_at(p, truth, start, obj, _with_defensive(
-        p, [novelty_factors(p, v, grid[best]) for v in NOVELTY_WIDENINGS])) for p, truth, start in cases]).mean(0)
+    # the same held-out pushes at every novelty widening, defensive part and uncorrected share, at the chosen
+    # scale: the own-object side of the choice across objects (choose_novelty_widening), kept since a model read
+    # from its file cannot hold pushes out
+    own = torch.stack([residual_nll_grid(p, truth, start, obj, [novelty_factors(p, v, grid[best])
+                                                               for v in NOVELTY_WIDENINGS])
+                       for p, truth, start in cases]).mean(0)
     log.info("residual kernels' scale %g for %s (held-out nll %.2f against %s at 1, %d pushes)", grid[best],
              obj.name, float(mean[best]), f"{float(mean[grid.index(1.0)]):.2f}" if 1.0 in grid else "—", len(scores))
     bandwidth = replace(residual.bandwidth, p_std=residual.bandwidth.p_std * grid[best],
@@ -242,18 +251,20 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     chosen = {"chosen": grid[best], "grid": grid, "nll": mean.tolist(), "pushes": len(scores), "skipped": skipped,
               "pushes_per_action": int(pushes_per_action),
               "novelty": {"grid": list(NOVELTY_WIDENINGS), "form": NOVELTY_FORM,
-                          "defensive": [list(d) for d in DEFENSIVE_PARTS], "nll": own.tolist()}}
+                          "defensive": [list(d) for d in DEFENSIVE_PARTS], "uncorrected": list(UNCORRECTED_RATES),
+                          "nll": own.tolist()}}
     return replace(residual, bandwidth=bandwidth, meta={**residual.meta, "scale": chosen})
 
 
 def _residual_scores(residual, obj: ObjectModel, records, count: int, generator: torch.Generator,
                      factors) -> tuple[list[torch.Tensor], int]:
-    """Each held-out push's nll under ``residual``'s prediction with each of the widenings ``factors(prediction)``
-    (:func:`_nll_at`), from one prediction per push (the same rollouts), and how many pushes could not be
-    predicted."""
+    """Each held-out push's nll under ``residual``'s prediction at every combination of the narrow widenings
+    ``factors(prediction)``, the defensive parts and the uncorrected shares (:func:`residual_nll_grid`), from one
+    prediction per push (the same rollouts), and how many pushes could not be predicted."""
     scores, skipped = [], 0
     for case in _held_out_pushes(obj, records, count, residual.settings.voxel_size, generator):
-        scored = _predicted_scores(residual, obj, case, generator, factors)
+        scored = _predicted_scores(residual, obj, case, generator,
+                                   lambda p, truth, start: residual_nll_grid(p, truth, start, obj, factors(p)))
         if scored is None:
             skipped += 1
         else:
@@ -261,11 +272,10 @@ def _residual_scores(residual, obj: ObjectModel, records, count: int, generator:
     return scores, skipped
 
 
-def _predicted_scores(residual, obj: ObjectModel, case, generator: torch.Generator, factors):
-    """One push ``case`` (:func:`_push_case`) predicted by ``residual`` from its cloud and robot start, and its
-    true outcome's nll under each of the densities ``factors(prediction)`` (``(factor, defensive)`` pairs, as
-    :func:`_nll_at`): ``(prediction, (F,))``, or None where the push cannot be predicted (no body, or the bumper
-    meets no observed feature there)."""
+def _predicted_scores(residual, obj: ObjectModel, case, generator: torch.Generator, score):
+    """One push ``case`` (:func:`_push_case`) predicted by ``residual`` from its cloud and robot start, and
+    ``score(prediction, truth, start)``: ``(prediction, (F,))``, or None where the push cannot be predicted (no
+    body, or the bumper meets no observed feature there)."""
     from pushtorch.prediction.residual import predict_residual
 
     cloud, action, robot, start, truth = case
@@ -273,37 +283,53 @@ def _predicted_scores(residual, obj: ObjectModel, case, generator: torch.Generat
         prediction = predict_residual(residual, cloud, action, generator, robot_start=robot)
     except (ModelError, InvalidPoseError):
         return None
-    return prediction, _nll_at(prediction, truth, start, obj, factors(prediction))
+    return prediction, score(prediction, truth, start)
 
 
-def _nll_at(prediction, truth: se3.Pose, start: se3.Pose, obj: ObjectModel, factors) -> torch.Tensor:
-    """``(F,)`` float64 the nll of ``truth`` (moved from ``start``) under ``prediction``'s density with its
-    kernels' stds times each ``factor`` of ``factors`` and its ``defensive`` part (``(factor, defensive)`` pairs,
-    :func:`pushtorch.prediction.residual.rescaled`)."""
-    from pushtorch.prediction.residual import rescaled
+def residual_nll_grid(prediction, truth: se3.Pose, start: se3.Pose, obj: ObjectModel, factors, parts=DEFENSIVE_PARTS,
+              rates=UNCORRECTED_RATES) -> torch.Tensor:
+    """``(F·P·R,)`` float64 the nll of ``truth`` (moved from ``start``) under ``prediction``'s density at every
+    combination (factor-major, then part, then rate) of its narrow kernels' stds times each of ``factors`` (a
+    factor or ``(position, rotation)`` factors), each defensive part ``(ε0, λ, w)`` of ``parts`` and each
+    uncorrected share's rate of ``rates``, as :func:`pushtorch.prediction.residual.predict_residual` would have
+    made it from the same rollouts (``prediction`` made without either share). The log densities of the corrected
+    kernels and of the rollouts are taken once per distinct width at the truth's symmetric copies
+    (:func:`~pushtorch.evaluation.likelihood.truth_copies`, refined about the unwidened density's best), mixed at
+    each combination's weights, and the best copy kept, as :func:`~pushtorch.evaluation.likelihood.nll` keeps it."""
+    from pushtorch.prediction.residual import defensive_factors, narrow_density, scaled_parts
 
-    return torch.tensor([float(nll(rescaled(prediction, f, d), truth, start, prediction.start, obj.symmetry)[0])
-                         for f, d in factors], dtype=torch.float64)
+    values = truth_copies(narrow_density(prediction), truth, start, prediction.start, obj.symmetry).vector()
+    at: dict[tuple[float, float], tuple[torch.Tensor, torch.Tensor]] = {}
 
+    def parts_at(f: tuple[float, float]) -> tuple[torch.Tensor, torch.Tensor]:
+        if f not in at:
+            at[f] = tuple(d.log_prob(values).reshape(-1).double() for d in scaled_parts(prediction, f))
+        return at[f]
 
-def _with_defensive(prediction, factors: list) -> list:
-    """``(factor, defensive)`` pairs for :func:`_nll_at`: each of ``factors`` with each of
-    :data:`~pushtorch.models.residual.DEFENSIVE_PARTS` (factor-major)."""
-    from pushtorch.prediction.residual import defensive_factors
+    def mixed(both: tuple[torch.Tensor, torch.Tensor], share: float) -> torch.Tensor:
+        corrected, raw = both
+        return corrected if share == 0 else torch.logaddexp(math.log1p(-share) + corrected, math.log(share) + raw)
 
-    out = []
+    novelty, out = prediction.outcome_novelty, []
     for f in factors:
-        f = f if isinstance(f, tuple) else (f, f)
-        for part in DEFENSIVE_PARTS:
-            share = defensive_share(part, prediction.outcome_novelty)
-            out.append((f, None if share == 0 else (share, defensive_factors(prediction, f, part[2]))))
-    return out
+        f = (float(f[0]), float(f[1])) if isinstance(f, tuple) else (float(f), float(f))
+        for part in parts:
+            share = defensive_share(part, novelty)
+            wide = parts_at(defensive_factors(prediction, f, part[2])) if share > 0 else None
+            for rate in rates:
+                rho = uncorrected_share(rate, novelty)
+                log_p = mixed(parts_at(f), rho)
+                if wide is not None:
+                    log_p = torch.logaddexp(math.log1p(-share) + log_p, math.log(share) + mixed(wide, rho))
+                out.append(-float(log_p.max()))
+    return torch.tensor(out, dtype=torch.float64)
 
 
 def choose_residual_widening(residual, objects: list[ObjectModel], records: list, pushes_per_shape: int = 6,
                              generator: torch.Generator | None = None, widenings=RESIDUAL_WIDENINGS):
     """The pooled ``residual`` model with its ``widening`` and its defensive part
-    (:data:`~pushtorch.models.residual.DEFENSIVE_PARTS`) chosen together by leave-one-shape-out likelihood (module
+    (:data:`~pushtorch.models.residual.DEFENSIVE_PARTS`) and uncorrected share
+    (:data:`~pushtorch.models.residual.UNCORRECTED_RATES`) chosen together by leave-one-shape-out likelihood (module
     docstring); the search is kept in ``meta["widening"]``.
 
     Args:
@@ -322,7 +348,7 @@ def choose_residual_widening(residual, objects: list[ObjectModel], records: list
     _check_pushes(pushes_per_shape)
     generator = generator or torch.Generator().manual_seed(0)
     grid = [float(k) for k in widenings]
-    base = replace(residual, widening=0.0, defensive=(0.0, 0.0, 0.0))
+    base = replace(residual, widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0)
     scores, skipped = [], 0
     for s, (obj, shape_records) in enumerate(zip(objects, records, strict=True)):
         try:
@@ -331,8 +357,7 @@ def choose_residual_widening(residual, objects: list[ObjectModel], records: list
             skipped += 1
             continue
         more, missed = _residual_scores(held_out, obj, shape_records, pushes_per_shape, generator,
-                                        lambda p: _with_defensive(p, [math.sqrt(1.0 + k * p.contact_distance2)
-                                                                      for k in grid]))
+                                        lambda p: [math.sqrt(1.0 + k * p.contact_distance2) for k in grid])
         scores += more
         skipped += missed
     if not scores:
@@ -340,14 +365,24 @@ def choose_residual_widening(residual, objects: list[ObjectModel], records: list
                                     "residual's widening")
     mean = torch.stack(scores).mean(0)
     best = int(mean.argmin())
-    kappa, part = grid[best // len(DEFENSIVE_PARTS)], DEFENSIVE_PARTS[best % len(DEFENSIVE_PARTS)]
-    log.info("residual widening: kappa=%g, defensive part %s (held-out nll %.2f against %.2f unwidened, %d "
-             "pushes)", kappa, part, float(mean[best]), float(mean[0]) if grid[0] == 0.0 else math.nan, len(scores))
+    kappa, part, rate = _combination(grid, best)
+    log.info("residual widening: kappa=%g, defensive part %s, uncorrected rate %g (held-out nll %.2f against %.2f "
+             "unwidened, %d pushes)", kappa, part, rate, float(mean[best]), float(mean[0]) if grid[0] == 0.0
+             else math.nan, len(scores))
     meta = dict(residual.meta)
     meta["widening"] = {"chosen": kappa, "defensive_chosen": list(part), "grid": grid,
-                        "defensive": [list(d) for d in DEFENSIVE_PARTS], "nll": mean.tolist(), "pushes": len(scores),
+                        "defensive": [list(d) for d in DEFENSIVE_PARTS], "uncorrected_chosen": rate,
+                        "uncorrected": list(UNCORRECTED_RATES), "nll": mean.tolist(), "pushes": len(scores),
                         "skipped": skipped}
-    return replace(residual, widening=kappa, defensive=part, meta=meta)
+    return replace(residual, widening=kappa, defensive=part, uncorrected=rate, meta=meta)
+
+
+def _combination(grid: list[float], index: int) -> tuple[float, tuple[float, float, float], float]:
+    """The ``(widening, defensive part, uncorrected rate)`` at ``index`` of :func:`residual_nll_grid`'s scores over
+    ``grid`` × :data:`~pushtorch.models.residual.DEFENSIVE_PARTS` × :data:`~pushtorch.models.residual.
+    UNCORRECTED_RATES`."""
+    rates, parts = len(UNCORRECTED_RATES), len(DEFENSIVE_PARTS)
+    return grid[index // (parts * rates)], DEFENSIVE_PARTS[index // rates % parts], UNCORRECTED_RATES[index % rates]
 
 
 def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records: list, pushes_per_shape: int = 6,
@@ -358,12 +393,13 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     never saw, as a pooled model's held-out shape), its kernels widened at each ``ν``
     (:mod:`pushtorch.prediction.residual`: a share ``ν·n / (1 + ν·n)`` of the residuals' spread, ``n`` the
     prediction's outcome novelty), and with each defensive part ``(ε0, λ, w)`` of
-    :data:`~pushtorch.models.residual.DEFENSIVE_PARTS`. A model whose scale was chosen
-    (:func:`choose_residual_scale`) adds its own held-out pushes, scored then at every pair: the pushes of small
-    novelty, where widening costs. Each model also predicts ``pushes_per_shape`` pushes of each of ``shapes``
-    (generated training shapes, with their ``shape_records``, that no model was trained on): rollouts of
-    intermediate novelty, between the own object's and another training object's. The pair of lowest mean nll over
-    all the pushes is given to all (kept in ``meta["novelty"]``).
+    :data:`~pushtorch.models.residual.DEFENSIVE_PARTS`, and each uncorrected share's rate ``τ`` of
+    :data:`~pushtorch.models.residual.UNCORRECTED_RATES`. A model whose scale was chosen
+    (:func:`choose_residual_scale`) adds its own held-out pushes, scored then at every combination: the pushes of
+    small novelty, where widening costs. Each model also predicts ``pushes_per_shape`` pushes of each of
+    ``shapes`` (generated training shapes, with their ``shape_records``, that no model was trained on): rollouts of
+    intermediate novelty, between the own object's and another training object's. The combination of lowest mean
+    nll over all the pushes is given to all (kept in ``meta["novelty"]``).
     What an experiment with several training objects does for their residual models; a single object has no shape
     to hold out and keeps ``ν = 0``.
 
@@ -387,9 +423,9 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     for i, residual in enumerate(residuals):
         for j, (obj, other) in enumerate(others):
             if j != i:
-                more, missed = _residual_scores(replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0)), obj,
-                                                other, pushes_per_shape, generator,
-                                                lambda p: _with_defensive(p, [novelty_factors(p, v) for v in grid]))
+                plain = replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0)
+                more, missed = _residual_scores(plain, obj, other, pushes_per_shape, generator,
+                                                lambda p: [novelty_factors(p, v) for v in grid])
                 scores += more
                 skipped += missed
     if not scores:
@@ -404,17 +440,18 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
             own_pushes += int(own["pushes"])
     mean = total / (count + own_pushes)
     best = int(mean.argmin())
-    nu, part = grid[best // len(DEFENSIVE_PARTS)], DEFENSIVE_PARTS[best % len(DEFENSIVE_PARTS)]
-    log.info("residual novelty widening %g, defensive part %s across %s (held-out nll %.2f against %.2f "
-             "unwidened; %d pushes of other objects and shapes, %d of their own)", nu, part,
+    nu, part, rate = _combination(grid, best)
+    log.info("residual novelty widening %g, defensive part %s, uncorrected rate %g across %s (held-out nll %.2f "
+             "against %.2f unwidened; %d pushes of other objects and shapes, %d of their own)", nu, part, rate,
              [o.name for o in objects], float(mean[best]), float(mean[0]) if grid[0] == 0.0 else math.nan, count,
              own_pushes)
     chosen = {"chosen": nu, "defensive_chosen": list(part), "across": [o.name for o in objects],
               "shapes": [o.name for o in shapes], "grid": grid,
-              "defensive": [list(d) for d in DEFENSIVE_PARTS], "form": NOVELTY_FORM, "nll": mean.tolist(),
+              "defensive": [list(d) for d in DEFENSIVE_PARTS], "uncorrected_chosen": rate,
+              "uncorrected": list(UNCORRECTED_RATES), "form": NOVELTY_FORM, "nll": mean.tolist(),
               "pushes": count, "own_pushes": own_pushes, "pushes_per_shape": int(pushes_per_shape),
               "skipped": skipped}
-    return [replace(r, novelty_widening=nu, defensive=part,
+    return [replace(r, novelty_widening=nu, defensive=part, uncorrected=rate,
                     meta={**r.meta, "novelty": chosen}) for r in residuals]
 
 

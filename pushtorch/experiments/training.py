@@ -246,12 +246,13 @@ def _scale_chosen(residual, pushes: int) -> bool:
 
 
 def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: int, shapes: str | None = None) -> dict:
-    """``{(object, friction, mass): residual model}`` with one novelty widening and defensive part chosen across
-    the training objects of each prior (:func:`pushtorch.evaluation.transfer.choose_novelty_widening`: each
-    object's model scores ``pushes`` of every other's training pushes per object, and as many of each generated
-    shape of ``shapes``, a ``shapes:<kind>:<count>`` entry, pushed under the same prior), each saved back to its
-    file. A prior with one training object keeps its models as they are; a model whose file already holds the
-    choice across the same objects and shapes is kept as read."""
+    """``{(object, friction, mass): residual model}`` with one novelty widening, defensive part and uncorrected
+    share chosen across the training objects of each prior
+    (:func:`pushtorch.evaluation.transfer.choose_novelty_widening`: each object's model scores ``pushes`` of every
+    other's training pushes per object, and as many of each generated shape of ``shapes``, a
+    ``shapes:<kind>:<count>`` entry, pushed under the same prior), each saved back to its file. A prior with one
+    training object keeps its models as they are; a model whose file already holds the choice across the same
+    objects and shapes is kept as read."""
     from pushtorch.evaluation.transfer import choose_novelty_widening
     from pushtorch.models.residual import novelty_scored_as_now
     from pushtorch.objects.shapes import training_shapes
@@ -344,7 +345,7 @@ def train_pooled_residual(ctx: ExperimentContext, shapes: list[ObjectModel], fri
     same pushes and seed to recover which push each kernel came from (the same kernels, checked)."""
     from pushtorch.evaluation.transfer import choose_residual_widening
     from pushtorch.models.pooled import train_pooled_model
-    from pushtorch.models.residual import DEFENSIVE_PARTS, train_residual_model, with_ensemble
+    from pushtorch.models.residual import DEFENSIVE_PARTS, UNCORRECTED_RATES, train_residual_model, with_ensemble
     from pushtorch.models.residual_file import load_residual_model
 
     model = train_pooled(ctx, shapes, friction, mass, widening_pushes, name)
@@ -356,7 +357,8 @@ def train_pooled_residual(ctx: ExperimentContext, shapes: list[ObjectModel], fri
             if cached.sim == ctx.physics and _asked(cached.model.meta) == _asked(model.meta) \
                     and cached.outcomes is not None and cached.model.settings == model.settings \
                     and cached.shape_names == [s.name for s in shapes] \
-                    and (cached.meta.get("widening") or {}).get("defensive") == [list(d) for d in DEFENSIVE_PARTS]:
+                    and (cached.meta.get("widening") or {}).get("defensive") == [list(d) for d in DEFENSIVE_PARTS] \
+                    and (cached.meta.get("widening") or {}).get("uncorrected") == list(UNCORRECTED_RATES):
                 return saved_as(with_ensemble(cached, ensemble), _read_residual, str(path), int(ensemble))
         except RecordFormatError as exc:
             log.warning("retraining the residual of %s: %s", key, exc)

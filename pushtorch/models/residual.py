@@ -19,7 +19,8 @@ contact and friction are not the world's. The residual model keeps both:
   the training pushes' physics, in one call; each rollout is corrected by every residual kernel, weighted by
   its contact weight, and the density is the mixture of these kernels (:data:`RESIDUAL_LADDER` widths chosen
   by leave-one-push-out likelihood), with a defensive share of the same kernels centimetres wider that grows
-  with how new the rollouts are (:data:`DEFENSIVE_PARTS`, :func:`defensive_share`).
+  with how new the rollouts are (:data:`DEFENSIVE_PARTS`, :func:`defensive_share`), and a share of the rollouts
+  themselves, uncorrected, that grows with it too (:data:`UNCORRECTED_RATES`).
 
 Decisions are in docs/method.md, "The residual model".
 """
@@ -47,10 +48,10 @@ from pushtorch.sim.settings import SimSettings
 Tensor = torch.Tensor
 
 __all__ = ["DEFAULT_ENSEMBLE", "DEFENSIVE_PARTS", "DEFENSIVE_TURN", "MAX_DEFENSIVE_SHARE", "NOVELTY_FORM",
-           "NOVELTY_WIDENINGS", "OUTCOME_LADDER", "RESIDUAL_LADDER", "ResidualModel", "choose_bandwidth", "corrected",
-           "defensive_share", "engine_version", "novelty_scored_as_now", "novelty_share", "outcome_log_affinity",
-           "outcome_novelty", "outcome_spread", "residual_of", "rollout_outcome", "train_residual_model",
-           "with_ensemble"]
+           "NOVELTY_WIDENINGS", "OUTCOME_LADDER", "RESIDUAL_LADDER", "ResidualModel", "UNCORRECTED_RATES",
+           "choose_bandwidth", "corrected", "defensive_share", "engine_version", "novelty_scored_as_now",
+           "novelty_share", "outcome_log_affinity", "outcome_novelty", "outcome_spread", "residual_of",
+           "rollout_outcome", "train_residual_model", "uncorrected_share", "with_ensemble"]
 
 #: Rollouts per prediction unless the model says otherwise, chosen by held-out likelihood on generated training
 #: shapes among the sizes within 3× a pushtorch prediction (tools/residual_ensemble.py on an Intel Xeon, 2 cores:
@@ -78,6 +79,12 @@ NOVELTY_WIDENINGS = (0.0, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
 DEFENSIVE_PARTS = ((0.0, 0.0, 0.0),) + tuple((floor, rate, width) for floor in (0.0, 0.03)
                                              for rate in (0.0, 0.1, 1.0, 10.0) for width in (0.01, 0.03, 0.1)
                                              if floor or rate)
+#: The uncorrected shares' rates ``τ`` tried with each widening and defensive part: a share ``τn / (1 + τn)`` of
+#: the density (narrow and wide alike) is the rollouts themselves, uncorrected, ``n`` the prediction's outcome
+#: novelty (:func:`novelty_share`; 0: none). Where the simulator did something no training rollout did, which
+#: correction holds is unknown: a correction learnt on one shape can move a shape the simulator gets right away
+#: from the truth, and the simulator's own outcome is the prior the corrections depart from.
+UNCORRECTED_RATES = (0.0, 0.01, 0.1, 1.0, 10.0)
 #: The largest defensive share: the narrow part keeps a weight however new the rollouts
 MAX_DEFENSIVE_SHARE = 0.999
 #: Radians of a defensive part's rotation width per metre of its position width: the paper's motion kernels' ratio
@@ -85,8 +92,9 @@ MAX_DEFENSIVE_SHARE = 0.999
 DEFENSIVE_TURN = 5.0
 #: Which form of the novelty widening a model's choice of ``ν`` was made for (kept beside it in its ``meta``; a
 #: cached choice of another form is made again): 2, a share of the outcomes' spread added to the variances; 3, as 2
-#: and chosen jointly with a defensive part (:data:`DEFENSIVE_PARTS`)
-NOVELTY_FORM = 3
+#: and chosen jointly with a defensive part (:data:`DEFENSIVE_PARTS`); 4, as 3 and with an uncorrected share
+#: (:data:`UNCORRECTED_RATES`)
+NOVELTY_FORM = 4
 
 _IDENTITY_Q = torch.tensor([1.0, 0.0, 0.0, 0.0])
 
@@ -142,13 +150,15 @@ def outcome_spread(outcomes: Tensor) -> tuple[float, float]:
     return float(o[:, :2].var(0).mean().sqrt()), float(turn.std())
 
 
-def novelty_scored_as_now(entry: dict | None, grid=NOVELTY_WIDENINGS, parts=DEFENSIVE_PARTS) -> bool:
+def novelty_scored_as_now(entry: dict | None, grid=NOVELTY_WIDENINGS, parts=DEFENSIVE_PARTS,
+                          rates=UNCORRECTED_RATES) -> bool:
     """Whether a model's ``meta`` entry of novelty-widening scores (``meta["novelty"]``, or the own held-out
-    pushes' ``meta["scale"]["novelty"]``) was made over ``grid`` × the defensive ``parts`` and for today's
-    :data:`NOVELTY_FORM`: one made otherwise is made again."""
+    pushes' ``meta["scale"]["novelty"]``) was made over ``grid`` × the defensive ``parts`` × the uncorrected
+    shares' ``rates`` and for today's :data:`NOVELTY_FORM`: one made otherwise is made again."""
     entry = entry or {}
     return (entry.get("grid") == [float(v) for v in grid] and entry.get("form") == NOVELTY_FORM
-            and entry.get("defensive") == [[float(v) for v in part] for part in parts])
+            and entry.get("defensive") == [[float(v) for v in part] for part in parts]
+            and entry.get("uncorrected") == [float(v) for v in rates])
 
 
 def defensive_share(part: tuple[float, float, float], novelty: float) -> float:
@@ -156,6 +166,12 @@ def defensive_share(part: tuple[float, float, float], novelty: float) -> float:
     the defensive ``part = (ε0, λ, w)`` (:data:`DEFENSIVE_PARTS`) at the prediction's outcome novelty ``n``."""
     floor, rate, _ = part
     return min(floor + (1.0 - floor) * novelty_share(rate, novelty), MAX_DEFENSIVE_SHARE)
+
+
+def uncorrected_share(rate: float, novelty: float) -> float:
+    """``τn / (1 + τn)``, at most :data:`MAX_DEFENSIVE_SHARE`: the share of a prediction's density on its rollouts
+    themselves, uncorrected, at the model's rate ``τ`` (:data:`UNCORRECTED_RATES`) and outcome novelty ``n``."""
+    return min(novelty_share(rate, novelty), MAX_DEFENSIVE_SHARE)
 
 
 def novelty_share(novelty_widening: float, novelty: float) -> float:
@@ -219,6 +235,9 @@ class ResidualModel:
             outcome novelty, is the same kernels with ``w`` (m) and ``w ·`` :data:`DEFENSIVE_TURN` (rad) added in
             quadrature to their stds, for the predictions whose corrections do not hold (zeros: none; chosen with
             ``ν`` or ``κ``, :data:`DEFENSIVE_PARTS`).
+        uncorrected: ``τ``: a share :func:`novelty_share` ``(τ, n)`` of the density is the rollouts themselves,
+            uncorrected, where they did something no training rollout did (0: none; chosen with the defensive part,
+            :data:`UNCORRECTED_RATES`).
     """
 
     model: PushModel
@@ -235,6 +254,7 @@ class ResidualModel:
     outcome_width: float = math.inf
     novelty_widening: float = 0.0
     defensive: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    uncorrected: float = 0.0
 
     @property
     def name(self) -> str:
@@ -355,7 +375,8 @@ class ResidualModel:
                                "widening": self.widening, "shape_names": self.shape_names,
                                "outcome_width": None if math.isinf(self.outcome_width) else self.outcome_width,
                                "novelty_widening": self.novelty_widening,
-                               "defensive": list(self.defensive), "meta": self.meta}}
+                               "defensive": list(self.defensive), "uncorrected": self.uncorrected,
+                               "meta": self.meta}}
         return write_model_file(path, *self.model.file_parts(arrays, header))
 
 

@@ -87,10 +87,14 @@ def _residual_from_parts(path, header: dict, arrays: dict, dtype: torch.dtype, o
         if len(defensive) != 3 or not (0.0 <= defensive[0] < 1.0 and all(math.isfinite(v) and v >= 0
                                                                           for v in defensive)):
             raise ValueError(f"a defensive part {defensive}")
+        uncorrected = float(spec.get("uncorrected", 0.0))
+        if not math.isfinite(uncorrected) or uncorrected < 0:
+            raise ValueError(f"an uncorrected share's rate of {uncorrected}")
         return ResidualModel(model, residuals, bandwidth, sim, str(spec["engine_version"]), int(spec["ensemble"]),
                              dict(spec.get("meta") or {}), shapes, [str(n) for n in spec.get("shape_names", [])],
                              widening, outcomes, width if outcomes is not None else math.inf,
-                             novelty if outcomes is not None else 0.0, defensive)
+                             novelty if outcomes is not None else 0.0, defensive,
+                             uncorrected if outcomes is not None else 0.0)
     except RecordFormatError:
         raise
     except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError, InvalidParameterError) as exc:

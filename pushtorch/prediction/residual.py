@@ -24,7 +24,10 @@ predicts ``(1 − ε)`` of that density and ``ε`` of the same kernels with ``w`
 (:class:`~pushtorch.distribution.DefensiveMixture`, the same mode), ``ε = ε0 + (1 − ε0)·λn / (1 + λn)``
 (:func:`~pushtorch.models.residual.defensive_share`): where the rollouts did something new the corrections may
 not hold at all, and a truth far from every corrected rollout costs ``−log ε`` and its distance in centimetres,
-not its distance in the narrow kernels' millimetres.
+not its distance in the narrow kernels' millimetres. A model with an uncorrected share (``uncorrected = τ``,
+chosen with them) gives a share ``ρ = τn / (1 + τn)`` of the narrow (and the wide) part to the rollouts themselves,
+each ``ρ / N``, the corrected kernels ``1 − ρ``: where the rollouts did something no training rollout did, which
+correction holds is unknown, and the simulator's own outcome is the prior a correction departs from.
 """
 
 from __future__ import annotations
@@ -53,13 +56,14 @@ from pushtorch.models.residual import (
     outcome_novelty,
     outcome_spread,
     rollout_outcome,
+    uncorrected_share,
 )
 from pushtorch.models.settings import as_generator
 from pushtorch.perception import PointCloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
 
 __all__ = ["ResidualPrediction", "defensive_factors", "narrow_density", "novelty_factors", "predict_residual",
-           "rescaled"]
+           "rescaled", "scaled_parts"]
 
 
 @dataclass
@@ -95,6 +99,9 @@ class ResidualPrediction:
     #: the spread of the action's training outcomes, (m, rad) (:func:`~pushtorch.models.residual.outcome_spread`),
     #: towards which novelty widens the kernels
     outcome_spread: tuple[float, float] = (0.0, 0.0)
+    #: ``ρ``: the share of the density on the rollouts themselves, uncorrected (their kernels follow the corrected
+    #: ones in the density's ``means``; 0: none)
+    uncorrected_share: float = 0.0
 
 
 def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Generator | int | None = None,
@@ -176,6 +183,12 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     p_std = math.sqrt((residual.bandwidth.p_std * scale) ** 2 + share * spread[0] ** 2)
     rot_std = math.sqrt((residual.bandwidth.rot_std * scale) ** 2 + share * spread[1] ** 2)
     bandwidth = dataclasses.replace(residual.bandwidth, p_std=p_std, rot_std=rot_std, cutoff_std=NO_CUTOFF)
+    uncorrected = uncorrected_share(residual.uncorrected, novelty)
+    if uncorrected > 0:  # where no training rollout did the same, the simulator's own outcome keeps a share
+        raw = se3.Pose.unchecked(finals.p.to(dtype), se3.quat_normalize(finals.q).to(dtype))
+        means = se3.Pose.cat([means, raw])
+        log_weights = torch.cat([log_weights + math.log1p(-uncorrected),
+                                 torch.full((1, n), math.log(uncorrected / n), dtype=dtype)], 1)
     # the mode: the kernel centre of highest density
     best = int(_mixture(means, log_weights, bandwidth, None).unnormalised_log_prob(
         means.vector().unsqueeze(-2)).reshape(-1).argmax())
@@ -190,7 +203,7 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     thrown = int((~records.valid).sum())
     return ResidualPrediction(residual.name, motion.action, condition, body_start.to(dtype), mode, density,
                               se3.Pose.unchecked(finals.p.to(dtype), finals.q.to(dtype)), drawn, thrown, log_w, d2,
-                              p_std / residual.bandwidth.p_std, novelty, spread)
+                              p_std / residual.bandwidth.p_std, novelty, spread, uncorrected)
 
 
 def _mixture(means: se3.Pose, log_weights: torch.Tensor, bandwidth, mode: torch.Tensor | None) -> FinalPoseDistribution:
@@ -222,6 +235,26 @@ def rescaled(prediction: ResidualPrediction, factor: float | tuple[float, float]
     if defensive is None or defensive[0] == 0:
         return times(factor)
     return DefensiveMixture(times(factor), times(defensive[1]), defensive[0])
+
+
+def scaled_parts(prediction: ResidualPrediction, factor: tuple[float, float]
+                 ) -> tuple[FinalPoseDistribution, FinalPoseDistribution]:
+    """``prediction``'s corrected kernels and its rollouts themselves, each as a normalised density with the
+    narrow kernels' stds times ``factor = (position, rotation)``: the two parts whose mixtures, at a defensive
+    part's and an uncorrected share's weights, make every density a choice scores (the same kernels at other
+    widths, without rolling the push out again)."""
+    density, n = narrow_density(prediction), int(prediction.rollouts.p.shape[0])
+    means, log_weights = density.means, density.log_weights
+    if prediction.uncorrected_share > 0:  # the rollouts' own kernels follow the corrected ones
+        means = means.take(torch.arange(int(means.p.shape[0]) - n))
+        log_weights = log_weights[:, :-n] - math.log1p(-prediction.uncorrected_share)
+    bandwidth = dataclasses.replace(density.bandwidth, p_std=density.bandwidth.p_std * factor[0],
+                                    rot_std=density.bandwidth.rot_std * factor[1])
+    raw = se3.Pose.unchecked(prediction.rollouts.p.to(means.p.dtype),
+                             se3.quat_normalize(prediction.rollouts.q).to(means.p.dtype))
+    mode = prediction.final_pose.vector()
+    return (_mixture(means, log_weights, bandwidth, mode),
+            _mixture(raw, torch.full((1, n), -math.log(n), dtype=means.p.dtype), bandwidth, mode))
 
 
 def novelty_factors(prediction: ResidualPrediction, novelty_widening: float, scale: float = 1.0
