@@ -498,9 +498,9 @@ def test_a_defensive_share_lies_in_its_bounds_and_grows_with_novelty(part, n, mo
 def test_an_uncorrected_share_puts_the_rollouts_themselves_in_the_density_and_is_scored_as_predicted(
         trained, residual, tmp_path):
     """An uncorrected share ``τ``: a share ``ρ = τn / (1 + τn)`` of the density is the rollouts themselves (each
-    ``ρ / N``), the corrected kernels keep ``1 − ρ``; the density stays normalised; a truth at a rollout's own
-    outcome gains, and the choice's scorer gives, from a prediction without the share, the nll of the prediction
-    with it (the same rollouts), defensive part and novelty widening included; the file keeps ``τ``."""
+    ``ρ / N``), the corrected kernels keep ``1 − ρ`` and the mode; the density stays normalised; a truth at a
+    rollout's own outcome gains, and the choice's scorer gives, from a prediction without the share, the nll of the
+    prediction with it (the same rollouts), defensive part and novelty widening included; the file keeps ``τ``."""
     import dataclasses
 
     from pushtorch.evaluation.likelihood import nll
@@ -519,6 +519,7 @@ def test_an_uncorrected_share_puts_the_rollouts_themselves_in_the_density_and_is
     mixed = predict_residual(dataclasses.replace(residual, uncorrected=rate), cloud, model.actions[1], 7)
     torch.testing.assert_close(mixed.rollouts.p, plain.rollouts.p, rtol=0, atol=0)  # the same rollouts
     assert mixed.uncorrected_share == pytest.approx(0.5) == uncorrected_share(rate, n)
+    torch.testing.assert_close(mixed.final_pose.vector(), plain.final_pose.vector(), rtol=0, atol=0)  # a hedge
     count = plain.rollouts.p.shape[0]
     weights = mixed.density.log_weights.exp().reshape(-1)
     assert float(weights[-count:].sum()) == pytest.approx(0.5, abs=1e-5)

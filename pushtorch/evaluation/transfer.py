@@ -299,29 +299,30 @@ def residual_nll_grid(prediction, truth: se3.Pose, start: se3.Pose, obj: ObjectM
     from pushtorch.prediction.residual import defensive_factors, narrow_density, scaled_parts
 
     values = truth_copies(narrow_density(prediction), truth, start, prediction.start, obj.symmetry).vector()
-    at: dict[tuple[float, float], tuple[torch.Tensor, torch.Tensor]] = {}
+    at: dict[tuple[tuple[float, float], int], torch.Tensor] = {}
 
-    def parts_at(f: tuple[float, float]) -> tuple[torch.Tensor, torch.Tensor]:
-        if f not in at:
-            at[f] = tuple(d.log_prob(values).reshape(-1).double() for d in scaled_parts(prediction, f))
-        return at[f]
+    def log_p(f: tuple[float, float], part: int) -> torch.Tensor:  # part 0: the corrected kernels, 1: the rollouts
+        if (f, part) not in at:
+            at[(f, part)] = scaled_parts(prediction, f)[part].log_prob(values).reshape(-1).double()
+        return at[(f, part)]
 
-    def mixed(both: tuple[torch.Tensor, torch.Tensor], share: float) -> torch.Tensor:
-        corrected, raw = both
-        return corrected if share == 0 else torch.logaddexp(math.log1p(-share) + corrected, math.log(share) + raw)
+    def mixed(f: tuple[float, float], share: float) -> torch.Tensor:
+        if share == 0:
+            return log_p(f, 0)
+        return torch.logaddexp(math.log1p(-share) + log_p(f, 0), math.log(share) + log_p(f, 1))
 
     novelty, out = prediction.outcome_novelty, []
     for f in factors:
         f = (float(f[0]), float(f[1])) if isinstance(f, tuple) else (float(f), float(f))
         for part in parts:
             share = defensive_share(part, novelty)
-            wide = parts_at(defensive_factors(prediction, f, part[2])) if share > 0 else None
+            wide = defensive_factors(prediction, f, part[2]) if share > 0 else None
             for rate in rates:
                 rho = uncorrected_share(rate, novelty)
-                log_p = mixed(parts_at(f), rho)
+                density = mixed(f, rho)
                 if wide is not None:
-                    log_p = torch.logaddexp(math.log1p(-share) + log_p, math.log(share) + mixed(wide, rho))
-                out.append(-float(log_p.max()))
+                    density = torch.logaddexp(math.log1p(-share) + density, math.log(share) + mixed(wide, rho))
+                out.append(-float(density.max()))
     return torch.tensor(out, dtype=torch.float64)
 
 

@@ -16,7 +16,7 @@ rollouts of :func:`pushtorch.models.residual.outcome_novelty`), a share ``ν·n 
 the action's training outcomes (:func:`pushtorch.models.residual.outcome_spread`) is added to their variances
 (``ν`` the model's ``novelty_widening``, chosen across an experiment's training objects, 0 unless chosen): where
 the simulator did something else the correction is unknown, and the outcome no surer than pushes differ. Its mode is
-the mixture's highest kernel centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one
+the mixture's highest corrected kernel centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one
 expert with exponent 1, so ``log_prob``, ``sample`` and the coverage work as for pushtorch's own prediction. A
 model with a defensive part (``defensive = (ε0, λ, w)``, chosen with ``ν`` on pushes of shapes it did not see)
 predicts ``(1 − ε)`` of that density and ``ε`` of the same kernels with ``w`` (m) and ``w ·``
@@ -27,7 +27,9 @@ not hold at all, and a truth far from every corrected rollout costs ``−log ε`
 not its distance in the narrow kernels' millimetres. A model with an uncorrected share (``uncorrected = τ``,
 chosen with them) gives a share ``ρ = τn / (1 + τn)`` of the narrow (and the wide) part to the rollouts themselves,
 each ``ρ / N``, the corrected kernels ``1 − ρ``: where the rollouts did something no training rollout did, which
-correction holds is unknown, and the simulator's own outcome is the prior a correction departs from.
+correction holds is unknown, and the simulator's own outcome is the prior a correction departs from. Both shares
+are hedges of the density: the mode stays the corrected kernels' (an uncorrected rollout is one sharp kernel,
+which can outweigh the whole corrected cloud at its centre).
 """
 
 from __future__ import annotations
@@ -183,16 +185,16 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     p_std = math.sqrt((residual.bandwidth.p_std * scale) ** 2 + share * spread[0] ** 2)
     rot_std = math.sqrt((residual.bandwidth.rot_std * scale) ** 2 + share * spread[1] ** 2)
     bandwidth = dataclasses.replace(residual.bandwidth, p_std=p_std, rot_std=rot_std, cutoff_std=NO_CUTOFF)
+    # the mode: the corrected kernel centre of highest density (the hedges below never move it)
+    best = int(_mixture(means, log_weights, bandwidth, None).unnormalised_log_prob(
+        means.vector().unsqueeze(-2)).reshape(-1).argmax())
+    mode = means.take(best)
     uncorrected = uncorrected_share(residual.uncorrected, novelty)
     if uncorrected > 0:  # where no training rollout did the same, the simulator's own outcome keeps a share
         raw = se3.Pose.unchecked(finals.p.to(dtype), se3.quat_normalize(finals.q).to(dtype))
         means = se3.Pose.cat([means, raw])
         log_weights = torch.cat([log_weights + math.log1p(-uncorrected),
                                  torch.full((1, n), math.log(uncorrected / n), dtype=dtype)], 1)
-    # the mode: the kernel centre of highest density
-    best = int(_mixture(means, log_weights, bandwidth, None).unnormalised_log_prob(
-        means.vector().unsqueeze(-2)).reshape(-1).argmax())
-    mode = means.take(best)
     density = _mixture(means, log_weights, bandwidth, mode.vector())
     share = defensive_share(residual.defensive, novelty)
     if share > 0:  # where the corrections may not hold: the same kernels, centimetres wider
