@@ -437,8 +437,8 @@ class FinalPoseDistribution(Distribution):
 class DefensiveMixture(Distribution):
     """``(1 − ε) · narrow + ε · wide``: a density with a defensive component (Hesterberg 1995), what the residual
     model predicts where its corrections may not hold (:mod:`pushtorch.prediction.residual`; docs/method.md, "The
-    residual model"). Both parts are normalised :class:`FinalPoseDistribution` of one batch shape; the wide part
-    is the same kernels wider, so the mode is the narrow part's.
+    residual model"): the same kernels wider, or its rollouts uncorrected. Both parts are normalised, of one batch
+    shape: :class:`FinalPoseDistribution`, or mixtures of them in turn; the mode is the narrow part's.
 
     Raises:
         InvalidParameterError: a share outside ``(0, 1)`` or parts of different batch shapes.
@@ -478,7 +478,7 @@ class DefensiveMixture(Distribution):
         (without a ``generator`` one seeded with DEFAULT_SEED: the same draws every call). Sizes as
         :meth:`FinalPoseDistribution.sample`."""
         sample_shape = torch.Size(sample_shape)
-        generator = as_generator(generator, self.narrow.means.p.device)
+        generator = as_generator(generator, _device(self.narrow))
         narrow = self.narrow.sample(sample_shape, generator)
         wide = self.wide.sample(sample_shape, generator)
         pick = torch.rand(narrow.shape[:-1], generator=generator, device=narrow.device) < self.share
@@ -496,3 +496,8 @@ class DefensiveMixture(Distribution):
 
     def __repr__(self) -> str:
         return f"DefensiveMixture(share={self.share:g}, narrow={self.narrow!r}, wide={self.wide!r})"
+
+
+def _device(density) -> torch.device:
+    """The device of a :class:`FinalPoseDistribution`, or of a :class:`DefensiveMixture`'s innermost narrow part."""
+    return density.means.p.device if isinstance(density, FinalPoseDistribution) else _device(density.narrow)

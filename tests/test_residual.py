@@ -498,16 +498,24 @@ def test_a_defensive_share_lies_in_its_bounds_and_grows_with_novelty(part, n, mo
 def test_an_uncorrected_share_puts_the_rollouts_themselves_in_the_density_and_is_scored_as_predicted(
         trained, residual, tmp_path):
     """An uncorrected share ``τ``: a share ``ρ = τn / (1 + τn)`` of the density is the rollouts themselves (each
-    ``ρ / N``), the corrected kernels keep ``1 − ρ`` and the mode; the density stays normalised; a truth at a
-    rollout's own outcome gains, and the choice's scorer gives, from a prediction without the share, the nll of the
-    prediction with it (the same rollouts), defensive part and novelty widening included; the file keeps ``τ``."""
+    ``ρ / N``, widened by the corrections' spread), the corrected kernels keep ``1 − ρ`` and the mode; the density
+    stays normalised; a truth centimetres past a rollout gains, and the choice's scorer gives, from a prediction
+    without the share, the nll of the prediction with it (the same rollouts), defensive part and novelty widening
+    included; the file keeps ``τ``."""
     import dataclasses
 
+    from pushtorch.distribution import DefensiveMixture
     from pushtorch.evaluation.likelihood import nll
     from pushtorch.evaluation.transfer import residual_nll_grid
-    from pushtorch.models.residual import DEFENSIVE_PARTS, NOVELTY_WIDENINGS, UNCORRECTED_RATES, uncorrected_share
+    from pushtorch.models.residual import (
+        DEFENSIVE_PARTS,
+        NOVELTY_WIDENINGS,
+        UNCORRECTED_RATES,
+        correction_spread,
+        uncorrected_share,
+    )
     from pushtorch.models.residual_file import load_residual_model
-    from pushtorch.prediction.residual import novelty_factors
+    from pushtorch.prediction.residual import narrow_density, novelty_factors
 
     cube, records, model = trained
     pose = cube.resting_pose(yaw=0.3)
@@ -520,16 +528,23 @@ def test_an_uncorrected_share_puts_the_rollouts_themselves_in_the_density_and_is
     torch.testing.assert_close(mixed.rollouts.p, plain.rollouts.p, rtol=0, atol=0)  # the same rollouts
     assert mixed.uncorrected_share == pytest.approx(0.5) == uncorrected_share(rate, n)
     torch.testing.assert_close(mixed.final_pose.vector(), plain.final_pose.vector(), rtol=0, atol=0)  # a hedge
-    count = plain.rollouts.p.shape[0]
-    weights = mixed.density.log_weights.exp().reshape(-1)
-    assert float(weights[-count:].sum()) == pytest.approx(0.5, abs=1e-5)
-    assert float(weights.sum()) == pytest.approx(1.0, abs=1e-5)
-    torch.testing.assert_close(mixed.density.means.p[-count:], plain.rollouts.p, rtol=0, atol=1e-6)
-    assert abs(float(mixed.density.log_normaliser())) < 0.05
-    at_rollout = se3.Pose.unchecked(plain.rollouts.p[0].double(), plain.rollouts.q[0].double())
-    gain = nll(plain.density, at_rollout, plain.start, plain.start, cube.symmetry) - nll(
-        mixed.density, at_rollout, plain.start, plain.start, cube.symmetry)
-    assert float(gain) > 0
+    density = mixed.density
+    assert isinstance(density, DefensiveMixture) and density.share == pytest.approx(0.5)
+    torch.testing.assert_close(density.narrow.means.p, plain.density.means.p, rtol=0, atol=0)  # the corrected
+    torch.testing.assert_close(density.wide.means.p, plain.rollouts.p, rtol=0, atol=1e-6)  # and the rollouts
+    spread = correction_spread(residual.residuals[1])
+    assert mixed.correction_spread == pytest.approx(spread) and spread[0] > 0 and spread[1] > 0
+    assert density.wide.bandwidth.p_std == pytest.approx(math.hypot(plain.density.bandwidth.p_std, spread[0]))
+    assert density.wide.bandwidth.rot_std == pytest.approx(math.hypot(plain.density.bandwidth.rot_std, spread[1]))
+    assert abs(float(density.narrow.log_normaliser())) < 0.05 and abs(float(density.wide.log_normaliser())) < 0.05
+    draws = density.wide.sample((64,), torch.Generator().manual_seed(1))
+    torch.testing.assert_close(density.log_prob(draws), torch.logaddexp(
+        density.narrow.log_prob(draws) + math.log(0.5), density.wide.log_prob(draws) + math.log(0.5)))
+    missed = se3.Pose.unchecked(plain.rollouts.p[0].double() + torch.tensor([0.03, 0.0, 0.0], dtype=torch.float64),
+                                plain.rollouts.q[0].double())  # 3 cm past a rollout: the wider rollouts' kernels
+    gain = nll(plain.density, missed, plain.start, plain.start, cube.symmetry) - nll(
+        mixed.density, missed, plain.start, plain.start, cube.symmetry)
+    assert float(gain) > 1.0
     # the choice's scorer, from the prediction without the share, scores the prediction with it
     truth = se3.Pose.unchecked(plain.final_pose.p.double() + torch.tensor([0.01, -0.005, 0.0], dtype=torch.float64),
                                plain.final_pose.q.double())
@@ -539,6 +554,10 @@ def test_an_uncorrected_share_puts_the_rollouts_themselves_in_the_density_and_is
     want = float(nll(predicted.density, truth, plain.start, plain.start, cube.symmetry)[0])
     scores = residual_nll_grid(plain, truth, plain.start, cube, [novelty_factors(plain, nu)], [part], [rate])
     assert float(scores[0]) == pytest.approx(want, abs=1e-4)
+    assert isinstance(predicted.density.wide, DefensiveMixture)  # the defensive part hedged alike
+    torch.testing.assert_close(narrow_density(predicted).means.p, plain.density.means.p, rtol=0, atol=0)
+    draws = predicted.density.sample((16,), torch.Generator().manual_seed(3))
+    assert draws.shape == (16, 7) and bool(torch.isfinite(predicted.density.log_prob(draws)).all())
     grid = residual_nll_grid(plain, truth, plain.start, cube, [novelty_factors(plain, v) for v in NOVELTY_WIDENINGS])
     assert grid.shape == (len(NOVELTY_WIDENINGS) * len(DEFENSIVE_PARTS) * len(UNCORRECTED_RATES),)
     assert bool(torch.isfinite(grid).all())

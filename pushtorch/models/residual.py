@@ -49,9 +49,9 @@ Tensor = torch.Tensor
 
 __all__ = ["DEFAULT_ENSEMBLE", "DEFENSIVE_PARTS", "DEFENSIVE_TURN", "MAX_DEFENSIVE_SHARE", "NOVELTY_FORM",
            "NOVELTY_WIDENINGS", "OUTCOME_LADDER", "RESIDUAL_LADDER", "ResidualModel", "UNCORRECTED_RATES",
-           "choose_bandwidth", "corrected", "defensive_share", "engine_version", "novelty_scored_as_now",
-           "novelty_share", "outcome_log_affinity", "outcome_novelty", "outcome_spread", "residual_of",
-           "rollout_outcome", "train_residual_model", "uncorrected_share", "with_ensemble"]
+           "choose_bandwidth", "correction_spread", "corrected", "defensive_share", "engine_version",
+           "novelty_scored_as_now", "novelty_share", "outcome_log_affinity", "outcome_novelty", "outcome_spread",
+           "residual_of", "rollout_outcome", "train_residual_model", "uncorrected_share", "with_ensemble"]
 
 #: Rollouts per prediction unless the model says otherwise, chosen by held-out likelihood on generated training
 #: shapes among the sizes within 3× a pushtorch prediction (tools/residual_ensemble.py on an Intel Xeon, 2 cores:
@@ -80,8 +80,9 @@ DEFENSIVE_PARTS = ((0.0, 0.0, 0.0),) + tuple((floor, rate, width) for floor in (
                                              for rate in (0.0, 0.1, 1.0, 10.0) for width in (0.01, 0.03, 0.1)
                                              if floor or rate)
 #: The uncorrected shares' rates ``τ`` tried with each widening and defensive part: a share ``τn / (1 + τn)`` of
-#: the density (narrow and wide alike) is the rollouts themselves, uncorrected, ``n`` the prediction's outcome
-#: novelty (:func:`novelty_share`; 0: none). Where the simulator did something no training rollout did, which
+#: the density (narrow and wide alike) is the rollouts themselves, uncorrected, their kernels widened by the
+#: corrections' spread (:func:`correction_spread`), ``n`` the prediction's outcome novelty (:func:`novelty_share`;
+#: 0: none). Where the simulator did something no training rollout did, which
 #: correction holds is unknown: a correction learnt on one shape can move a shape the simulator gets right away
 #: from the truth, and the simulator's own outcome is the prior the corrections depart from.
 UNCORRECTED_RATES = (0.0, 0.01, 0.1, 1.0, 10.0)
@@ -93,8 +94,8 @@ DEFENSIVE_TURN = 5.0
 #: Which form of the novelty widening a model's choice of ``ν`` was made for (kept beside it in its ``meta``; a
 #: cached choice of another form is made again): 2, a share of the outcomes' spread added to the variances; 3, as 2
 #: and chosen jointly with a defensive part (:data:`DEFENSIVE_PARTS`); 4, as 3 and with an uncorrected share
-#: (:data:`UNCORRECTED_RATES`)
-NOVELTY_FORM = 4
+#: (:data:`UNCORRECTED_RATES`); 5, as 4 with the uncorrected rollouts' kernels widened by the corrections' spread
+NOVELTY_FORM = 5
 
 _IDENTITY_Q = torch.tensor([1.0, 0.0, 0.0, 0.0])
 
@@ -148,6 +149,17 @@ def outcome_spread(outcomes: Tensor) -> tuple[float, float]:
         return 0.0, 0.0
     turn = torch.atan2(torch.sin(o[:, 2] - o[0, 2]), torch.cos(o[:, 2] - o[0, 2]))  # unwrapped about the first
     return float(o[:, :2].var(0).mean().sqrt()), float(turn.std())
+
+
+def correction_spread(residuals: se3.Pose) -> tuple[float, float]:
+    """How far the simulator's outcomes were from the world's in the training pushes of an action: the rms of the
+    corrections ``residuals (J,)`` (:func:`residual_of`) per planar component of their translation (m) and of their
+    rotation angle (rad). What a rollout left uncorrected is no surer than: its kernels are widened by it."""
+    p, q = residuals.p.double().reshape(-1, 3), residuals.q.double().reshape(-1, 4)
+    if not p.shape[0]:
+        return 0.0, 0.0
+    angle = 2.0 * torch.atan2(q[:, 1:].norm(dim=-1), q[:, 0].abs())
+    return float((p[:, :2] ** 2).mean().sqrt()), float((angle**2).mean().sqrt())
 
 
 def novelty_scored_as_now(entry: dict | None, grid=NOVELTY_WIDENINGS, parts=DEFENSIVE_PARTS,

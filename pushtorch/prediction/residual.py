@@ -26,8 +26,10 @@ predicts ``(1 − ε)`` of that density and ``ε`` of the same kernels with ``w`
 not hold at all, and a truth far from every corrected rollout costs ``−log ε`` and its distance in centimetres,
 not its distance in the narrow kernels' millimetres. A model with an uncorrected share (``uncorrected = τ``,
 chosen with them) gives a share ``ρ = τn / (1 + τn)`` of the narrow (and the wide) part to the rollouts themselves,
-each ``ρ / N``, the corrected kernels ``1 − ρ``: where the rollouts did something no training rollout did, which
-correction holds is unknown, and the simulator's own outcome is the prior a correction departs from. Both shares
+each ``ρ / N``, their kernels widened in quadrature by the action's corrections' spread
+(:func:`~pushtorch.models.residual.correction_spread`), the corrected kernels ``1 − ρ``: where the rollouts did
+something no training rollout did, which correction holds is unknown, and the simulator's own outcome, no surer
+than the simulator has been off, is the prior a correction departs from. Both shares
 are hedges of the density: the mode stays the corrected kernels' (an uncorrected rollout is one sharp kernel,
 which can outweigh the whole corrected cloud at its centre).
 """
@@ -52,6 +54,7 @@ from pushtorch.models.residual import (
     DEFENSIVE_TURN,
     ResidualModel,
     corrected,
+    correction_spread,
     defensive_share,
     novelty_share,
     outcome_log_affinity,
@@ -101,9 +104,11 @@ class ResidualPrediction:
     #: the spread of the action's training outcomes, (m, rad) (:func:`~pushtorch.models.residual.outcome_spread`),
     #: towards which novelty widens the kernels
     outcome_spread: tuple[float, float] = (0.0, 0.0)
-    #: ``ρ``: the share of the density on the rollouts themselves, uncorrected (their kernels follow the corrected
-    #: ones in the density's ``means``; 0: none)
+    #: ``ρ``: the share of the density on the rollouts themselves, uncorrected (0: none)
     uncorrected_share: float = 0.0
+    #: the spread of the action's corrections, (m, rad) (:func:`~pushtorch.models.residual.correction_spread`),
+    #: added to the uncorrected rollouts' kernel stds in quadrature
+    correction_spread: tuple[float, float] = (0.0, 0.0)
 
 
 def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Generator | int | None = None,
@@ -190,22 +195,27 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
         means.vector().unsqueeze(-2)).reshape(-1).argmax())
     mode = means.take(best)
     uncorrected = uncorrected_share(residual.uncorrected, novelty)
-    if uncorrected > 0:  # where no training rollout did the same, the simulator's own outcome keeps a share
-        raw = se3.Pose.unchecked(finals.p.to(dtype), se3.quat_normalize(finals.q).to(dtype))
-        means = se3.Pose.cat([means, raw])
-        log_weights = torch.cat([log_weights + math.log1p(-uncorrected),
-                                 torch.full((1, n), math.log(uncorrected / n), dtype=dtype)], 1)
-    density = _mixture(means, log_weights, bandwidth, mode.vector())
+    spread_c = correction_spread(kernels)
+    raw = se3.Pose.unchecked(finals.p.to(dtype), se3.quat_normalize(finals.q).to(dtype))
+
+    def hedged(widths) -> FinalPoseDistribution | DefensiveMixture:
+        """The corrected kernels at ``widths``; where the rollouts did something no training rollout did, with a
+        share on the rollouts themselves, no surer than the simulator has been off (the corrections' spread)."""
+        corrected_part = _mixture(means, log_weights, widths, mode.vector())
+        if uncorrected == 0:
+            return corrected_part
+        return DefensiveMixture(corrected_part, _mixture(raw, torch.full((1, n), -math.log(n), dtype=dtype),
+                                                         _widened(widths, spread_c), mode.vector()), uncorrected)
+
+    density = hedged(bandwidth)
     share = defensive_share(residual.defensive, novelty)
     if share > 0:  # where the corrections may not hold: the same kernels, centimetres wider
         w = residual.defensive[2]
-        wide = dataclasses.replace(bandwidth, p_std=math.hypot(p_std, w),
-                                   rot_std=math.hypot(rot_std, w * DEFENSIVE_TURN))
-        density = DefensiveMixture(density, _mixture(means, log_weights, wide, mode.vector()), share)
+        density = DefensiveMixture(density, hedged(_widened(bandwidth, (w, w * DEFENSIVE_TURN))), share)
     thrown = int((~records.valid).sum())
     return ResidualPrediction(residual.name, motion.action, condition, body_start.to(dtype), mode, density,
                               se3.Pose.unchecked(finals.p.to(dtype), finals.q.to(dtype)), drawn, thrown, log_w, d2,
-                              p_std / residual.bandwidth.p_std, novelty, spread, uncorrected)
+                              p_std / residual.bandwidth.p_std, novelty, spread, uncorrected, spread_c)
 
 
 def _mixture(means: se3.Pose, log_weights: torch.Tensor, bandwidth, mode: torch.Tensor | None) -> FinalPoseDistribution:
@@ -215,9 +225,12 @@ def _mixture(means: se3.Pose, log_weights: torch.Tensor, bandwidth, mode: torch.
 
 
 def narrow_density(prediction: ResidualPrediction) -> FinalPoseDistribution:
-    """The prediction's kernels as a density, without its defensive part (the density itself where it has none)."""
+    """The prediction's corrected kernels as a density, without its defensive part or uncorrected share (the
+    density itself where it has neither)."""
     density = prediction.density
-    return density.narrow if isinstance(density, DefensiveMixture) else density
+    while isinstance(density, DefensiveMixture):
+        density = density.narrow
+    return density
 
 
 def rescaled(prediction: ResidualPrediction, factor: float | tuple[float, float],
@@ -242,21 +255,24 @@ def rescaled(prediction: ResidualPrediction, factor: float | tuple[float, float]
 def scaled_parts(prediction: ResidualPrediction, factor: tuple[float, float]
                  ) -> tuple[FinalPoseDistribution, FinalPoseDistribution]:
     """``prediction``'s corrected kernels and its rollouts themselves, each as a normalised density with the
-    narrow kernels' stds times ``factor = (position, rotation)``: the two parts whose mixtures, at a defensive
-    part's and an uncorrected share's weights, make every density a choice scores (the same kernels at other
-    widths, without rolling the push out again)."""
+    narrow kernels' stds times ``factor = (position, rotation)`` (the rollouts' widened by the corrections' spread,
+    as :func:`predict_residual` widens them): the two parts whose mixtures, at a defensive part's and an
+    uncorrected share's weights, make every density a choice scores (without rolling the push out again)."""
     density, n = narrow_density(prediction), int(prediction.rollouts.p.shape[0])
-    means, log_weights = density.means, density.log_weights
-    if prediction.uncorrected_share > 0:  # the rollouts' own kernels follow the corrected ones
-        means = means.take(torch.arange(int(means.p.shape[0]) - n))
-        log_weights = log_weights[:, :-n] - math.log1p(-prediction.uncorrected_share)
     bandwidth = dataclasses.replace(density.bandwidth, p_std=density.bandwidth.p_std * factor[0],
                                     rot_std=density.bandwidth.rot_std * factor[1])
-    raw = se3.Pose.unchecked(prediction.rollouts.p.to(means.p.dtype),
-                             se3.quat_normalize(prediction.rollouts.q).to(means.p.dtype))
+    dtype = density.means.p.dtype
+    raw = se3.Pose.unchecked(prediction.rollouts.p.to(dtype), se3.quat_normalize(prediction.rollouts.q).to(dtype))
     mode = prediction.final_pose.vector()
-    return (_mixture(means, log_weights, bandwidth, mode),
-            _mixture(raw, torch.full((1, n), -math.log(n), dtype=means.p.dtype), bandwidth, mode))
+    return (_mixture(density.means, density.log_weights, bandwidth, mode),
+            _mixture(raw, torch.full((1, n), -math.log(n), dtype=dtype),
+                     _widened(bandwidth, prediction.correction_spread), mode))
+
+
+def _widened(bandwidth, by: tuple[float, float]):
+    """``bandwidth`` with ``by = (m, rad)`` added to its stds in quadrature."""
+    return dataclasses.replace(bandwidth, p_std=math.hypot(bandwidth.p_std, by[0]),
+                               rot_std=math.hypot(bandwidth.rot_std, by[1]))
 
 
 def novelty_factors(prediction: ResidualPrediction, novelty_widening: float, scale: float = 1.0
