@@ -392,8 +392,8 @@ def candidate_conditions(model: PushModel, features: SurfaceFeatures, starts: li
                          record_history: bool = False) -> tuple[list[PushCondition | None], list[str | None]]:
     """Push conditions of many given robot starts on one cloud (a planner's candidates, fast path): what depends
     on the cloud alone is computed once, the pose estimate (annealed and verified) and each action's environment
-    frames, and each start gets its manipulator frame. A start that touches nothing the camera saw, or sits
-    inside the object, gives None and the reason, not an error for the whole call.
+    frames (from a stream of the action's own), and each start gets its manipulator frame. A start that touches
+    nothing the camera saw, or sits inside the object, gives None and the reason, not an error for the whole call.
 
     Raises:
         InvalidPoseError: a start that is not one finite pose (bad input, not a bad candidate).
@@ -407,8 +407,12 @@ def candidate_conditions(model: PushModel, features: SurfaceFeatures, starts: li
                                         anneal_schedule(settings, False, Evaluation.FAST), [False], generator,
                                         record_history, settings.polish_steps)
     pose = _verified_pose(result, model.position, features, generator)
-    environments = {a: model.motions[a].environment_frames(features, settings, generator)
-                    for a in dict.fromkeys(action_indices)}
+    # each action's environment frames from a stream of its own, so that neither the candidates' order nor which
+    # other actions they hold changes them
+    base = None if generator is None else int(torch.randint(0, 2**62, (1,), generator=generator))
+    environments = {a: model.motions[a].environment_frames(
+        features, settings, None if base is None else torch.Generator(generator.device).manual_seed(base + a))
+        for a in sorted(set(action_indices))}
     conditions = [None if frame is None else _given_start_condition(start, frame, environments[a], pose, features,
                                                                      model)
                   for start, frame, a in zip(starts, frames, action_indices, strict=True)]
