@@ -287,7 +287,7 @@ def _predicted_scores(residual, obj: ObjectModel, case, generator: torch.Generat
 
 
 def residual_nll_grid(prediction, truth: se3.Pose, start: se3.Pose, obj: ObjectModel, factors, parts=DEFENSIVE_PARTS,
-              rates=UNCORRECTED_RATES) -> torch.Tensor:
+                      rates=UNCORRECTED_RATES) -> torch.Tensor:
     """``(F·P·R,)`` float64 the nll of ``truth`` (moved from ``start``) under ``prediction``'s density at every
     combination (factor-major, then part, then rate) of its narrow kernels' stds times each of ``factors`` (a
     factor or ``(position, rotation)`` factors), each defensive part ``(ε0, λ, w)`` of ``parts`` and each
@@ -380,8 +380,7 @@ def choose_residual_widening(residual, objects: list[ObjectModel], records: list
 
 def _combination(grid: list[float], index: int) -> tuple[float, tuple[float, float, float], float]:
     """The ``(widening, defensive part, uncorrected rate)`` at ``index`` of :func:`residual_nll_grid`'s scores over
-    ``grid`` × :data:`~pushtorch.models.residual.DEFENSIVE_PARTS` × :data:`~pushtorch.models.residual.
-    UNCORRECTED_RATES`."""
+    ``grid`` × the defensive parts × the uncorrected rates (:mod:`pushtorch.models.residual`'s grids)."""
     rates, parts = len(UNCORRECTED_RATES), len(DEFENSIVE_PARTS)
     return grid[index // (parts * rates)], DEFENSIVE_PARTS[index // rates % parts], UNCORRECTED_RATES[index % rates]
 

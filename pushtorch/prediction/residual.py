@@ -15,9 +15,9 @@ rollouts did something ``n`` training-outcome stds² from what any training roll
 rollouts of :func:`pushtorch.models.residual.outcome_novelty`), a share ``ν·n / (1 + ν·n)`` of the spread of
 the action's training outcomes (:func:`pushtorch.models.residual.outcome_spread`) is added to their variances
 (``ν`` the model's ``novelty_widening``, chosen across an experiment's training objects, 0 unless chosen): where
-the simulator did something else the correction is unknown, and the outcome no surer than pushes differ. Its mode is
-the mixture's highest corrected kernel centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution` of one
-expert with exponent 1, so ``log_prob``, ``sample`` and the coverage work as for pushtorch's own prediction. A
+the simulator did something else the correction is unknown, and the outcome no surer than pushes differ. Its mode
+is the mixture's highest corrected kernel centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution`
+of one expert with exponent 1, so ``log_prob``, ``sample`` and the coverage work as for pushtorch's own prediction. A
 model with a defensive part (``defensive = (ε0, λ, w)``, chosen with ``ν`` on pushes of shapes it did not see)
 predicts ``(1 − ε)`` of that density and ``ε`` of the same kernels with ``w`` (m) and ``w ·``
 :data:`~pushtorch.models.residual.DEFENSIVE_TURN` (rad) added to their stds in quadrature
@@ -29,9 +29,8 @@ chosen with them) gives a share ``ρ = τn / (1 + τn)`` of the narrow (and the 
 each ``ρ / N``, their kernels widened in quadrature by the action's corrections' spread
 (:func:`~pushtorch.models.residual.correction_spread`), the corrected kernels ``1 − ρ``: where the rollouts did
 something no training rollout did, which correction holds is unknown, and the simulator's own outcome, no surer
-than the simulator has been off, is the prior a correction departs from. Both shares
-are hedges of the density: the mode stays the corrected kernels' (an uncorrected rollout is one sharp kernel,
-which can outweigh the whole corrected cloud at its centre).
+than the simulator has been off, is the prior a correction departs from. Both shares are hedges of the density:
+the mode stays the corrected kernels'.
 """
 
 from __future__ import annotations
@@ -235,17 +234,13 @@ def narrow_density(prediction: ResidualPrediction) -> FinalPoseDistribution:
 
 def rescaled(prediction: ResidualPrediction, factor: float | tuple[float, float],
              defensive: tuple[float, tuple[float, float]] | None = None) -> FinalPoseDistribution | DefensiveMixture:
-    """``prediction``'s density with its kernels' stds times ``factor`` (or times ``(position, rotation)``
+    """``prediction``'s corrected kernels with their stds times ``factor`` (or times ``(position, rotation)``
     factors; same kernels, weights and mode), and with ``defensive = (ε, wide factors)`` a share ``ε`` of the same
     kernels times the wide factors (:func:`defensive_factors`): what scoring a widening on held-out pushes needs
-    without rolling them out again."""
-    density = narrow_density(prediction)
+    without rolling them out again (with an uncorrected share too: :func:`scaled_parts`)."""
 
     def times(f):
-        p_factor, rot_factor = f if isinstance(f, tuple) else (f, f)
-        bandwidth = dataclasses.replace(density.bandwidth, p_std=density.bandwidth.p_std * p_factor,
-                                        rot_std=density.bandwidth.rot_std * rot_factor)
-        return _mixture(density.means, density.log_weights, bandwidth, prediction.final_pose.vector())
+        return scaled_parts(prediction, f if isinstance(f, tuple) else (f, f))[0]
 
     if defensive is None or defensive[0] == 0:
         return times(factor)
