@@ -81,10 +81,10 @@ DEFENSIVE_PARTS = ((0.0, 0.0, 0.0),) + tuple((floor, rate, width) for floor in (
                                              if floor or rate)
 #: The uncorrected shares' rates ``τ`` tried with each widening and defensive part: a share ``τn / (1 + τn)`` of
 #: the density (narrow and wide alike) is the rollouts themselves, uncorrected, their kernels widened by the
-#: corrections' spread (:func:`correction_spread`), ``n`` the prediction's outcome novelty (:func:`novelty_share`;
-#: 0: none). Where the simulator did something no training rollout did, which
-#: correction holds is unknown: a correction learnt on one shape can move a shape the simulator gets right away
-#: from the truth, and the simulator's own outcome is the prior the corrections depart from.
+#: corrections' spread (:func:`correction_spread`), ``n`` the prediction's outcome novelty (:func:`uncorrected_share`;
+#: 0: none). Where the simulator did something no training rollout did, which correction holds is unknown: a
+#: correction learnt on one shape can move a shape the simulator gets right away from the truth, and the
+#: simulator's own outcome is the prior the corrections depart from.
 UNCORRECTED_RATES = (0.0, 0.01, 0.1, 1.0, 10.0)
 #: The largest defensive share: the narrow part keeps a weight however new the rollouts
 MAX_DEFENSIVE_SHARE = 0.999
@@ -247,8 +247,9 @@ class ResidualModel:
             outcome novelty, is the same kernels with ``w`` (m) and ``w ·`` :data:`DEFENSIVE_TURN` (rad) added in
             quadrature to their stds, for the predictions whose corrections do not hold (zeros: none; chosen with
             ``ν`` or ``κ``, :data:`DEFENSIVE_PARTS`).
-        uncorrected: ``τ``: a share :func:`novelty_share` ``(τ, n)`` of the density is the rollouts themselves,
-            uncorrected, where they did something no training rollout did (0: none; chosen with the defensive part,
+        uncorrected: ``τ``: a share :func:`uncorrected_share` ``(τ, n)`` of the density is the rollouts
+            themselves, uncorrected and widened by the corrections' spread (:func:`correction_spread`), where they
+            did something no training rollout did (0: none; chosen with the defensive part,
             :data:`UNCORRECTED_RATES`).
     """
 
