@@ -565,6 +565,16 @@ def test_an_uncorrected_share_puts_the_rollouts_themselves_in_the_density_and_is
     assert back.uncorrected == rate
 
 
+@given(st.sampled_from((0.0, 0.01, 0.1, 1.0, 10.0, 1e6)), st.floats(0.0, 1e12, allow_subnormal=False),
+       st.floats(0.0, 1e12))
+def test_an_uncorrected_share_lies_in_its_bounds_and_grows_with_novelty(rate, n, more):
+    from pushtorch.models.residual import MAX_DEFENSIVE_SHARE, uncorrected_share
+
+    low, high = uncorrected_share(rate, n), uncorrected_share(rate, n + more)
+    assert 0.0 <= low <= high <= MAX_DEFENSIVE_SHARE
+    assert (low == 0.0) == (rate == 0.0 or n == 0.0)
+
+
 def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes_are(trained, residual, tmp_path):
     """``choose_residual_scale``: each held-out push's own kernels leave the model (``without_pushes``: its
     residuals and its manipulator kernels, no other), and the factor of lowest held-out nll scales the stds; a
