@@ -102,3 +102,37 @@ def test_a_worker_compiles_what_the_parent_did_not_without_hanging(tmp_path):
 
     results = [float(v) for v in done.stdout.strip().splitlines()[-1].strip("[]").split(",")]
     assert results == pytest.approx([6 * math.cos(1.0), 9 * math.cos(1.0)], rel=1e-6)
+
+
+_OPEN3D_STARTS_NO_THREADS = textwrap.dedent("""
+    import os
+    import torch
+    torch.set_num_threads(1)
+    from pushtorch.deps import import_open3d
+    from pushtorch.objects import load_object
+    from pushtorch.perception import capture_partial_cloud
+
+    def threads():
+        return len(os.listdir("/proc/self/task"))
+
+    import_open3d()  # its own threads, before any work
+    before = threads()
+    cube = load_object("cube")  # its symmetry found by casting rays
+    for yaw in (0.0, 0.3, 0.6):
+        capture_partial_cloud(cube, cube.resting_pose(yaw=yaw))
+    print(before, threads())
+""")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="counts a process's threads in /proc")
+def test_capturing_clouds_starts_no_thread_a_forked_worker_would_lack(tmp_path):
+    """Capturing clouds (open3d's ray casting and voxel down-sampling, limited to pushtorch.deps.OPEN3D_THREADS)
+    leaves the process with the threads it had: unlimited, the first capture starts a TBB thread, which a fork does
+    not copy, and a worker forked from such a parent hung in its own cast."""
+    script = tmp_path / "casts.py"
+    script.write_text(_OPEN3D_STARTS_NO_THREADS)
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    before, after = (int(v) for v in done.stdout.strip().splitlines()[-1].split())
+    assert after == before, f"casting rays started {after - before} thread(s)"
