@@ -299,11 +299,14 @@ def residual_nll_grid(prediction, truth: se3.Pose, start: se3.Pose, obj: ObjectM
     from pushtorch.prediction.residual import defensive_factors, narrow_density, scaled_parts
 
     values = truth_copies(narrow_density(prediction), truth, start, prediction.start, obj.symmetry).vector()
+    parts_at: dict[tuple[float, float], tuple] = {}
     at: dict[tuple[tuple[float, float], int], torch.Tensor] = {}
 
     def log_p(f: tuple[float, float], part: int) -> torch.Tensor:  # part 0: the corrected kernels, 1: the rollouts
         if (f, part) not in at:
-            at[(f, part)] = scaled_parts(prediction, f)[part].log_prob(values).reshape(-1).double()
+            if f not in parts_at:
+                parts_at[f] = scaled_parts(prediction, f)
+            at[(f, part)] = parts_at[f][part].log_prob(values).reshape(-1).double()
         return at[(f, part)]
 
     def mixed(f: tuple[float, float], share: float) -> torch.Tensor:

@@ -195,7 +195,6 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     mode = means.take(best)
     uncorrected = uncorrected_share(residual.uncorrected, novelty)
     spread_c = correction_spread(kernels)
-    raw = se3.Pose.unchecked(finals.p.to(dtype), se3.quat_normalize(finals.q).to(dtype))
 
     def hedged(widths) -> FinalPoseDistribution | DefensiveMixture:
         """The corrected kernels at ``widths``; where the rollouts did something no training rollout did, with a
@@ -203,8 +202,8 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
         corrected_part = _mixture(means, log_weights, widths, mode.vector())
         if uncorrected == 0:
             return corrected_part
-        return DefensiveMixture(corrected_part, _mixture(raw, torch.full((1, n), -math.log(n), dtype=dtype),
-                                                         _widened(widths, spread_c), mode.vector()), uncorrected)
+        return DefensiveMixture(corrected_part, _rollout_mixture(finals, widths, spread_c, mode.vector()),
+                                uncorrected)
 
     density = hedged(bandwidth)
     share = defensive_share(residual.defensive, novelty)
@@ -253,15 +252,21 @@ def scaled_parts(prediction: ResidualPrediction, factor: tuple[float, float]
     narrow kernels' stds times ``factor = (position, rotation)`` (the rollouts' widened by the corrections' spread,
     as :func:`predict_residual` widens them): the two parts whose mixtures, at a defensive part's and an
     uncorrected share's weights, make every density a choice scores (without rolling the push out again)."""
-    density, n = narrow_density(prediction), int(prediction.rollouts.p.shape[0])
+    density = narrow_density(prediction)
     bandwidth = dataclasses.replace(density.bandwidth, p_std=density.bandwidth.p_std * factor[0],
                                     rot_std=density.bandwidth.rot_std * factor[1])
-    dtype = density.means.p.dtype
-    raw = se3.Pose.unchecked(prediction.rollouts.p.to(dtype), se3.quat_normalize(prediction.rollouts.q).to(dtype))
     mode = prediction.final_pose.vector()
     return (_mixture(density.means, density.log_weights, bandwidth, mode),
-            _mixture(raw, torch.full((1, n), -math.log(n), dtype=dtype),
-                     _widened(bandwidth, prediction.correction_spread), mode))
+            _rollout_mixture(prediction.rollouts, bandwidth, prediction.correction_spread, mode))
+
+
+def _rollout_mixture(rollouts: se3.Pose, bandwidth, spread: tuple[float, float], mode: torch.Tensor
+                     ) -> FinalPoseDistribution:
+    """The rollouts ``(N,)`` themselves, uncorrected, as a density: each ``1 / N``, at ``bandwidth`` widened by
+    the corrections' ``spread`` (in the mode's dtype)."""
+    n, dtype = int(rollouts.p.shape[0]), mode.dtype
+    raw = se3.Pose.unchecked(rollouts.p.to(dtype), se3.quat_normalize(rollouts.q).to(dtype))
+    return _mixture(raw, torch.full((1, n), -math.log(n), dtype=dtype), _widened(bandwidth, spread), mode)
 
 
 def _widened(bandwidth, by: tuple[float, float]):
