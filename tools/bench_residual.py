@@ -21,6 +21,7 @@ line before it gives the host's CPU and the ratio residual / pushtorch (the gate
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import statistics
 import time
@@ -124,7 +125,8 @@ def main() -> None:
     model, cube = residual.model, load_object("cube")
     yaws = torch.empty(args.conditions + 1).uniform_(-math.pi / 4, math.pi / 4,
                                                       generator=torch.Generator().manual_seed(1))
-    times = {"residual": [], "pushtorch": [], "ensemble100": []}
+    learned = dataclasses.replace(residual, point="learned")
+    times = {"residual": [], "pushtorch": [], "ensemble100": [], "learned": []}
     conditions = []
     for i, yaw in enumerate(yaws.tolist()):
         pose = cube.resting_pose(yaw=yaw)
@@ -134,9 +136,13 @@ def main() -> None:
         prediction = predict(model, cloud, action, i)
         pushtorch_s = time.perf_counter() - started
         residual_s, ensemble_s = time_peers(residual, cloud, action, prediction, i)
+        started = time.perf_counter()  # a model whose point is learned, through predict: its push model first
+        predict(learned, cloud, action, i)
+        learned_s = time.perf_counter() - started
         conditions.append((cloud, action, prediction))
         if i == 0:
             continue  # the warm-up
+        times["learned"].append(learned_s)
         times["pushtorch"].append(pushtorch_s)
         times["residual"].append(residual_s)
         times["ensemble100"].append(ensemble_s)
@@ -159,6 +165,8 @@ def main() -> None:
               f"{statistics.median(pooled['residual']):.3f} ensemble100_p50_s="
               f"{statistics.median(pooled['ensemble100']):.3f} (here, one after another: {p50['residual']:.3f}, "
               f"{p50['ensemble100']:.3f})")
+    print(f"a model whose point is learned, through predict (its push model's prediction, then the residual's "
+          f"from its robot start): p50 {p50['learned']:.3f} s, {p50['learned'] / p50['pushtorch']:.2f} × pushtorch")
     print(f"cpu: {cpu_name()}; torch threads {torch.get_num_threads()}; residual / pushtorch "
           f"{p50['residual'] / p50['pushtorch']:.2f}")
     print(f"residual_p50_s={p50['residual']:.3f} pushtorch_p50_s={p50['pushtorch']:.3f} "

@@ -38,6 +38,7 @@ the better of the two, its nll and 90 % coverage. The last line is exactly ``obj
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import glob
 import json
 import math
@@ -104,7 +105,9 @@ def _per_object(models: dict, generator: torch.Generator, what: str, value) -> N
 
 
 def _models(run: Path) -> dict:
-    return {o: load_residual_model(_one(f"{run}/models/{o}_*_residual_vs_*.npz")) for o in ("cube", "cylinder")}
+    # the corrected kernels are what this tool looks into, whatever point the models report
+    return {o: dataclasses.replace(load_residual_model(_one(f"{run}/models/{o}_*_residual_vs_*.npz")),
+                                   point="corrected") for o in ("cube", "cylinder")}
 
 
 def distance(run: Path, pushes: int) -> None:
@@ -140,7 +143,8 @@ def novelty(run: Path, pushes: int) -> None:
 
 
 def weights(run: Path) -> None:
-    residual = load_residual_model(_one(f"{run}/models/shapes_*_residual_vs_*.npz"))
+    residual = dataclasses.replace(load_residual_model(_one(f"{run}/models/shapes_*_residual_vs_*.npz")),
+                                   point="corrected")
     if residual.shapes is None:
         raise SystemExit(f"{run}'s shapes residual model is not a pooled one")
     names = residual.shape_names

@@ -44,6 +44,7 @@ import torch
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
 from pushtorch.evaluation.likelihood import nll, product_density, truth_copies
+from pushtorch.evaluation.metrics import displaced, hacc
 from pushtorch.models.model import PushModel
 from pushtorch.models.pooled import ShapeParts, pool_parts
 from pushtorch.models.residual import (
@@ -189,7 +190,10 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     their manipulator kernels, so neither their correction nor their physics is drawn), predicted as a test push
     is, from the single-shot cloud at the push's start and its robot start, and the true outcome scored under the
     density with its stds times each of ``scales`` (one prediction per push, the same rollouts). The factor of
-    lowest mean nll is kept.
+    lowest mean nll is kept. The same held-out pushes choose the model's point prediction
+    (:data:`~pushtorch.models.residual.POINTS`): the corrected kernels' mode at that factor, or the held-out push
+    model's own prediction from the same robot start, whichever has the lower mean H_acc (kept in
+    ``meta["scale"]["point"]``).
 
     Raises:
         InvalidParameterError: a pooled model, a model read from its file, records that are not its own, or no
@@ -206,7 +210,8 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     generator = generator or torch.Generator().manual_seed(0)
     grid = [float(f) for f in scales]
     valid = records.take(records.valid)
-    unwidened = replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0)  # as trained
+    unwidened = replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0,
+                        point="corrected")  # as trained
     scores, cases, skipped = [], [], 0
     for a, motion in enumerate(residual.model.motions):
         push = motion.manipulator.push
@@ -232,7 +237,7 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
                 skipped += 1
                 continue
             scores.append(scored[1])
-            cases.append((scored[0], case[4], case[3]))
+            cases.append((scored[0], case[4], case[3], _learned_hacc(held_out, obj, case, generator)))
     if not scores:
         raise InvalidParameterError(f"no held-out push of {obj.name} could be predicted to choose the residual "
                                     "kernels' scale")
@@ -243,7 +248,8 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     # from its file cannot hold pushes out
     own = torch.stack([residual_nll_grid(p, truth, start, obj, [novelty_factors(p, v, grid[best])
                                                                for v in NOVELTY_WIDENINGS])
-                       for p, truth, start in cases]).mean(0)
+                       for p, truth, start, _ in cases]).mean(0)
+    point = _point_choice(cases, obj, grid[best])
     log.info("residual kernels' scale %g for %s (held-out nll %.2f against %s at 1, %d pushes)", grid[best],
              obj.name, float(mean[best]), f"{float(mean[grid.index(1.0)]):.2f}" if 1.0 in grid else "—", len(scores))
     bandwidth = replace(residual.bandwidth, p_std=residual.bandwidth.p_std * grid[best],
@@ -252,8 +258,45 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
               "pushes_per_action": int(pushes_per_action),
               "novelty": {"grid": list(NOVELTY_WIDENINGS), "form": NOVELTY_FORM,
                           "defensive": [list(d) for d in DEFENSIVE_PARTS], "uncorrected": list(UNCORRECTED_RATES),
-                          "nll": own.tolist()}}
-    return replace(residual, bandwidth=bandwidth, meta={**residual.meta, "scale": chosen})
+                          "nll": own.tolist()},
+              "point": point}
+    return replace(residual, bandwidth=bandwidth, point=point["chosen"], meta={**residual.meta, "scale": chosen})
+
+
+def _learned_hacc(held_out, obj: ObjectModel, case, generator: torch.Generator) -> float:
+    """H_acc of the held-out push model's own prediction of push ``case`` (:func:`_push_case`) from its robot
+    start (nan where it cannot be predicted there)."""
+    from pushtorch.prediction import predict
+
+    cloud, action, robot, start, truth = case
+    try:
+        own = predict(held_out.model, cloud, action, generator, robot_start=robot)
+    except (ModelError, InvalidPoseError):
+        return math.nan
+    return _hacc_of(own.condition.object_pose, own.final_pose, start, truth, obj)
+
+
+def _hacc_of(estimate: se3.Pose, final: se3.Pose, start: se3.Pose, truth: se3.Pose, obj: ObjectModel) -> float:
+    """H_acc of the displacement ``estimate → final`` applied to the true ``start``, against ``truth``."""
+    moved = displaced(estimate.to(torch.float64), final.to(torch.float64), start.to(torch.float64))
+    return float(hacc(moved, truth.to(torch.float64), obj.dimensions, obj.symmetry).reshape(-1)[0])
+
+
+def _point_choice(cases: list, obj: ObjectModel, factor: float) -> dict:
+    """The point prediction of lower mean H_acc over the held-out ``cases`` ``(prediction, truth, start, H_acc of
+    the push model's own)``, the corrected kernels' mode taken at the chosen ``factor``; pushes the push model
+    could not predict are left out of both means."""
+    from pushtorch.prediction.residual import corrected_mode
+
+    both = [(_hacc_of(p.start, corrected_mode(p, factor), start, truth, obj), learned)
+            for p, truth, start, learned in cases if math.isfinite(learned)]
+    if not both:
+        return {"chosen": "corrected", "hacc": [math.nan, math.nan], "pushes": 0}
+    mean = torch.tensor(both, dtype=torch.float64).mean(0)
+    chosen = "learned" if float(mean[1]) < float(mean[0]) else "corrected"
+    log.info("residual point prediction for %s: %s (held-out H_acc %.4f corrected, %.4f learned, %d pushes)",
+             obj.name, chosen, float(mean[0]), float(mean[1]), len(both))
+    return {"chosen": chosen, "hacc": mean.tolist(), "pushes": len(both)}
 
 
 def _residual_scores(residual, obj: ObjectModel, records, count: int, generator: torch.Generator,
@@ -279,8 +322,9 @@ def _predicted_scores(residual, obj: ObjectModel, case, generator: torch.Generat
     from pushtorch.prediction.residual import predict_residual
 
     cloud, action, robot, start, truth = case
-    try:
-        prediction = predict_residual(residual, cloud, action, generator, robot_start=robot)
+    try:  # the density is what is scored: the corrected point, whatever the model's
+        prediction = predict_residual(replace(residual, point="corrected"), cloud, action, generator,
+                                      robot_start=robot)
     except (ModelError, InvalidPoseError):
         return None
     return prediction, score(prediction, truth, start)

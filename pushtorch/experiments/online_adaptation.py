@@ -117,12 +117,15 @@ class _Group:
 
     def residual_predicted(self, model, i: int, j: int, key: str):
         """``(start, final, density)`` of a residual model on case ``i``, action ``j`` from the case's robot start
-        (memoised by ``key``)."""
+        (memoised by ``key``; a model whose point is learned reports its own push model's prediction, as
+        conditioned as it is)."""
         from pushtorch.prediction.residual import predict_residual
 
         if key not in self.memo:
             seed = stable_seed(self.ctx.seed, self.name, self.obj.name, i, j, "residual")
-            pred = predict_residual(model, self.clouds[i][1], self.ctx.actions[j], seed, robot_start=self.starts[i][j])
+            learned = self.predicted(model.model, i, j, f"{key}|learned")[:2] if model.point == "learned" else None
+            pred = predict_residual(model, self.clouds[i][1], self.ctx.actions[j], seed, robot_start=self.starts[i][j],
+                                    learned=learned)
             self.memo[key] = (pred.start, pred.final_pose, pred.density)
         return self.memo[key]
 

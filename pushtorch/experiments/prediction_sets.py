@@ -581,10 +581,12 @@ def _ensemble_peer(ctx: ExperimentContext, features: SurfaceFeatures, derived: d
 def _residual_peer(ctx: ExperimentContext, features: SurfaceFeatures, derived: dict, j: int, residual,
                    seed: int):
     """The ``pushtorch_residual`` prediction of one condition and action, from pushtorch's own robot start
-    (:func:`pushtorch.prediction.residual.predict_residual`; its start, mode and density are the set's)."""
+    (:func:`pushtorch.prediction.residual.predict_residual`; its start, point and density are the set's; a model
+    whose point is learned reports pushtorch's prediction of the same push, made already)."""
     from pushtorch.prediction.residual import predict_residual
 
-    return predict_residual(residual, features, ctx.actions[j], seed, robot_start=derived["robot_start"])
+    return predict_residual(residual, features, ctx.actions[j], seed, robot_start=derived["robot_start"],
+                            learned=(derived["estimate"], derived["final"]))
 
 
 def _stacked(items: list[se3.Pose], n: int, a_count: int) -> se3.Pose | None:

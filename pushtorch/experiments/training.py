@@ -236,13 +236,14 @@ def _asked(meta: dict) -> dict:
 
 def _scale_chosen(residual, pushes: int) -> bool:
     """Whether a cached residual model's kernels' scale was chosen as asked: on ``pushes`` held-out pushes per
-    action over today's grid (0: not chosen)."""
+    action over today's grid, with its point prediction (0: not chosen)."""
     from pushtorch.evaluation.transfer import RESIDUAL_SCALES
     from pushtorch.models.residual import novelty_scored_as_now
 
     chosen = residual.meta.get("scale") or {}
     return chosen.get("pushes_per_action", 0) == pushes and (not pushes or (
-        chosen.get("grid") == list(RESIDUAL_SCALES) and novelty_scored_as_now(chosen.get("novelty"))))
+        chosen.get("grid") == list(RESIDUAL_SCALES) and novelty_scored_as_now(chosen.get("novelty"))
+        and "point" in chosen))
 
 
 def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: int, shapes: str | None = None) -> dict:

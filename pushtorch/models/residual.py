@@ -20,7 +20,9 @@ contact and friction are not the world's. The residual model keeps both:
   its contact weight, and the density is the mixture of these kernels (:data:`RESIDUAL_LADDER` widths chosen
   by leave-one-push-out likelihood), with a defensive share of the same kernels centimetres wider that grows
   with how new the rollouts are (:data:`DEFENSIVE_PARTS`, :func:`defensive_share`), and a share of the rollouts
-  themselves, uncorrected, that grows with it too (:data:`UNCORRECTED_RATES`).
+  themselves, uncorrected, that grows with it too (:data:`UNCORRECTED_RATES`). Its point prediction is the
+  density's mode, or the push model's own prediction from the same robot start where that was closer on the
+  model's held-out training pushes (:data:`POINTS`).
 
 Decisions are in docs/method.md, "The residual model".
 """
@@ -48,7 +50,7 @@ from pushtorch.sim.settings import SimSettings
 Tensor = torch.Tensor
 
 __all__ = ["DEFAULT_ENSEMBLE", "DEFENSIVE_PARTS", "DEFENSIVE_TURN", "MAX_DEFENSIVE_SHARE", "NOVELTY_FORM",
-           "NOVELTY_WIDENINGS", "OUTCOME_LADDER", "RESIDUAL_LADDER", "ResidualModel", "UNCORRECTED_RATES",
+           "NOVELTY_WIDENINGS", "OUTCOME_LADDER", "POINTS", "RESIDUAL_LADDER", "ResidualModel", "UNCORRECTED_RATES",
            "choose_bandwidth", "correction_spread", "corrected", "defensive_share", "engine_version",
            "novelty_scored_as_now", "novelty_share", "outcome_log_affinity", "outcome_novelty", "outcome_spread",
            "residual_of", "rollout_outcome", "train_residual_model", "uncorrected_share", "with_ensemble"]
@@ -96,6 +98,13 @@ DEFENSIVE_TURN = 5.0
 #: and chosen jointly with a defensive part (:data:`DEFENSIVE_PARTS`); 4, as 3 and with an uncorrected share
 #: (:data:`UNCORRECTED_RATES`); 5, as 4 with the uncorrected rollouts' kernels widened by the corrections' spread
 NOVELTY_FORM = 5
+#: A model's point predictions: ``corrected``, its density's mode (the corrected rollouts); ``learned``, its push
+#: model's own prediction (pushtorch's annealed product of experts) from the same robot start. Chosen per model by
+#: the mean H_acc of each on its own held-out training pushes
+#: (:func:`pushtorch.evaluation.transfer.choose_residual_scale`): where the simulator is far off the world for the
+#: training object, the corrections are large and the corrected rollouts scatter, while the learned kernels of the
+#: same pushes keep their contact's outcome. The density is the corrected one either way.
+POINTS = ("corrected", "learned")
 
 _IDENTITY_Q = torch.tensor([1.0, 0.0, 0.0, 0.0])
 
@@ -251,6 +260,7 @@ class ResidualModel:
             themselves, uncorrected and widened by the corrections' spread (:func:`correction_spread`), where they
             did something no training rollout did (0: none; chosen with the defensive part,
             :data:`UNCORRECTED_RATES`).
+        point: which point prediction the model reports, one of :data:`POINTS` (``corrected`` unless chosen).
     """
 
     model: PushModel
@@ -268,6 +278,7 @@ class ResidualModel:
     novelty_widening: float = 0.0
     defensive: tuple[float, float, float] = (0.0, 0.0, 0.0)
     uncorrected: float = 0.0
+    point: str = "corrected"
 
     @property
     def name(self) -> str:
@@ -341,8 +352,19 @@ class ResidualModel:
             raise InvalidParameterError("holding a push out needs a model trained in this session (its kernels "
                                         "know their pushes), not a loaded one")
         keep = [torch.ones(r.p.shape[0], dtype=torch.bool) for r in self.residuals]
-        keep[action] = ~torch.isin(push.cpu(), torch.as_tensor(pushes).reshape(-1).cpu())
-        return self._keeping(keep, f"pushes {torch.as_tensor(pushes).reshape(-1).tolist()} gave every kernel")
+        held = torch.as_tensor(pushes).reshape(-1).cpu()
+        keep[action] = ~torch.isin(push.cpu(), held)
+        out = self._keeping(keep, f"pushes {held.tolist()} gave every kernel")
+        motion = out.model.motions[action]
+        environment = motion.environment.push
+        if environment is not None:
+            kept = (~torch.isin(environment.cpu(), held)).nonzero().reshape(-1)
+            if len(kept):  # an action with no other push keeps its environment kernels (only contacts' placing)
+                motions = list(out.model.motions)
+                motions[action] = dataclasses.replace(motion, environment=motion.environment.take(kept.to(
+                    motion.environment.r.device)))
+                out = dataclasses.replace(out, model=dataclasses.replace(out.model, motions=motions))
+        return out
 
     def _keeping(self, keep: list[Tensor], why: str) -> ResidualModel:
         """This model with each action's kernels where ``keep (J_a,)`` holds (residuals, outcomes, shapes and the
@@ -389,7 +411,7 @@ class ResidualModel:
                                "outcome_width": None if math.isinf(self.outcome_width) else self.outcome_width,
                                "novelty_widening": self.novelty_widening,
                                "defensive": list(self.defensive), "uncorrected": self.uncorrected,
-                               "meta": self.meta}}
+                               "point": self.point, "meta": self.meta}}
         return write_model_file(path, *self.model.file_parts(arrays, header))
 
 

@@ -13,7 +13,7 @@ from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, RecordFormatError
 from pushtorch.kde import KernelBandwidth
 from pushtorch.models.model import PushModel, load_model, model_from_parts, read_model_file
-from pushtorch.models.residual import ResidualModel, engine_version
+from pushtorch.models.residual import POINTS, ResidualModel, engine_version
 from pushtorch.sim.settings import SimSettings
 
 __all__ = ["load_any_model", "load_residual_model"]
@@ -90,11 +90,14 @@ def _residual_from_parts(path, header: dict, arrays: dict, dtype: torch.dtype, o
         uncorrected = float(spec.get("uncorrected", 0.0))
         if not math.isfinite(uncorrected) or uncorrected < 0:
             raise ValueError(f"an uncorrected share's rate of {uncorrected}")
+        point = str(spec.get("point", "corrected"))
+        if point not in POINTS:
+            raise ValueError(f"a point prediction {point!r}, not one of {POINTS}")
         return ResidualModel(model, residuals, bandwidth, sim, str(spec["engine_version"]), int(spec["ensemble"]),
                              dict(spec.get("meta") or {}), shapes, [str(n) for n in spec.get("shape_names", [])],
                              widening, outcomes, width if outcomes is not None else math.inf,
                              novelty if outcomes is not None else 0.0, defensive,
-                             uncorrected if outcomes is not None else 0.0)
+                             uncorrected if outcomes is not None else 0.0, point)
     except RecordFormatError:
         raise
     except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError, InvalidParameterError) as exc:

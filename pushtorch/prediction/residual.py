@@ -30,7 +30,10 @@ each ``ρ / N``, their kernels widened in quadrature by the action's corrections
 (:func:`~pushtorch.models.residual.correction_spread`), the corrected kernels ``1 − ρ``: where the rollouts did
 something no training rollout did, which correction holds is unknown, and the simulator's own outcome, no surer
 than the simulator has been off, is the prior a correction departs from. Both shares are hedges of the density:
-the mode stays the corrected kernels'.
+the mode stays the corrected kernels'. A model whose point prediction is ``learned``
+(:data:`~pushtorch.models.residual.POINTS`) reports its push model's own prediction of the same push, from the same
+robot start, as ``final_pose`` (in the cloud body's frame; its density stays the corrected one):
+:func:`pushtorch.prediction.predict` makes that prediction first, a caller of :func:`predict_residual` gives it.
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ import torch
 
 from pushtorch import se3
 from pushtorch.distribution import DefensiveMixture, FinalPoseDistribution
-from pushtorch.errors import ModelError
+from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.kde import Evaluation
 from pushtorch.kde.normaliser import NO_CUTOFF
 from pushtorch.models.clearance import check_start
@@ -51,6 +54,7 @@ from pushtorch.models.motion import contact_distances, contact_log_weights
 from pushtorch.models.push_condition import PushCondition, features_for, push_conditions
 from pushtorch.models.residual import (
     DEFENSIVE_TURN,
+    POINTS,
     ResidualModel,
     corrected,
     correction_spread,
@@ -66,8 +70,8 @@ from pushtorch.models.settings import as_generator
 from pushtorch.perception import PointCloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
 
-__all__ = ["ResidualPrediction", "defensive_factors", "narrow_density", "novelty_factors", "predict_residual",
-           "rescaled", "scaled_parts"]
+__all__ = ["ResidualPrediction", "corrected_mode", "defensive_factors", "learned_point", "narrow_density",
+           "novelty_factors", "predict_residual", "rescaled", "scaled_parts"]
 
 
 @dataclass
@@ -76,7 +80,8 @@ class ResidualPrediction:
 
     Attributes:
         start: ``()`` the cloud body's pose before the push (score the displacement from it).
-        final_pose: ``()`` the density's mode; density: the mixture (module docstring).
+        final_pose: ``()`` the point prediction: the density's mode, or for a model whose point is ``learned``
+            the push model's own prediction in the body's frame; density: the mixture (module docstring).
         rollouts: ``(N,)`` each rollout's final pose of the body; physics: ``(N, 2)`` its ``(μ, m)``.
         thrown: rollouts whose body tipped, left the ground or was never touched (kept in the density: the
             flag says the simulator's outcome was not a push).
@@ -108,10 +113,13 @@ class ResidualPrediction:
     #: the spread of the action's corrections, (m, rad) (:func:`~pushtorch.models.residual.correction_spread`),
     #: added to the uncorrected rollouts' kernel stds in quadrature
     correction_spread: tuple[float, float] = (0.0, 0.0)
+    #: which point ``final_pose`` is (:data:`~pushtorch.models.residual.POINTS`)
+    point: str = "corrected"
 
 
 def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Generator | int | None = None,
-                     robot_start: se3.Pose | None = None) -> ResidualPrediction:
+                     robot_start: se3.Pose | None = None,
+                     learned: tuple[se3.Pose, se3.Pose] | None = None) -> ResidualPrediction:
     """Predict where the object in ``cloud`` ends up after ``action`` (module docstring).
 
     Args:
@@ -120,12 +128,22 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
         action: one of the model's actions.
         generator: seeded generator or int seed (the push condition and the ensemble's physics draws).
         robot_start: the robot's start pose, when the caller places it; default the model's push condition.
+        learned: ``(object start, final pose)`` of the push model's own prediction of the same push from the same
+            robot start (:func:`pushtorch.prediction.predict` with ``residual.model``), the point a model whose
+            point is ``learned`` reports; not used otherwise.
 
     Raises:
         ModelError: a cloud that spans no volume, or a rollout with a non-finite outcome.
+        InvalidParameterError: a model whose point is ``learned`` without ``learned`` (predict through
+            :func:`pushtorch.prediction.predict`, which makes it), or a point that is not one of ``POINTS``.
         InvalidParameterError, InvalidPoseError: as :func:`pushtorch.prediction.predict`.
     """
     model = residual.model
+    if residual.point not in POINTS:
+        raise InvalidParameterError(f"a residual model's point prediction is one of {POINTS}, got {residual.point!r}")
+    if residual.point == "learned" and learned is None:
+        raise InvalidParameterError("this residual model reports its push model's own prediction: predict through "
+                                    "pushtorch.prediction.predict, or give it (learned=(object start, final pose))")
     generator = as_generator(generator)
     a = model.action_index(action)
     features = features_for(cloud, model.settings, model.position)
@@ -190,9 +208,7 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     rot_std = math.sqrt((residual.bandwidth.rot_std * scale) ** 2 + share * spread[1] ** 2)
     bandwidth = dataclasses.replace(residual.bandwidth, p_std=p_std, rot_std=rot_std, cutoff_std=NO_CUTOFF)
     # the mode: the corrected kernel centre of highest density (the hedges below never move it)
-    best = int(_mixture(means, log_weights, bandwidth, None).unnormalised_log_prob(
-        means.vector().unsqueeze(-2)).reshape(-1).argmax())
-    mode = means.take(best)
+    mode = _highest_centre(_mixture(means, log_weights, bandwidth, None))
     uncorrected = uncorrected_share(residual.uncorrected, novelty)
     spread_c = correction_spread(kernels)
 
@@ -211,9 +227,34 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
         w = residual.defensive[2]
         density = DefensiveMixture(density, hedged(_widened(bandwidth, (w, w * DEFENSIVE_TURN))), share)
     thrown = int((~records.valid).sum())
-    return ResidualPrediction(residual.name, motion.action, condition, body_start.to(dtype), mode, density,
+    point = mode if residual.point == "corrected" else learned_point(learned, body_start.to(dtype))
+    return ResidualPrediction(residual.name, motion.action, condition, body_start.to(dtype), point, density,
                               se3.Pose.unchecked(finals.p.to(dtype), finals.q.to(dtype)), drawn, thrown, log_w, d2,
-                              p_std / residual.bandwidth.p_std, novelty, spread, uncorrected, spread_c)
+                              p_std / residual.bandwidth.p_std, novelty, spread, uncorrected, spread_c,
+                              residual.point)
+
+
+def learned_point(learned: tuple[se3.Pose, se3.Pose], body_start: se3.Pose) -> se3.Pose:
+    """``()`` the push model's prediction ``learned = (object start, final pose)`` as the final pose of the cloud
+    body whose start is ``body_start``: the same rigid motion, so the same displacement, in the body's frame."""
+    start, final = (se3.Pose.unchecked(p.p.reshape(3).double(), p.q.reshape(4).double()) for p in learned)
+    body = se3.Pose.unchecked(body_start.p.reshape(3).double(), body_start.q.reshape(4).double())
+    moved = se3.compose(final, se3.compose(se3.inverse(start), body))
+    return se3.Pose.unchecked(moved.p.to(body_start.p.dtype),
+                              se3.quat_normalize(moved.q).to(body_start.q.dtype))
+
+
+def _highest_centre(density: FinalPoseDistribution) -> se3.Pose:
+    """``()`` the kernel centre of ``density`` (one expert, every kernel in full) where it is highest."""
+    best = int(density.unnormalised_log_prob(density.means.vector().unsqueeze(-2)).reshape(-1).argmax())
+    return density.means.take(best)
+
+
+def corrected_mode(prediction: ResidualPrediction, factor: float) -> se3.Pose:
+    """``()`` the mode ``prediction``'s corrected kernels would have with their stds times ``factor`` (the mode
+    :func:`predict_residual` gives a model whose kernels were scaled so): what choosing a scale and a point
+    prediction on held-out pushes scores without rolling them out again."""
+    return _highest_centre(scaled_parts(prediction, (float(factor), float(factor)))[0])
 
 
 def _mixture(means: se3.Pose, log_weights: torch.Tensor, bandwidth, mode: torch.Tensor | None) -> FinalPoseDistribution:
@@ -255,7 +296,7 @@ def scaled_parts(prediction: ResidualPrediction, factor: tuple[float, float]
     density = narrow_density(prediction)
     bandwidth = dataclasses.replace(density.bandwidth, p_std=density.bandwidth.p_std * factor[0],
                                     rot_std=density.bandwidth.rot_std * factor[1])
-    mode = prediction.final_pose.vector()
+    mode = density.mode  # the corrected kernels' (a learned point is not the density's mode)
     return (_mixture(density.means, density.log_weights, bandwidth, mode),
             _rollout_mixture(prediction.rollouts, bandwidth, prediction.correction_spread, mode))
 
