@@ -1,13 +1,17 @@
 """Where a residual prediction's point prediction should sit, measured on held-out *training* pushes: the
-mixture's highest kernel centre (``"centre"``), or that centre moved by mean shift up to the local mode of the same
+mixture's highest kernel centre (``"centre"``), that centre moved by mean shift up to the local mode of the same
 kernels at the model's motion width (``ModelSettings.motion_bandwidth``, where pushtorch anneals its own mode;
-``"motion"``). A diagnosis for docs/method.md ("The residual model"), never a choice on a test object.
+``"motion"``), the held-out push model's own prediction from the same robot start (``"learned"``), and the higher
+of the centre and that prediction under an even mixture of the residual's density and pushtorch's (``"mixture"``).
+A diagnosis for docs/method.md ("The residual model"), never a choice on a test object.
 
 For a run folder of the engine gap (``python -m pushtorch experiment=engine_gap``; its training pushes cached),
 each training object's residual model is trained again in this process (the run's settings and seeds), and
-``--pushes`` of its pushes per action are each held out (``ResidualModel.without_pushes``), predicted from the
-single-shot cloud at the push's start and its robot start, and scored by H_acc of the displacement under each
-point. The last line is ``centre_hacc=<..> motion_hacc=<..> paired_se=<..> pushes=<n>``.
+``--pushes`` of its pushes per action are each held out (``ResidualModel.without_pushes``: its residuals and its
+push model's kernels), predicted from the single-shot cloud at the push's start and its robot start, and scored by
+H_acc of the displacement under each point. One line per training object, then the last line,
+``centre_hacc=<..> motion_hacc=<..> learned_hacc=<..> mixture_hacc=<..> paired_se=<..> pushes=<n>`` (the paired
+SE of motion − centre).
 
     .venv/bin/python tools/residual_mode.py runs/engine_gap_pybullet [--pushes 10]
 """
@@ -31,7 +35,8 @@ from pushtorch.models.residual import train_residual_model
 from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
-from pushtorch.prediction.residual import narrow_density, predict_residual
+from pushtorch.prediction import predict
+from pushtorch.prediction.residual import learned_point, narrow_density, predict_residual
 
 
 def polished(prediction, bandwidth, steps: int = 20) -> se3.Pose:
@@ -44,6 +49,21 @@ def polished(prediction, bandwidth, steps: int = 20) -> se3.Pose:
         x = kde.mean_shift(x)
     best = int(kde.log_prob(x).reshape(-1).argmax())
     return se3.Pose.unchecked(x.p[0, best], x.q[0, best])
+
+
+def mixture_mode(pred, own, learned: se3.Pose) -> se3.Pose:
+    """Of the residual's point and the push model's (``learned``, in the body's frame), the one where the even
+    mixture of the residual's density and the push model's own (``own.density``, over the estimate's frame) is
+    higher."""
+    to_estimate = se3.compose(se3.inverse(pred.start.double()), own.condition.object_pose.double())
+    best, value = pred.final_pose, -math.inf
+    for point in (pred.final_pose, learned):
+        there = se3.compose(point.double(), to_estimate)
+        mixed = torch.logaddexp(pred.density.log_prob(point.vector().reshape(1, 7)).double(),
+                                own.density.log_prob(there.vector().float().reshape(1, 7)).double())
+        if float(mixed.reshape(-1)[0]) > value:
+            best, value = point, float(mixed.reshape(-1)[0])
+    return best
 
 
 def main() -> None:
@@ -77,14 +97,19 @@ def main() -> None:
                 truth = se3.Pose.unchecked(push.object_final.p[0].float(), push.object_final.q[0].float())
                 cloud = capture_partial_cloud(obj, start, voxel_size=ctx.settings.voxel_size)
                 pred = predict_residual(held, cloud, push.action[0].float(), generator, robot_start=robot)
+                own = predict(held.model, cloud, push.action[0].float(), generator, robot_start=robot)
+                learned = learned_point((own.condition.object_pose, own.final_pose), pred.start)
                 row = []
-                for point in (pred.final_pose, polished(pred, wide)):
+                for point in (pred.final_pose, polished(pred, wide), learned, mixture_mode(pred, own, learned)):
                     row.append(float(accuracy(displaced(pred.start, point, start), truth, obj).hacc))
                 rows.append(row)
                 print(name, a, p, [round(v, 4) for v in row], flush=True)
+        t = torch.tensor(rows[-args.pushes * len(model.motions):], dtype=torch.float64).mean(0).tolist()
+        print(f"{name}: centre {t[0]:.4f} motion {t[1]:.4f} learned {t[2]:.4f} mixture {t[3]:.4f}", flush=True)
     t = torch.tensor(rows, dtype=torch.float64)
     diff = t[:, 1] - t[:, 0]
     print(f"centre_hacc={float(t[:, 0].mean()):.4f} motion_hacc={float(t[:, 1].mean()):.4f} "
+          f"learned_hacc={float(t[:, 2].mean()):.4f} mixture_hacc={float(t[:, 3].mean()):.4f} "
           f"paired_se={float(diff.std() / math.sqrt(len(diff))):.4f} pushes={len(rows)}")
 
 

@@ -291,12 +291,14 @@ def _point_choice(cases: list, obj: ObjectModel, factor: float) -> dict:
     both = [(_hacc_of(p.start, corrected_mode(p, factor), start, truth, obj), learned)
             for p, truth, start, learned in cases if math.isfinite(learned)]
     if not both:
-        return {"chosen": "corrected", "hacc": [math.nan, math.nan], "pushes": 0}
-    mean = torch.tensor(both, dtype=torch.float64).mean(0)
+        return {"chosen": "corrected", "hacc": [math.nan, math.nan], "se": math.nan, "pushes": 0}
+    table = torch.tensor(both, dtype=torch.float64)
+    mean = table.mean(0)
+    se = float((table[:, 1] - table[:, 0]).std() / math.sqrt(len(both))) if len(both) > 1 else math.nan
     chosen = "learned" if float(mean[1]) < float(mean[0]) else "corrected"
-    log.info("residual point prediction for %s: %s (held-out H_acc %.4f corrected, %.4f learned, %d pushes)",
-             obj.name, chosen, float(mean[0]), float(mean[1]), len(both))
-    return {"chosen": chosen, "hacc": mean.tolist(), "pushes": len(both)}
+    log.info("residual point prediction for %s: %s (held-out H_acc %.4f corrected, %.4f learned, paired SE %.4f, "
+             "%d pushes)", obj.name, chosen, float(mean[0]), float(mean[1]), se, len(both))
+    return {"chosen": chosen, "hacc": mean.tolist(), "se": se, "pushes": len(both)}
 
 
 def _residual_scores(residual, obj: ObjectModel, records, count: int, generator: torch.Generator,
