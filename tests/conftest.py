@@ -77,6 +77,30 @@ def cube_pushes_of(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def small_settings():
+    """A small model's settings, for the tests of models trained on a few real pushes (the residual model's)."""
+    from pushtorch.models.settings import ModelSettings
+
+    return ModelSettings(query_kernels=400, anneal_candidates=60, anneal_steps=15, position_frames=800,
+                         environment_kernels=300, manipulator_kernels=40)
+
+
+@pytest.fixture(scope="session")
+def small_cube_residual(cube_pushes_of, small_settings):
+    """``(cube, records, model, residual)``: the cube's pybullet pushes (6 per action), a small model trained on
+    them (``small_settings``) and its residual model against pybullet (4 rollouts), trained once per process."""
+    import torch
+
+    from pushtorch.models.residual import train_residual_model
+    from pushtorch.models.training import train_push_model
+    from pushtorch.sim.settings import SimSettings
+
+    cube, records = cube_pushes_of(6, 1)
+    model = train_push_model(cube, records, small_settings, generator=torch.Generator().manual_seed(0))
+    return cube, records, model, train_residual_model(model, cube, records, SimSettings(), ensemble=4)
+
+
+@pytest.fixture(scope="session")
 def rotated_surface_gap():
     """``gap(mesh, q, n=1500)``: the largest distance (m) from ``n`` surface samples of ``mesh`` rotated by the wxyz
     quaternion ``q`` to the unrotated surface (open3d's exact point-to-triangle distance; sample seed 3, not the

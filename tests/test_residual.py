@@ -15,8 +15,6 @@ from pushtorch import se3
 from pushtorch.errors import PushtorchError
 from pushtorch.models.residual import DEFENSIVE_PARTS as DEFENSIVE_PARTS_GRID
 from pushtorch.models.residual import corrected, residual_of, train_residual_model, with_ensemble
-from pushtorch.models.settings import ModelSettings
-from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
 from pushtorch.perception import PointCloud, capture_partial_cloud
 from pushtorch.prediction.residual import predict_residual
@@ -25,16 +23,11 @@ from pushtorch.sim.bodies import cloud_body, rollout_ensemble
 from pushtorch.sim.push import place_robot_against
 from pushtorch.sim.settings import SimSettings
 
-SETTINGS = ModelSettings(query_kernels=400, anneal_candidates=60, anneal_steps=15, position_frames=800,
-                         environment_kernels=300, manipulator_kernels=40)
-
 
 @pytest.fixture(scope="module")
-def trained(cube_pushes_of):
+def trained(small_cube_residual):
     """The cube, its pybullet pushes (6 per action) and a small model trained on them."""
-    cube, records = cube_pushes_of(6, 1)
-    model = train_push_model(cube, records, SETTINGS, generator=torch.Generator().manual_seed(0))
-    return cube, records, model
+    return small_cube_residual[:3]
 
 
 def _observed_push(cube, model):
@@ -50,10 +43,9 @@ def _observed_push(cube, model):
 
 
 @pytest.fixture(scope="module")
-def residual(trained):
+def residual(small_cube_residual):
     """The small model's residual model against pybullet on its training pushes' cloud bodies (4 rollouts)."""
-    cube, records, model = trained
-    return train_residual_model(model, cube, records, SimSettings(), ensemble=4)
+    return small_cube_residual[3]
 
 
 def test_the_residual_of_the_simulator_against_itself_is_the_identity(trained):
@@ -300,7 +292,8 @@ def test_the_predict_app_reads_a_residual_model_file_and_records_its_rollouts_be
 
 
 @pytest.mark.slow  # 17-20 s; the tiny quickstart's shape-transfer part trains a pooled residual in the default suite
-def test_a_pooled_residual_takes_every_shapes_pushes_holds_one_out_and_widens_across_them(cube_pushes_of, tmp_path):
+def test_a_pooled_residual_takes_every_shapes_pushes_holds_one_out_and_widens_across_them(cube_pushes_of, tmp_path,
+                                                                                         small_settings):
     """A residual model of a pooled model: each kernel's residual is its own shape's push (records given in another
     order are refused by their physics), a shape held out leaves only the other's kernels, the widening is chosen
     on held-out shapes' pushes, and the file keeps the shapes and the widening (the same prediction back)."""
@@ -318,7 +311,7 @@ def test_a_pooled_residual_takes_every_shapes_pushes_holds_one_out_and_widens_ac
     plan = plan_training_pushes(cylinder, make_actions(3), 4, Normal(0.5, 0.025), Normal(0.3, 0.05), seed=2)
     run_plan(object_spec(cylinder), plan, tmp_path / "cylinder", workers=1, progress=False)
     shapes, records = [cube, cylinder], [cube_records, load_records(tmp_path / "cylinder")]
-    pooled = train_pooled_model(shapes, records, dataclasses.replace(SETTINGS, bandwidth_folds=0),
+    pooled = train_pooled_model(shapes, records, dataclasses.replace(small_settings, bandwidth_folds=0),
                                 generator=torch.Generator().manual_seed(0))
     residual = train_residual_model(pooled, shapes, records, SimSettings(), ensemble=2)
     assert residual.shape_names == ["cube", "cylinder"]

@@ -17,25 +17,17 @@ from hypothesis import strategies as st
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, RecordFormatError
 from pushtorch.evaluation.metrics import displaced
-from pushtorch.models.residual import POINTS, train_residual_model
+from pushtorch.models.residual import POINTS
 from pushtorch.models.residual_file import load_residual_model
-from pushtorch.models.settings import ModelSettings
-from pushtorch.models.training import train_push_model
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.prediction import predict
 from pushtorch.prediction.residual import corrected_mode, learned_point, predict_residual
-from pushtorch.sim.settings import SimSettings
-
-SETTINGS = ModelSettings(query_kernels=400, anneal_candidates=60, anneal_steps=15, position_frames=800,
-                         environment_kernels=300, manipulator_kernels=40)
 
 
 @pytest.fixture(scope="module")
-def trained(cube_pushes_of):
+def trained(small_cube_residual):
     """The cube, its pybullet pushes (6 per action), a small model and its residual model against pybullet."""
-    cube, records = cube_pushes_of(6, 1)
-    model = train_push_model(cube, records, SETTINGS, generator=torch.Generator().manual_seed(0))
-    return cube, records, model, train_residual_model(model, cube, records, SimSettings(), ensemble=4)
+    return small_cube_residual
 
 
 def _close(a: se3.Pose, b: se3.Pose, atol: float = 1e-4) -> bool:
