@@ -44,7 +44,8 @@ def test_a_learned_point_is_the_push_models_prediction_and_the_density_stays_cor
     made = predict(learned, cloud, action, generator=torch.Generator().manual_seed(7))
     own = predict(model, cloud, action, generator=torch.Generator().manual_seed(7))
     assert made.point == "learned"
-    assert _close(made.condition.robot_start, own.condition.robot_start)  # the same robot start
+    assert _close(made.condition.robot_start, own.condition.robot_start)  # the same push condition
+    assert _close(made.condition.object_pose, own.condition.object_pose)
     assert _close(displaced(made.start, made.final_pose, pose), displaced(own.condition.object_pose, own.final_pose,
                                                                            pose))
     # the density's mode is still its highest corrected kernel, not the reported point
@@ -53,6 +54,8 @@ def test_a_learned_point_is_the_push_models_prediction_and_the_density_stays_cor
     assert not _close(mode, made.final_pose, atol=1e-6)
     with pytest.raises(InvalidParameterError, match="push model's own prediction"):
         predict_residual(learned, cloud, action, 0)
+    with pytest.raises(InvalidParameterError, match="not both"):
+        predict_residual(residual, cloud, action, 0, robot_start=own.condition.robot_start, condition=own.condition)
     with pytest.raises(InvalidParameterError, match="point prediction"):
         predict_residual(dataclasses.replace(residual, point="sideways"), cloud, action, 0)
     # a caller that made pushtorch's prediction already gives it: the same point, nothing predicted twice

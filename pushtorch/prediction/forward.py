@@ -346,11 +346,12 @@ def _predict_batch(
         rows = [i for i, c in enumerate(chosen) if c is m]
         if isinstance(m, ResidualModel):  # its rollouts are batched per prediction, from the cloud as given
             for i in rows:
-                start, learned = starts[i], None
-                if m.point == "learned":  # its point is its push model's prediction, from the same robot start
-                    own = share(m.model, [features[i]], [m.action_index(actions[i])], generator, False, [start])[0]
-                    start, learned = own.condition.robot_start, (own.condition.object_pose, own.final_pose)
-                out[i] = predict_residual(m, clouds[i], actions[i], generator, robot_start=start, learned=learned)
+                if m.point == "learned":  # its point is its push model's prediction, from the same push condition
+                    own = share(m.model, [features[i]], [m.action_index(actions[i])], generator, False, [starts[i]])[0]
+                    out[i] = predict_residual(m, clouds[i], actions[i], generator, condition=own.condition,
+                                              learned=(own.condition.object_pose, own.final_pose))
+                else:
+                    out[i] = predict_residual(m, clouds[i], actions[i], generator, robot_start=starts[i])
             continue
         a_idx = [m.action_index(actions[i]) for i in rows]
         predictions = share(m, [features[i] for i in rows], a_idx, generator, record_history, [starts[i] for i in rows])

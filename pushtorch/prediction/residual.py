@@ -118,8 +118,8 @@ class ResidualPrediction:
 
 
 def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Generator | int | None = None,
-                     robot_start: se3.Pose | None = None,
-                     learned: tuple[se3.Pose, se3.Pose] | None = None) -> ResidualPrediction:
+                     robot_start: se3.Pose | None = None, learned: tuple[se3.Pose, se3.Pose] | None = None,
+                     condition: PushCondition | None = None) -> ResidualPrediction:
     """Predict where the object in ``cloud`` ends up after ``action`` (module docstring).
 
     Args:
@@ -131,6 +131,9 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
         learned: ``(object start, final pose)`` of the push model's own prediction of the same push from the same
             robot start (:func:`pushtorch.prediction.predict` with ``residual.model``), the point a model whose
             point is ``learned`` reports; not used otherwise.
+        condition: the push condition of this cloud and action made already (the push model's prediction's, whose
+            robot start and pose estimate the rollouts then share), instead of ``robot_start``: its pose query is
+            not made twice.
 
     Raises:
         ModelError: a cloud that spans no volume, or a rollout with a non-finite outcome.
@@ -147,8 +150,11 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     generator = as_generator(generator)
     a = model.action_index(action)
     features = features_for(cloud, model.settings, model.position)
-    start = None if robot_start is None else check_start(robot_start)
-    condition = push_conditions(model, [features], [a], generator, False, [start])[0]
+    if condition is None:
+        start = None if robot_start is None else check_start(robot_start)
+        condition = push_conditions(model, [features], [a], generator, False, [start])[0]
+    elif robot_start is not None:
+        raise InvalidParameterError("give the residual prediction a robot start or a push condition, not both")
     points = cloud.points if isinstance(cloud, PointCloud) else features.p
     body, body_start = cloud_body(points, condition.object_pose)
     motion = model.motions[a]
