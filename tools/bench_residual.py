@@ -166,7 +166,7 @@ def main() -> None:
               f"{statistics.median(pooled['ensemble100']):.3f} (here, one after another: {p50['residual']:.3f}, "
               f"{p50['ensemble100']:.3f})")
     print(f"a model whose point is learned, through predict (its push model's prediction, then the residual's "
-          f"from its robot start): p50 {p50['learned']:.3f} s, {p50['learned'] / p50['pushtorch']:.2f} × pushtorch")
+          f"from that push condition): p50 {p50['learned']:.3f} s, {p50['learned'] / p50['pushtorch']:.2f} × pushtorch")
     print(f"cpu: {cpu_name()}; torch threads {torch.get_num_threads()}; residual / pushtorch "
           f"{p50['residual'] / p50['pushtorch']:.2f}")
     print(f"residual_p50_s={p50['residual']:.3f} pushtorch_p50_s={p50['pushtorch']:.3f} "
