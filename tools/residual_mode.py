@@ -55,10 +55,11 @@ def mixture_mode(pred, own, learned: se3.Pose) -> se3.Pose:
     """Of the residual's point and the push model's (``learned``, in the body's frame), the one where the even
     mixture of the residual's density and the push model's own (``own.density``, over the estimate's frame) is
     higher."""
-    to_estimate = se3.compose(se3.inverse(pred.start.double()), own.condition.object_pose.double())
+    double = torch.float64
+    to_estimate = se3.compose(se3.inverse(pred.start.to(double)), own.condition.object_pose.to(double))
     best, value = pred.final_pose, -math.inf
     for point in (pred.final_pose, learned):
-        there = se3.compose(point.double(), to_estimate)
+        there = se3.compose(point.to(double), to_estimate)
         mixed = torch.logaddexp(pred.density.log_prob(point.vector().reshape(1, 7)).double(),
                                 own.density.log_prob(there.vector().float().reshape(1, 7)).double())
         if float(mixed.reshape(-1)[0]) > value:
