@@ -65,6 +65,27 @@ def test_a_learned_point_is_the_push_models_prediction_and_the_density_stays_cor
                                                                                own.final_pose, pose))
 
 
+def test_a_shifted_point_is_a_local_mode_of_the_corrected_kernels_at_the_motion_width(trained):
+    from pushtorch.kde import KernelBandwidth, PoseKDE
+    from pushtorch.kde.normaliser import NO_CUTOFF
+    from pushtorch.prediction.residual import narrow_density
+
+    cube, _, model, residual = trained
+    cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=-0.4), voxel_size=model.settings.voxel_size)
+    made = predict(dataclasses.replace(residual, point="shifted"), cloud, model.actions[0], generator=5)
+    plain = predict(residual, cloud, model.actions[0], generator=5)
+    assert made.point == "shifted" and _close(se3.Pose.from_vector(made.density.mode), plain.final_pose)
+    density, motion = narrow_density(made), model.settings.motion_bandwidth
+    kde = PoseKDE(se3.Pose.unchecked(density.means.p.unsqueeze(0), density.means.q.unsqueeze(0)),
+                  KernelBandwidth(motion.p_std, motion.rot_std, cutoff_std=NO_CUTOFF, alpha_t=motion.alpha_t),
+                  density.log_weights.reshape(1, -1))
+    at = se3.Pose.unchecked(made.final_pose.p.reshape(1, 1, 3), made.final_pose.q.reshape(1, 1, 4))
+    assert _close(kde.mean_shift(at).reshape(1), made.final_pose, atol=2e-4)  # a fixed point: a mode
+    # no kernel centre is higher at that width
+    centres = se3.Pose.unchecked(density.means.p.unsqueeze(0), density.means.q.unsqueeze(0))
+    assert float(kde.log_prob(at).max()) >= float(kde.log_prob(centres).max()) - 1e-4
+
+
 finite = st.floats(-2.0, 2.0, allow_nan=False, allow_infinity=False)
 quat_raw = st.tuples(finite, finite, finite, finite).filter(lambda v: sum(x * x for x in v) > 1e-2)
 

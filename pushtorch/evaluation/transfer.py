@@ -191,9 +191,9 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     is, from the single-shot cloud at the push's start and its robot start, and the true outcome scored under the
     density with its stds times each of ``scales`` (one prediction per push, the same rollouts). The factor of
     lowest mean nll is kept. The same held-out pushes choose the model's point prediction
-    (:data:`~pushtorch.models.residual.POINTS`): the corrected kernels' mode at that factor, or the held-out push
-    model's own prediction from the same robot start, whichever has the lower mean H_acc (kept in
-    ``meta["scale"]["point"]``).
+    (:data:`~pushtorch.models.residual.POINTS`): the corrected kernels' mode at that factor, their local mode at the
+    motion kernels' width, or the held-out push model's own prediction from the same robot start, whichever has the
+    lowest mean H_acc (kept in ``meta["scale"]["point"]``).
 
     Raises:
         InvalidParameterError: a pooled model, a model read from its file, records that are not its own, or no
@@ -249,7 +249,7 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     own = torch.stack([residual_nll_grid(p, truth, start, obj, [novelty_factors(p, v, grid[best])
                                                                for v in NOVELTY_WIDENINGS])
                        for p, truth, start, _ in cases]).mean(0)
-    point = _point_choice(cases, obj, grid[best])
+    point = _point_choice(cases, obj, grid[best], residual.settings.motion_bandwidth)
     log.info("residual kernels' scale %g for %s (held-out nll %.2f against %s at 1, %d pushes)", grid[best],
              obj.name, float(mean[best]), f"{float(mean[grid.index(1.0)]):.2f}" if 1.0 in grid else "—", len(scores))
     bandwidth = replace(residual.bandwidth, p_std=residual.bandwidth.p_std * grid[best],
@@ -282,23 +282,34 @@ def _hacc_of(estimate: se3.Pose, final: se3.Pose, start: se3.Pose, truth: se3.Po
     return float(hacc(moved, truth.to(torch.float64), obj.dimensions, obj.symmetry).reshape(-1)[0])
 
 
-def _point_choice(cases: list, obj: ObjectModel, factor: float) -> dict:
-    """The point prediction of lower mean H_acc over the held-out ``cases`` ``(prediction, truth, start, H_acc of
-    the push model's own)``, the corrected kernels' mode taken at the chosen ``factor``; pushes the push model
-    could not predict are left out of both means."""
-    from pushtorch.prediction.residual import corrected_mode
+def _point_choice(cases: list, obj: ObjectModel, factor: float, motion_bandwidth) -> dict:
+    """The point prediction (:data:`~pushtorch.models.residual.POINTS`) of lowest mean H_acc over the held-out
+    ``cases`` ``(prediction, truth, start, H_acc of the push model's own)``: the corrected kernels' mode taken at the
+    chosen ``factor``, their local mode at the push model's ``motion_bandwidth``, the push model's own; pushes the
+    push model could not predict are left out of every mean. ``se``: the paired SE of each point's difference from
+    the corrected mode's."""
+    from pushtorch.models.residual import POINTS
+    from pushtorch.prediction.residual import corrected_mode, narrow_density, shifted_mode
 
-    both = [(_hacc_of(p.start, corrected_mode(p, factor), start, truth, obj), learned)
-            for p, truth, start, learned in cases if math.isfinite(learned)]
-    if not both:
-        return {"chosen": "corrected", "hacc": [math.nan, math.nan], "se": math.nan, "pushes": 0}
-    table = torch.tensor(both, dtype=torch.float64)
+    rows = []
+    for p, truth, start, learned in cases:
+        if math.isfinite(learned):
+            points = {"corrected": corrected_mode(p, factor), "shifted": shifted_mode(narrow_density(p),
+                                                                                        motion_bandwidth)}
+            rows.append([learned if name == "learned" else _hacc_of(p.start, points[name], start, truth, obj)
+                         for name in POINTS])
+    if not rows:
+        return {"chosen": "corrected", "points": list(POINTS), "hacc": [math.nan] * len(POINTS),
+                "se": [math.nan] * len(POINTS), "pushes": 0}
+    table = torch.tensor(rows, dtype=torch.float64)
     mean = table.mean(0)
-    se = float((table[:, 1] - table[:, 0]).std() / math.sqrt(len(both))) if len(both) > 1 else math.nan
-    chosen = "learned" if float(mean[1]) < float(mean[0]) else "corrected"
-    log.info("residual point prediction for %s: %s (held-out H_acc %.4f corrected, %.4f learned, paired SE %.4f, "
-             "%d pushes)", obj.name, chosen, float(mean[0]), float(mean[1]), se, len(both))
-    return {"chosen": chosen, "hacc": mean.tolist(), "se": se, "pushes": len(both)}
+    se = ((table - table[:, :1]).std(0) / math.sqrt(len(rows))).tolist() if len(rows) > 1 else [math.nan] * len(POINTS)
+    chosen = POINTS[int(mean.argmin())]
+    log.info("residual point prediction for %s: %s (held-out H_acc %s, paired SE against the corrected mode %s, "
+             "%d pushes)", obj.name, chosen, ", ".join(f"{n} {float(v):.4f}" for n, v in zip(POINTS, mean,
+                                                                                             strict=True)),
+             ", ".join(f"{v:.4f}" for v in se[1:]), len(rows))
+    return {"chosen": chosen, "points": list(POINTS), "hacc": mean.tolist(), "se": se, "pushes": len(rows)}
 
 
 def _residual_scores(residual, obj: ObjectModel, records, count: int, generator: torch.Generator,

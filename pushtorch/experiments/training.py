@@ -238,12 +238,12 @@ def _scale_chosen(residual, pushes: int) -> bool:
     """Whether a cached residual model's kernels' scale was chosen as asked: on ``pushes`` held-out pushes per
     action over today's grid, with its point prediction (0: not chosen)."""
     from pushtorch.evaluation.transfer import RESIDUAL_SCALES
-    from pushtorch.models.residual import novelty_scored_as_now
+    from pushtorch.models.residual import POINTS, novelty_scored_as_now
 
     chosen = residual.meta.get("scale") or {}
     return chosen.get("pushes_per_action", 0) == pushes and (not pushes or (
         chosen.get("grid") == list(RESIDUAL_SCALES) and novelty_scored_as_now(chosen.get("novelty"))
-        and "point" in chosen))
+        and (chosen.get("point") or {}).get("points") == list(POINTS)))
 
 
 def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: int, shapes: str | None = None) -> dict:

@@ -50,10 +50,11 @@ from pushtorch.sim.settings import SimSettings
 Tensor = torch.Tensor
 
 __all__ = ["DEFAULT_ENSEMBLE", "DEFENSIVE_PARTS", "DEFENSIVE_TURN", "MAX_DEFENSIVE_SHARE", "NOVELTY_FORM",
-           "NOVELTY_WIDENINGS", "OUTCOME_LADDER", "POINTS", "RESIDUAL_LADDER", "ResidualModel", "UNCORRECTED_RATES",
-           "choose_bandwidth", "correction_spread", "corrected", "defensive_share", "engine_version",
-           "novelty_scored_as_now", "novelty_share", "outcome_log_affinity", "outcome_novelty", "outcome_spread",
-           "residual_of", "rollout_outcome", "train_residual_model", "uncorrected_share", "with_ensemble"]
+           "NOVELTY_WIDENINGS", "OUTCOME_LADDER", "POINTS", "RESIDUAL_LADDER", "ResidualModel", "SHIFT_STEPS",
+           "UNCORRECTED_RATES", "choose_bandwidth", "correction_spread", "corrected", "defensive_share",
+           "engine_version", "novelty_scored_as_now", "novelty_share", "outcome_log_affinity", "outcome_novelty",
+           "outcome_spread", "residual_of", "rollout_outcome", "train_residual_model", "uncorrected_share",
+           "with_ensemble"]
 
 #: Rollouts per prediction unless the model says otherwise, chosen by held-out likelihood on generated training
 #: shapes among the sizes within 3× a pushtorch prediction (tools/residual_ensemble.py on an Intel Xeon, 2 cores:
@@ -98,13 +99,16 @@ DEFENSIVE_TURN = 5.0
 #: and chosen jointly with a defensive part (:data:`DEFENSIVE_PARTS`); 4, as 3 and with an uncorrected share
 #: (:data:`UNCORRECTED_RATES`); 5, as 4 with the uncorrected rollouts' kernels widened by the corrections' spread
 NOVELTY_FORM = 5
-#: A model's point predictions: ``corrected``, its density's mode (the corrected rollouts); ``learned``, its push
-#: model's own prediction (pushtorch's annealed product of experts) from the same robot start. Chosen per model by
-#: the mean H_acc of each on its own held-out training pushes
-#: (:func:`pushtorch.evaluation.transfer.choose_residual_scale`): where the simulator is far off the world for the
-#: training object, the corrections are large and the corrected rollouts scatter, while the learned kernels of the
-#: same pushes keep their contact's outcome. The density is the corrected one either way.
-POINTS = ("corrected", "learned")
+#: A model's point predictions: ``corrected``, its density's mode (the highest corrected kernel centre);
+#: ``shifted``, that mixture's local mode at the push model's motion kernels' width, found by mean shift from every
+#: kernel centre (where pushtorch anneals its own mode); ``learned``, its push model's own prediction (pushtorch's
+#: annealed product of experts) from the same push condition. Chosen per model by the mean H_acc of each on its own
+#: held-out training pushes (:func:`pushtorch.evaluation.transfer.choose_residual_scale`): where the simulator is
+#: far off the world for the training object, the corrections are large and the corrected rollouts scatter, while
+#: the learned kernels of the same pushes keep their contact's outcome. The density is the corrected one either way.
+POINTS = ("corrected", "shifted", "learned")
+#: Mean-shift steps of the ``shifted`` point
+SHIFT_STEPS = 20
 
 _IDENTITY_Q = torch.tensor([1.0, 0.0, 0.0, 0.0])
 

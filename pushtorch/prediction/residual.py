@@ -47,7 +47,7 @@ import torch
 from pushtorch import se3
 from pushtorch.distribution import DefensiveMixture, FinalPoseDistribution
 from pushtorch.errors import InvalidParameterError, ModelError
-from pushtorch.kde import Evaluation
+from pushtorch.kde import Evaluation, KernelBandwidth, PoseKDE
 from pushtorch.kde.normaliser import NO_CUTOFF
 from pushtorch.models.clearance import check_start
 from pushtorch.models.motion import contact_distances, contact_log_weights
@@ -55,6 +55,7 @@ from pushtorch.models.push_condition import PushCondition, features_for, push_co
 from pushtorch.models.residual import (
     DEFENSIVE_TURN,
     POINTS,
+    SHIFT_STEPS,
     ResidualModel,
     corrected,
     correction_spread,
@@ -71,7 +72,7 @@ from pushtorch.perception import PointCloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
 
 __all__ = ["ResidualPrediction", "corrected_mode", "defensive_factors", "learned_point", "narrow_density",
-           "novelty_factors", "predict_residual", "rescaled", "scaled_parts"]
+           "novelty_factors", "predict_residual", "rescaled", "scaled_parts", "shifted_mode"]
 
 
 @dataclass
@@ -233,7 +234,9 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
         w = residual.defensive[2]
         density = DefensiveMixture(density, hedged(_widened(bandwidth, (w, w * DEFENSIVE_TURN))), share)
     thrown = int((~records.valid).sum())
-    point = mode if residual.point == "corrected" else learned_point(learned, body_start.to(dtype))
+    point = mode if residual.point == "corrected" else learned_point(learned, body_start.to(dtype)) \
+        if residual.point == "learned" else shifted_mode(_mixture(means, log_weights, bandwidth, None),
+                                                         model.settings.motion_bandwidth)
     return ResidualPrediction(residual.name, motion.action, condition, body_start.to(dtype), point, density,
                               se3.Pose.unchecked(finals.p.to(dtype), finals.q.to(dtype)), drawn, thrown, log_w, d2,
                               p_std / residual.bandwidth.p_std, novelty, spread, uncorrected, spread_c,
@@ -254,6 +257,21 @@ def _highest_centre(density: FinalPoseDistribution) -> se3.Pose:
     """``()`` the kernel centre of ``density`` (one expert, every kernel in full) where it is highest."""
     best = int(density.unnormalised_log_prob(density.means.vector().unsqueeze(-2)).reshape(-1).argmax())
     return density.means.take(best)
+
+
+def shifted_mode(density: FinalPoseDistribution, bandwidth: KernelBandwidth, steps: int = SHIFT_STEPS) -> se3.Pose:
+    """``()`` the local mode of ``density``'s kernels (their centres and weights) at ``bandwidth`` (no cut-off)
+    that is highest there, found by ``steps`` mean-shift steps from every kernel centre: the residual model's
+    ``shifted`` point, at the push model's motion kernels' width."""
+    wide = KernelBandwidth(bandwidth.p_std, bandwidth.rot_std, cutoff_std=NO_CUTOFF, alpha_t=bandwidth.alpha_t)
+    means = density.means
+    kde = PoseKDE(se3.Pose.unchecked(means.p.unsqueeze(0), means.q.unsqueeze(0)), wide,
+                  density.log_weights.reshape(1, -1))
+    x = se3.Pose.unchecked(means.p.unsqueeze(0), means.q.unsqueeze(0))
+    for _ in range(int(steps)):
+        x = kde.mean_shift(x)
+    best = int(kde.log_prob(x).reshape(-1).argmax())
+    return se3.Pose.unchecked(x.p[0, best], se3.quat_normalize(x.q[0, best]))
 
 
 def corrected_mode(prediction: ResidualPrediction, factor: float) -> se3.Pose:
