@@ -21,8 +21,8 @@ contact and friction are not the world's. The residual model keeps both:
   by leave-one-push-out likelihood), with a defensive share of the same kernels centimetres wider that grows
   with how new the rollouts are (:data:`DEFENSIVE_PARTS`, :func:`defensive_share`), and a share of the rollouts
   themselves, uncorrected, that grows with it too (:data:`UNCORRECTED_RATES`). Its point prediction is the
-  density's mode, or the push model's own prediction from the same robot start where that was closer on the
-  model's held-out training pushes (:data:`POINTS`).
+  density's mode, that mode moved by mean shift, or the push model's own prediction from the same push condition,
+  whichever was closest on the model's held-out training pushes (:data:`POINTS`).
 
 Decisions are in docs/method.md, "The residual model".
 """

@@ -30,9 +30,10 @@ each ``ρ / N``, their kernels widened in quadrature by the action's corrections
 (:func:`~pushtorch.models.residual.correction_spread`), the corrected kernels ``1 − ρ``: where the rollouts did
 something no training rollout did, which correction holds is unknown, and the simulator's own outcome, no surer
 than the simulator has been off, is the prior a correction departs from. Both shares are hedges of the density:
-the mode stays the corrected kernels'. A model whose point prediction is ``learned``
-(:data:`~pushtorch.models.residual.POINTS`) reports its push model's own prediction of the same push, from the same
-robot start, as ``final_pose`` (in the cloud body's frame; its density stays the corrected one):
+the mode stays the corrected kernels'. The point prediction ``final_pose`` is the model's
+(:data:`~pushtorch.models.residual.POINTS`; the density is the same whichever): that mode (``corrected``), the
+corrected kernels' local mode at the push model's motion width (``shifted``, :func:`shifted_mode`), or the push
+model's own prediction of the same push from the same push condition, in the cloud body's frame (``learned``):
 :func:`pushtorch.prediction.predict` makes that prediction first, a caller of :func:`predict_residual` gives it.
 """
 
@@ -81,8 +82,8 @@ class ResidualPrediction:
 
     Attributes:
         start: ``()`` the cloud body's pose before the push (score the displacement from it).
-        final_pose: ``()`` the point prediction: the density's mode, or for a model whose point is ``learned``
-            the push model's own prediction in the body's frame; density: the mixture (module docstring).
+        final_pose: ``()`` the model's point prediction (module docstring): the density's mode unless the model
+            reports another; density: the mixture (module docstring).
         rollouts: ``(N,)`` each rollout's final pose of the body; physics: ``(N, 2)`` its ``(μ, m)``.
         thrown: rollouts whose body tipped, left the ground or was never touched (kept in the density: the
             flag says the simulator's outcome was not a push).
