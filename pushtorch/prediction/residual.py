@@ -260,15 +260,21 @@ def _highest_centre(density: FinalPoseDistribution) -> se3.Pose:
     return density.means.take(best)
 
 
+#: The kernel centres a ``shifted`` point's mean shift starts from, the highest at the motion width: its cost is
+#: starts × kernels a step, not kernels²
+SHIFT_STARTS = 16
+
+
 def shifted_mode(density: FinalPoseDistribution, bandwidth: KernelBandwidth, steps: int = SHIFT_STEPS) -> se3.Pose:
     """``()`` the local mode of ``density``'s kernels (their centres and weights) at ``bandwidth`` (no cut-off)
-    that is highest there, found by ``steps`` mean-shift steps from every kernel centre: the residual model's
-    ``shifted`` point, at the push model's motion kernels' width."""
+    that is highest there, found by ``steps`` mean-shift steps from the :data:`SHIFT_STARTS` kernel centres where
+    that density is highest: the residual model's ``shifted`` point, at the push model's motion kernels' width."""
     wide = KernelBandwidth(bandwidth.p_std, bandwidth.rot_std, cutoff_std=NO_CUTOFF, alpha_t=bandwidth.alpha_t)
     means = density.means
-    kde = PoseKDE(se3.Pose.unchecked(means.p.unsqueeze(0), means.q.unsqueeze(0)), wide,
-                  density.log_weights.reshape(1, -1))
-    x = se3.Pose.unchecked(means.p.unsqueeze(0), means.q.unsqueeze(0))
+    centres = se3.Pose.unchecked(means.p.unsqueeze(0), means.q.unsqueeze(0))
+    kde = PoseKDE(centres, wide, density.log_weights.reshape(1, -1))
+    top = kde.log_prob(centres).reshape(-1).topk(min(SHIFT_STARTS, means.p.shape[0])).indices
+    x = se3.Pose.unchecked(centres.p[:, top], centres.q[:, top])
     for _ in range(int(steps)):
         x = kde.mean_shift(x)
     best = int(kde.log_prob(x).reshape(-1).argmax())
