@@ -12,6 +12,10 @@ It also prints what one pybullet rollout and its world cost (ensembles of 1 and 
 With ``--pool k`` (default 2) the same conditions are predicted again with every ensemble's rollouts split over
 ``k`` worker processes (:class:`pushtorch.sim.bodies.RolloutPool`), on a line of their own.
 
+Two lines time the residual model's other point predictions (docs/method.md, "The point prediction"): a model
+whose point is learned, predicted through ``pushtorch.prediction.predict`` (pushtorch's prediction, then the
+rollouts from its push condition), and one whose point is the shifted mode, from pushtorch's robot start.
+
 The last line is exactly ``residual_p50_s=<..> pushtorch_p50_s=<..> ensemble100_p50_s=<..> ensemble=<N>``; the
 line before it gives the host's CPU and the ratio residual / pushtorch (the gate: at most 3).
 
@@ -126,7 +130,8 @@ def main() -> None:
     yaws = torch.empty(args.conditions + 1).uniform_(-math.pi / 4, math.pi / 4,
                                                       generator=torch.Generator().manual_seed(1))
     learned = dataclasses.replace(residual, point="learned")
-    times = {"residual": [], "pushtorch": [], "ensemble100": [], "learned": []}
+    shifted = dataclasses.replace(residual, point="shifted")
+    times = {"residual": [], "pushtorch": [], "ensemble100": [], "learned": [], "shifted": []}
     conditions = []
     for i, yaw in enumerate(yaws.tolist()):
         pose = cube.resting_pose(yaw=yaw)
@@ -139,6 +144,9 @@ def main() -> None:
         started = time.perf_counter()  # a model whose point is learned, through predict: its push model first
         predict(learned, cloud, action, i)
         learned_s = time.perf_counter() - started
+        started = time.perf_counter()  # a model whose point is the corrected kernels' shifted mode
+        predict_residual(shifted, cloud, action, i, robot_start=prediction.condition.robot_start)
+        times["shifted"].append(time.perf_counter() - started)
         conditions.append((cloud, action, prediction))
         if i == 0:
             continue  # the warm-up
@@ -148,6 +156,7 @@ def main() -> None:
         times["ensemble100"].append(ensemble_s)
         print(f"condition {i}: pushtorch {pushtorch_s:.2f} s, residual {residual_s:.2f} s, "
               f"ensemble100 {ensemble_s:.2f} s", flush=True)
+    times["shifted"] = times["shifted"][1:]  # after the warm-up, as the others
     p50 = {k: statistics.median(v) for k, v in times.items()}
     rollout_s, world_s = rollout_cost(conditions)
     print(f"one pybullet rollout of a 4 s push: {rollout_s:.3f} s; building its world: {world_s:.3f} s")
@@ -167,6 +176,8 @@ def main() -> None:
               f"{p50['ensemble100']:.3f})")
     print(f"a model whose point is learned, through predict (its push model's prediction, then the residual's "
           f"from that push condition): p50 {p50['learned']:.3f} s, {p50['learned'] / p50['pushtorch']:.2f} × pushtorch")
+    print(f"a model whose point is the corrected kernels' shifted mode, from the same robot start: p50 "
+          f"{p50['shifted']:.3f} s, {p50['shifted'] / p50['pushtorch']:.2f} × pushtorch")
     print(f"cpu: {cpu_name()}; torch threads {torch.get_num_threads()}; residual / pushtorch "
           f"{p50['residual'] / p50['pushtorch']:.2f}")
     print(f"residual_p50_s={p50['residual']:.3f} pushtorch_p50_s={p50['pushtorch']:.3f} "
