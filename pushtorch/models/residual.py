@@ -100,12 +100,13 @@ DEFENSIVE_TURN = 5.0
 #: (:data:`UNCORRECTED_RATES`); 5, as 4 with the uncorrected rollouts' kernels widened by the corrections' spread
 NOVELTY_FORM = 5
 #: A model's point predictions: ``corrected``, its density's mode (the highest corrected kernel centre);
-#: ``shifted``, that mixture's local mode at the push model's motion kernels' width, found by mean shift from every
-#: kernel centre (where pushtorch anneals its own mode); ``learned``, its push model's own prediction (pushtorch's
-#: annealed product of experts) from the same push condition. Chosen per model by the mean H_acc of each on its own
-#: held-out training pushes (:func:`pushtorch.evaluation.transfer.choose_residual_scale`): where the simulator is
-#: far off the world for the training object, the corrections are large and the corrected rollouts scatter, while
-#: the learned kernels of the same pushes keep their contact's outcome. The density is the corrected one either way.
+#: ``shifted``, that mixture's local mode at the push model's motion kernels' width (where pushtorch anneals its
+#: own mode), found by mean shift from its highest kernel centres (:func:`pushtorch.prediction.residual.
+#: shifted_mode`); ``learned``, its push model's own prediction (pushtorch's annealed product of experts) from the
+#: same push condition. Chosen per model by the mean H_acc of each on its own held-out training pushes
+#: (:func:`pushtorch.evaluation.transfer.choose_residual_scale`): where the simulator is far off the world for the
+#: training object, the corrections are large and the corrected rollouts scatter, while the learned kernels of the
+#: same pushes keep their contact's outcome. The density is the corrected one whichever.
 POINTS = ("corrected", "shifted", "learned")
 #: Mean-shift steps of the ``shifted`` point
 SHIFT_STEPS = 20
