@@ -65,6 +65,20 @@ def test_a_learned_point_is_the_push_models_prediction_and_the_density_stays_cor
                                                                                own.final_pose, pose))
 
 
+def test_a_batch_of_learned_points_is_the_push_models_batch(trained):
+    """predict_many anneals a learned-point model's push-model predictions together, as the push model's own."""
+    from pushtorch.prediction import predict_many
+
+    cube, _, model, residual = trained
+    poses = [cube.resting_pose(yaw=y) for y in (-0.3, 0.2, 0.5)]
+    clouds = [capture_partial_cloud(cube, p, voxel_size=model.settings.voxel_size) for p in poses]
+    made = predict_many(dataclasses.replace(residual, point="learned"), clouds, model.actions[1], seed=4, batch_size=3)
+    own = predict_many(model, clouds, model.actions[1], seed=4, batch_size=3)
+    for m, o, pose in zip(made, own, poses, strict=True):
+        assert m.point == "learned"
+        assert _close(displaced(m.start, m.final_pose, pose), displaced(o.condition.object_pose, o.final_pose, pose))
+
+
 def test_a_shifted_point_is_a_local_mode_of_the_corrected_kernels_at_the_motion_width(trained):
     from pushtorch.kde import KernelBandwidth, PoseKDE
     from pushtorch.kde.normaliser import NO_CUTOFF

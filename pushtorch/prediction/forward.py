@@ -345,13 +345,13 @@ def _predict_batch(
     for m in distinct:
         rows = [i for i, c in enumerate(chosen) if c is m]
         if isinstance(m, ResidualModel):  # its rollouts are batched per prediction, from the cloud as given
-            for i in rows:
-                if m.point == "learned":  # its point is its push model's prediction, from the same push condition
-                    own = share(m.model, [features[i]], [m.action_index(actions[i])], generator, False, [starts[i]])[0]
-                    out[i] = predict_residual(m, clouds[i], actions[i], generator, condition=own.condition,
-                                              learned=(own.condition.object_pose, own.final_pose))
-                else:
-                    out[i] = predict_residual(m, clouds[i], actions[i], generator, robot_start=starts[i])
+            # a learned point is its push model's prediction (annealed together), from the same push condition
+            owns = share(m.model, [features[i] for i in rows], [m.action_index(actions[i]) for i in rows], generator,
+                         False, [starts[i] for i in rows]) if m.point == "learned" else [None] * len(rows)
+            for i, own in zip(rows, owns, strict=True):
+                out[i] = predict_residual(m, clouds[i], actions[i], generator, robot_start=starts[i]) if own is None \
+                    else predict_residual(m, clouds[i], actions[i], generator, condition=own.condition,
+                                          learned=(own.condition.object_pose, own.final_pose))
             continue
         a_idx = [m.action_index(actions[i]) for i in rows]
         predictions = share(m, [features[i] for i in rows], a_idx, generator, record_history, [starts[i] for i in rows])
