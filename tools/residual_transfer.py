@@ -19,6 +19,12 @@ the rollout's displacement and turn in the robot's start frame to the nearest tr
 that the contact reaches; the median over the rollouts). (2) is a diagnosis of what a widening by novelty can tell
 apart, never a choice.
 
+``coverage <run>``: for the same run, each catalogue object's test pushes (its ground truth records, from their
+robot starts) predicted again by its training object's residual model from fresh single-shot clouds (other draws
+than the run's), and the share of truths inside the 50 % and 90 % regions (docs/method.md, "Likelihood score") of
+the whole density and of its corrected kernels alone (:func:`pushtorch.prediction.residual.narrow_density`): what
+the defensive part and the uncorrected share do to calibration, and how much a second draw moves it.
+
 ``weights <run>``: for a shape-transfer run (``experiment=quickstart_transfer``), the pooled residual model's
 mean correction per training shape and action (translation cm / turn rad), and for each transfer object at three
 yaws the four training shapes whose kernels weigh most in its predictions (their share of the contact weight):
@@ -31,6 +37,7 @@ the better of the two, its nll and 90 % coverage. The last line is exactly ``obj
 
     .venv/bin/python tools/residual_transfer.py distance runs/engine_gap [--pushes 15]
     .venv/bin/python tools/residual_transfer.py novelty runs/engine_gap [--pushes 15]
+    .venv/bin/python tools/residual_transfer.py coverage runs/engine_gap_pybullet
     .venv/bin/python tools/residual_transfer.py weights runs/quickstart_transfer
     .venv/bin/python tools/residual_transfer.py target runs/quickstart_transfer
 """
@@ -48,7 +55,7 @@ import numpy as np
 import torch
 
 from pushtorch import se3
-from pushtorch.evaluation.likelihood import nll
+from pushtorch.evaluation.likelihood import covered, hdr_thresholds, nll
 from pushtorch.evaluation.transfer import RESIDUAL_WIDENINGS
 from pushtorch.experiments.figures import FIGURE_DATA, read_figure_data
 from pushtorch.models.residual import NOVELTY_WIDENINGS
@@ -56,7 +63,7 @@ from pushtorch.models.residual_file import load_residual_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.prediction import transfer_distance
-from pushtorch.prediction.residual import novelty_factors, predict_residual, rescaled
+from pushtorch.prediction.residual import narrow_density, novelty_factors, predict_residual, rescaled
 from pushtorch.sim.records import load_records
 
 TRAINING_OF = {"cube": "cube", "prism_thin": "cube", "prism_long": "cube", "cylinder": "cylinder",
@@ -122,6 +129,29 @@ def distance(run: Path, pushes: int) -> None:
               + ", ".join(f"{k:g}: {v:.2f}" for k, v in zip(RESIDUAL_WIDENINGS, mean, strict=True))
               + f"; best kappa {RESIDUAL_WIDENINGS[int(mean.argmin())]:g}")
     _per_object(models, generator, "d2", lambda p, a: transfer_distance(_model_of(models, p), p.condition, a))
+
+
+def coverage(run: Path) -> None:
+    models = _models(run)
+    for obj_name, trained in TRAINING_OF.items():
+        residual, obj = models[trained], load_object(obj_name)
+        records = load_records(_one(f"{run}/truth/*_{obj_name}_paper_default_paper_default*"))
+        inside: dict[str, list] = {"density": [], "corrected kernels alone": []}
+        for i in torch.nonzero(records.valid).reshape(-1).tolist():
+            push = records.take(torch.tensor([i]))
+            start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
+            robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
+            truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
+            cloud = capture_partial_cloud(obj, start, voxel_size=residual.settings.voxel_size)
+            prediction = predict_residual(residual, cloud, push.action[0].float(), i, robot_start=robot)
+            for label, density in zip(inside, (prediction.density, narrow_density(prediction)), strict=True):
+                regions = hdr_thresholds(density, generator=torch.Generator().manual_seed(i), symmetry=obj.symmetry,
+                                         plane=prediction.start)
+                scored = nll(density, truth, start, prediction.start, obj.symmetry)
+                inside[label].append(covered(scored, regions).reshape(-1).double())
+        shares = {label: torch.stack(rows).mean(0).tolist() for label, rows in inside.items()}
+        print(f"{obj_name:14s} ({trained}'s model, {len(inside['density'])} pushes) 50 % / 90 % coverage: "
+              + "; ".join(f"{label} {v[0]:.2f} / {v[1]:.2f}" for label, v in shares.items()), flush=True)
 
 
 def _model_of(models: dict, prediction):
@@ -196,7 +226,7 @@ def target(run: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("what", choices=("distance", "novelty", "weights", "target"))
+    parser.add_argument("what", choices=("distance", "novelty", "coverage", "weights", "target"))
     parser.add_argument("run", type=Path)
     parser.add_argument("--pushes", type=int, default=15)
     args = parser.parse_args()
@@ -204,6 +234,8 @@ def main() -> None:
         distance(args.run, args.pushes)
     elif args.what == "novelty":
         novelty(args.run, args.pushes)
+    elif args.what == "coverage":
+        coverage(args.run)
     else:
         (weights if args.what == "weights" else target)(args.run)
 
