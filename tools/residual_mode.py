@@ -1,8 +1,9 @@
 """Where a residual prediction's point prediction should sit, measured on held-out *training* pushes: the
-mixture's highest kernel centre (``"centre"``), that centre moved by mean shift up to the local mode of the same
-kernels at the model's motion width (``ModelSettings.motion_bandwidth``, where pushtorch anneals its own mode;
-``"motion"``), the held-out push model's own prediction from the same robot start (``"learned"``), and the higher
-of the centre and that prediction under an even mixture of the residual's density and pushtorch's (``"mixture"``).
+mixture's highest kernel centre (``"centre"``), the local mode of the same kernels at the model's motion width
+(``ModelSettings.motion_bandwidth``, where pushtorch anneals its own mode; the ``shifted`` point,
+:func:`pushtorch.prediction.residual.shifted_mode`; ``"motion"``), the held-out push model's own prediction from
+the same robot start (``"learned"``), and the higher of the centre and that prediction under an even mixture of
+the residual's density and pushtorch's (``"mixture"``).
 A diagnosis for docs/method.md ("The residual model"), never a choice on a test object.
 
 For a run folder of the engine gap (``python -m pushtorch experiment=engine_gap``; its training pushes cached),
@@ -29,26 +30,12 @@ from pushtorch import se3
 from pushtorch.evaluation.metrics import accuracy, displaced
 from pushtorch.experiments.context import context_from_config, stable_seed
 from pushtorch.experiments.training import training_records
-from pushtorch.kde import PoseKDE
-from pushtorch.kde.normaliser import NO_CUTOFF
 from pushtorch.models.residual import train_residual_model
 from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.prediction import predict
-from pushtorch.prediction.residual import learned_point, narrow_density, predict_residual
-
-
-def polished(prediction, bandwidth, steps: int = 20) -> se3.Pose:
-    """The kernel centre of highest density under ``bandwidth`` after mean shift from every kernel centre."""
-    density = narrow_density(prediction)
-    means = density.means
-    kde = PoseKDE(se3.Pose.unchecked(means.p.unsqueeze(0), means.q.unsqueeze(0)), bandwidth, density.log_weights)
-    x = se3.Pose.unchecked(means.p.unsqueeze(0), means.q.unsqueeze(0))
-    for _ in range(steps):
-        x = kde.mean_shift(x)
-    best = int(kde.log_prob(x).reshape(-1).argmax())
-    return se3.Pose.unchecked(x.p[0, best], x.q[0, best])
+from pushtorch.prediction.residual import learned_point, narrow_density, predict_residual, shifted_mode
 
 
 def mixture_mode(pred, own, learned: se3.Pose) -> se3.Pose:
@@ -75,7 +62,6 @@ def main() -> None:
     cfg = OmegaConf.load(args.run / "resolved_config.yaml")
     ctx = context_from_config(cfg, args.run)
     wide = ctx.settings.motion_bandwidth
-    wide = type(wide)(wide.p_std, wide.rot_std, cutoff_std=NO_CUTOFF, alpha_t=wide.alpha_t)
     rows = []
     for name in ("cube", "cylinder"):
         obj = load_object(name)
@@ -101,7 +87,8 @@ def main() -> None:
                 own = predict(held.model, cloud, push.action[0].float(), generator, robot_start=robot)
                 learned = learned_point((own.condition.object_pose, own.final_pose), pred.start)
                 row = []
-                for point in (pred.final_pose, polished(pred, wide), learned, mixture_mode(pred, own, learned)):
+                shifted = shifted_mode(narrow_density(pred), wide)
+                for point in (pred.final_pose, shifted, learned, mixture_mode(pred, own, learned)):
                     row.append(float(accuracy(displaced(pred.start, point, start), truth, obj).hacc))
                 rows.append(row)
                 print(name, a, p, [round(v, 4) for v in row], flush=True)

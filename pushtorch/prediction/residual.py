@@ -216,7 +216,8 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     rot_std = math.sqrt((residual.bandwidth.rot_std * scale) ** 2 + share * spread[1] ** 2)
     bandwidth = dataclasses.replace(residual.bandwidth, p_std=p_std, rot_std=rot_std, cutoff_std=NO_CUTOFF)
     # the mode: the corrected kernel centre of highest density (the hedges below never move it)
-    mode = _highest_centre(_mixture(means, log_weights, bandwidth, None))
+    unwidened = _mixture(means, log_weights, bandwidth, None)
+    mode = _highest_centre(unwidened)
     uncorrected = uncorrected_share(residual.uncorrected, novelty)
     spread_c = correction_spread(kernels)
 
@@ -235,9 +236,12 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
         w = residual.defensive[2]
         density = DefensiveMixture(density, hedged(_widened(bandwidth, (w, w * DEFENSIVE_TURN))), share)
     thrown = int((~records.valid).sum())
-    point = mode if residual.point == "corrected" else learned_point(learned, body_start.to(dtype)) \
-        if residual.point == "learned" else shifted_mode(_mixture(means, log_weights, bandwidth, None),
-                                                         model.settings.motion_bandwidth)
+    if residual.point == "learned":
+        point = learned_point(learned, body_start.to(dtype))
+    elif residual.point == "shifted":
+        point = shifted_mode(unwidened, model.settings.motion_bandwidth)
+    else:
+        point = mode
     return ResidualPrediction(residual.name, motion.action, condition, body_start.to(dtype), point, density,
                               se3.Pose.unchecked(finals.p.to(dtype), finals.q.to(dtype)), drawn, thrown, log_w, d2,
                               p_std / residual.bandwidth.p_std, novelty, spread, uncorrected, spread_c,
