@@ -17,6 +17,7 @@ from pushtorch.models.residual import DEFENSIVE_PARTS as DEFENSIVE_PARTS_GRID
 from pushtorch.models.residual import corrected, residual_of, train_residual_model, with_ensemble
 from pushtorch.objects import load_object
 from pushtorch.perception import PointCloud, capture_partial_cloud
+from pushtorch.prediction import predict
 from pushtorch.prediction.residual import predict_residual
 from pushtorch.sim import make_actions
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
@@ -240,7 +241,7 @@ def test_predict_predict_many_and_a_library_take_residual_models(trained, residu
     a library of residual models selects, conditions and predicts with them."""
     from pushtorch.models.library import ConditionedLibrary, ModelLibrary
     from pushtorch.models.push_condition import features_for
-    from pushtorch.prediction import ResidualPrediction, predict, predict_many
+    from pushtorch.prediction import ResidualPrediction, predict_many
 
     cube, records, model = trained
     clouds = [capture_partial_cloud(cube, cube.resting_pose(yaw=y)) for y in (0.25, -0.3)]
@@ -302,7 +303,7 @@ def test_a_pooled_residual_takes_every_shapes_pushes_holds_one_out_and_widens_ac
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import RESIDUAL_WIDENINGS, choose_residual_widening
     from pushtorch.models.pooled import train_pooled_model
-    from pushtorch.models.residual import DEFENSIVE_PARTS, UNCORRECTED_RATES
+    from pushtorch.models.residual import DEFENSIVE_PARTS, POINTS, UNCORRECTED_RATES
     from pushtorch.models.residual_file import load_residual_model
     from pushtorch.sim import Normal, load_records, object_spec, plan_training_pushes, run_plan
 
@@ -331,12 +332,15 @@ def test_a_pooled_residual_takes_every_shapes_pushes_holds_one_out_and_widens_ac
     assert len(widened.meta["widening"]["nll"]) == len(RESIDUAL_WIDENINGS) * len(DEFENSIVE_PARTS) * len(
         UNCORRECTED_RATES)
     assert widened.defensive in DEFENSIVE_PARTS and widened.uncorrected in UNCORRECTED_RATES
+    point = widened.meta["widening"]["point"]  # chosen on the held-out shapes' pushes, lowest mean H_acc
+    assert point["points"] == list(POINTS) and point["pushes"] > 0
+    assert widened.point == point["chosen"] == POINTS[min(range(len(POINTS)), key=point["hacc"].__getitem__)]
     back = load_residual_model(widened.save(tmp_path / "pooled_residual.npz"))
-    assert (back.widening, back.shape_names, back.defensive, back.uncorrected) == (
-        widened.widening, widened.shape_names, widened.defensive, widened.uncorrected)
+    assert (back.widening, back.shape_names, back.defensive, back.uncorrected, back.point) == (
+        widened.widening, widened.shape_names, widened.defensive, widened.uncorrected, widened.point)
     assert all(torch.equal(a, b) for a, b in zip(back.shapes, widened.shapes, strict=True))
     cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=0.4))
-    one, two = (predict_residual(m, cloud, pooled.actions[1], 4) for m in (widened, back))
+    one, two = (predict(m, cloud, pooled.actions[1], torch.Generator().manual_seed(4)) for m in (widened, back))
     torch.testing.assert_close(one.final_pose.vector(), two.final_pose.vector(), rtol=0, atol=0)
     assert one.widened_by == pytest.approx(math.sqrt(1 + widened.widening * one.contact_distance2))
     with pytest.raises(InvalidParameterError):  # one object's residual has no shape to hold out

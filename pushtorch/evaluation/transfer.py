@@ -237,7 +237,7 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
                 skipped += 1
                 continue
             scores.append(scored[1])
-            cases.append((scored[0], case[4], case[3], _learned_hacc(held_out, obj, case, generator)))
+            cases.append((scored[0], case[4], case[3], _learned_hacc(held_out, obj, case, generator), obj))
     if not scores:
         raise InvalidParameterError(f"no held-out push of {obj.name} could be predicted to choose the residual "
                                     "kernels' scale")
@@ -248,8 +248,8 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     # from its file cannot hold pushes out
     own = torch.stack([residual_nll_grid(p, truth, start, obj, [novelty_factors(p, v, grid[best])
                                                                for v in NOVELTY_WIDENINGS])
-                       for p, truth, start, _ in cases]).mean(0)
-    point = _point_choice(cases, obj, grid[best], residual.settings.motion_bandwidth)
+                       for p, truth, start, _, _ in cases]).mean(0)
+    point = _point_choice(cases, lambda p: grid[best], residual.settings.motion_bandwidth, obj.name)
     log.info("residual kernels' scale %g for %s (held-out nll %.2f against %s at 1, %d pushes)", grid[best],
              obj.name, float(mean[best]), f"{float(mean[grid.index(1.0)]):.2f}" if 1.0 in grid else "—", len(scores))
     bandwidth = replace(residual.bandwidth, p_std=residual.bandwidth.p_std * grid[best],
@@ -282,20 +282,21 @@ def _hacc_of(estimate: se3.Pose, final: se3.Pose, start: se3.Pose, truth: se3.Po
     return float(hacc(moved, truth.to(torch.float64), obj.dimensions, obj.symmetry).reshape(-1)[0])
 
 
-def _point_choice(cases: list, obj: ObjectModel, factor: float, motion_bandwidth) -> dict:
+def _point_choice(cases: list, factor, motion_bandwidth, of: str) -> dict:
     """The point prediction (:data:`~pushtorch.models.residual.POINTS`) of lowest mean H_acc over the held-out
-    ``cases`` ``(prediction, truth, start, H_acc of the push model's own)``: the corrected kernels' mode taken at the
-    chosen ``factor``, their local mode at the push model's ``motion_bandwidth``, the push model's own; pushes the
-    push model could not predict are left out of every mean. ``se``: the paired SE of each point's difference from
-    the corrected mode's."""
+    ``cases`` ``(prediction, truth, start, H_acc of the push model's own, object)``: the corrected kernels' mode
+    with their stds times ``factor(prediction)`` (the chosen scale or widening), their local mode at the push
+    model's ``motion_bandwidth``, the push model's own; pushes the push model could not predict are left out of
+    every mean. ``se``: the paired SE of each point's difference from the corrected mode's; ``of`` names the
+    pushes in the log."""
     from pushtorch.models.residual import POINTS
     from pushtorch.prediction.residual import corrected_mode, narrow_density, shifted_mode
 
     rows = []
-    for p, truth, start, learned in cases:
+    for p, truth, start, learned, obj in cases:
         if math.isfinite(learned):
-            points = {"corrected": corrected_mode(p, factor), "shifted": shifted_mode(narrow_density(p),
-                                                                                        motion_bandwidth)}
+            points = {"corrected": corrected_mode(p, factor(p)), "shifted": shifted_mode(narrow_density(p),
+                                                                                           motion_bandwidth)}
             rows.append([learned if name == "learned" else _hacc_of(p.start, points[name], start, truth, obj)
                          for name in POINTS])
     if not rows:
@@ -306,18 +307,18 @@ def _point_choice(cases: list, obj: ObjectModel, factor: float, motion_bandwidth
     se = ((table - table[:, :1]).std(0) / math.sqrt(len(rows))).tolist() if len(rows) > 1 else [math.nan] * len(POINTS)
     chosen = POINTS[int(mean.argmin())]
     log.info("residual point prediction for %s: %s (held-out H_acc %s, paired SE against the corrected mode %s, "
-             "%d pushes)", obj.name, chosen, ", ".join(f"{n} {float(v):.4f}" for n, v in zip(POINTS, mean,
-                                                                                             strict=True)),
+             "%d pushes)", of, chosen, ", ".join(f"{n} {float(v):.4f}" for n, v in zip(POINTS, mean, strict=True)),
              ", ".join(f"{v:.4f}" for v in se[1:]), len(rows))
     return {"chosen": chosen, "points": list(POINTS), "hacc": mean.tolist(), "se": se, "pushes": len(rows)}
 
 
 def _residual_scores(residual, obj: ObjectModel, records, count: int, generator: torch.Generator,
-                     factors) -> tuple[list[torch.Tensor], int]:
+                     factors) -> tuple[list[torch.Tensor], int, list]:
     """Each held-out push's nll under ``residual``'s prediction at every combination of the narrow widenings
     ``factors(prediction)``, the defensive parts and the uncorrected shares (:func:`residual_nll_grid`), from one
-    prediction per push (the same rollouts), and how many pushes could not be predicted."""
-    scores, skipped = [], 0
+    prediction per push (the same rollouts), how many pushes could not be predicted, and each predicted push's
+    ``(case, prediction)`` (:func:`_push_case`)."""
+    scores, skipped, predicted = [], 0, []
     for case in _held_out_pushes(obj, records, count, residual.settings.voxel_size, generator):
         scored = _predicted_scores(residual, obj, case, generator,
                                    lambda p, truth, start: residual_nll_grid(p, truth, start, obj, factors(p)))
@@ -325,7 +326,8 @@ def _residual_scores(residual, obj: ObjectModel, records, count: int, generator:
             skipped += 1
         else:
             scores.append(scored[1])
-    return scores, skipped
+            predicted.append((case, scored[0]))
+    return scores, skipped, predicted
 
 
 def _predicted_scores(residual, obj: ObjectModel, case, generator: torch.Generator, score):
@@ -391,7 +393,10 @@ def choose_residual_widening(residual, objects: list[ObjectModel], records: list
     """The pooled ``residual`` model with its ``widening`` and its defensive part
     (:data:`~pushtorch.models.residual.DEFENSIVE_PARTS`) and uncorrected share
     (:data:`~pushtorch.models.residual.UNCORRECTED_RATES`) chosen together by leave-one-shape-out likelihood (module
-    docstring); the search is kept in ``meta["widening"]``.
+    docstring); the search is kept in ``meta["widening"]``. The same held-out shapes' pushes choose its point
+    prediction (:data:`~pushtorch.models.residual.POINTS`), as :func:`choose_residual_scale` chooses one object's:
+    the corrected kernels' mode at the chosen widening, their local mode at the motion kernels' width, or the
+    held-out pooled push model's own prediction, whichever has the lowest mean H_acc (``meta["widening"]["point"]``).
 
     Args:
         residual: a pooled :class:`~pushtorch.models.residual.ResidualModel`; objects, records: its training
@@ -409,18 +414,19 @@ def choose_residual_widening(residual, objects: list[ObjectModel], records: list
     _check_pushes(pushes_per_shape)
     generator = generator or torch.Generator().manual_seed(0)
     grid = [float(k) for k in widenings]
-    base = replace(residual, widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0)
-    scores, skipped = [], 0
+    base = replace(residual, widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0, point="corrected")
+    scores, skipped, predicted = [], 0, []
     for s, (obj, shape_records) in enumerate(zip(objects, records, strict=True)):
         try:
             held_out = base.without_shape(s)
         except InvalidParameterError:  # the only shape of some action: nothing to hold it out against
             skipped += 1
             continue
-        more, missed = _residual_scores(held_out, obj, shape_records, pushes_per_shape, generator,
-                                        lambda p: [math.sqrt(1.0 + k * p.contact_distance2) for k in grid])
+        more, missed, made = _residual_scores(held_out, obj, shape_records, pushes_per_shape, generator,
+                                              lambda p: [math.sqrt(1.0 + k * p.contact_distance2) for k in grid])
         scores += more
         skipped += missed
+        predicted += [(held_out, obj, case, p) for case, p in made]
     if not scores:
         raise InvalidParameterError("no held-out push of any training shape could be predicted to choose the "
                                     "residual's widening")
@@ -430,12 +436,18 @@ def choose_residual_widening(residual, objects: list[ObjectModel], records: list
     log.info("residual widening: kappa=%g, defensive part %s, uncorrected rate %g (held-out nll %.2f against %.2f "
              "unwidened, %d pushes)", kappa, part, rate, float(mean[best]), float(mean[0]) if grid[0] == 0.0
              else math.nan, len(scores))
+    # the same held-out shapes' pushes choose the point; the held-out push model's own predictions draw from
+    # generators of their own, so the choice of kappa draws what it drew before
+    cases = [(p, case[4], case[3], _learned_hacc(held_out, obj, case, torch.Generator().manual_seed(k)), obj)
+             for k, (held_out, obj, case, p) in enumerate(predicted)]
+    point = _point_choice(cases, lambda p: math.sqrt(1.0 + kappa * p.contact_distance2),
+                          residual.settings.motion_bandwidth, "the pooled model's held-out shapes")
     meta = dict(residual.meta)
     meta["widening"] = {"chosen": kappa, "defensive_chosen": list(part), "grid": grid,
                         "defensive": [list(d) for d in DEFENSIVE_PARTS], "uncorrected_chosen": rate,
                         "uncorrected": list(UNCORRECTED_RATES), "nll": mean.tolist(), "pushes": len(scores),
-                        "skipped": skipped}
-    return replace(residual, widening=kappa, defensive=part, uncorrected=rate, meta=meta)
+                        "skipped": skipped, "point": point}
+    return replace(residual, widening=kappa, defensive=part, uncorrected=rate, point=point["chosen"], meta=meta)
 
 
 def _combination(grid: list[float], index: int) -> tuple[float, tuple[float, float, float], float]:
@@ -484,8 +496,8 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
         for j, (obj, other) in enumerate(others):
             if j != i:
                 plain = replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0)
-                more, missed = _residual_scores(plain, obj, other, pushes_per_shape, generator,
-                                                lambda p: [novelty_factors(p, v) for v in grid])
+                more, missed, _ = _residual_scores(plain, obj, other, pushes_per_shape, generator,
+                                                   lambda p: [novelty_factors(p, v) for v in grid])
                 scores += more
                 skipped += missed
     if not scores:

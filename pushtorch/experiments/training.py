@@ -346,7 +346,13 @@ def train_pooled_residual(ctx: ExperimentContext, shapes: list[ObjectModel], fri
     same pushes and seed to recover which push each kernel came from (the same kernels, checked)."""
     from pushtorch.evaluation.transfer import choose_residual_widening
     from pushtorch.models.pooled import train_pooled_model
-    from pushtorch.models.residual import DEFENSIVE_PARTS, UNCORRECTED_RATES, train_residual_model, with_ensemble
+    from pushtorch.models.residual import (
+        DEFENSIVE_PARTS,
+        POINTS,
+        UNCORRECTED_RATES,
+        train_residual_model,
+        with_ensemble,
+    )
     from pushtorch.models.residual_file import load_residual_model
 
     model = train_pooled(ctx, shapes, friction, mass, widening_pushes, name)
@@ -359,7 +365,8 @@ def train_pooled_residual(ctx: ExperimentContext, shapes: list[ObjectModel], fri
                     and cached.outcomes is not None and cached.model.settings == model.settings \
                     and cached.shape_names == [s.name for s in shapes] \
                     and (cached.meta.get("widening") or {}).get("defensive") == [list(d) for d in DEFENSIVE_PARTS] \
-                    and (cached.meta.get("widening") or {}).get("uncorrected") == list(UNCORRECTED_RATES):
+                    and (cached.meta.get("widening") or {}).get("uncorrected") == list(UNCORRECTED_RATES) \
+                    and ((cached.meta.get("widening") or {}).get("point") or {}).get("points") == list(POINTS):
                 return saved_as(with_ensemble(cached, ensemble), _read_residual, str(path), int(ensemble))
         except RecordFormatError as exc:
             log.warning("retraining the residual of %s: %s", key, exc)

@@ -104,7 +104,8 @@ NOVELTY_FORM = 5
 #: own mode), found by mean shift from its highest kernel centres (:func:`pushtorch.prediction.residual.
 #: shifted_mode`); ``learned``, its push model's own prediction (pushtorch's annealed product of experts) from the
 #: same push condition. Chosen per model by the mean H_acc of each on its own held-out training pushes
-#: (:func:`pushtorch.evaluation.transfer.choose_residual_scale`): where the simulator is far off the world for the
+#: (:func:`pushtorch.evaluation.transfer.choose_residual_scale`; a pooled model's on its held-out shapes' pushes,
+#: :func:`pushtorch.evaluation.transfer.choose_residual_widening`): where the simulator is far off the world for the
 #: training object, the corrections are large and the corrected rollouts scatter, while the learned kernels of the
 #: same pushes keep their contact's outcome. The density is the corrected one whichever.
 POINTS = ("corrected", "shifted", "learned")
