@@ -25,6 +25,12 @@ than the run's), and the share of truths inside the 50 % and 90 % regions (docs/
 the whole density and of its corrected kernels alone (:func:`pushtorch.prediction.residual.narrow_density`): what
 the defensive part and the uncorrected share do to calibration, and how much a second draw moves it.
 
+``disagreement <run>``: for the same run, each catalogue object's test pushes predicted again from fresh clouds by
+its training object's push model and, from the same push condition, its residual model: how far the push model's
+point lies from the corrected mode (the H_acc of one displacement against the other), beside each one's H_acc:
+whether the two predictions' disagreement tells where the corrections do not carry (a per-prediction hedge's
+signal), never a choice.
+
 ``weights <run>``: for a shape-transfer run (``experiment=quickstart_transfer``), the pooled residual model's
 mean correction per training shape and action (translation cm / turn rad), and for each transfer object at three
 yaws the four training shapes whose kernels weigh most in its predictions (their share of the contact weight):
@@ -38,6 +44,7 @@ the better of the two, its nll and 90 % coverage. The last line is exactly ``obj
     .venv/bin/python tools/residual_transfer.py distance runs/engine_gap [--pushes 15]
     .venv/bin/python tools/residual_transfer.py novelty runs/engine_gap [--pushes 15]
     .venv/bin/python tools/residual_transfer.py coverage runs/engine_gap_pybullet
+    .venv/bin/python tools/residual_transfer.py disagreement runs/engine_gap_pybullet
     .venv/bin/python tools/residual_transfer.py weights runs/quickstart_transfer
     .venv/bin/python tools/residual_transfer.py target runs/quickstart_transfer
 """
@@ -56,14 +63,15 @@ import torch
 
 from pushtorch import se3
 from pushtorch.evaluation.likelihood import covered, hdr_thresholds, nll
+from pushtorch.evaluation.metrics import displaced, hacc
 from pushtorch.evaluation.transfer import RESIDUAL_WIDENINGS
 from pushtorch.experiments.figures import FIGURE_DATA, read_figure_data
 from pushtorch.models.residual import NOVELTY_WIDENINGS
 from pushtorch.models.residual_file import load_residual_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
-from pushtorch.prediction import transfer_distance
-from pushtorch.prediction.residual import narrow_density, novelty_factors, predict_residual, rescaled
+from pushtorch.prediction import predict, transfer_distance
+from pushtorch.prediction.residual import learned_point, narrow_density, novelty_factors, predict_residual, rescaled
 from pushtorch.sim.records import load_records
 
 TRAINING_OF = {"cube": "cube", "prism_thin": "cube", "prism_long": "cube", "cylinder": "cylinder",
@@ -131,19 +139,26 @@ def distance(run: Path, pushes: int) -> None:
     _per_object(models, generator, "d2", lambda p, a: transfer_distance(_model_of(models, p), p.condition, a))
 
 
+def _test_pushes(run: Path, obj, voxel_size: float):
+    """``obj``'s test pushes in ``run`` (its ground truth records): each ``(index, cloud, action, robot start,
+    start, truth)``, the single-shot cloud drawn afresh at the push's start."""
+    records = load_records(_one(f"{run}/truth/*_{obj.name}_paper_default_paper_default*"))
+    for i in torch.nonzero(records.valid).reshape(-1).tolist():
+        push = records.take(torch.tensor([i]))
+        start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
+        robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
+        truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
+        cloud = capture_partial_cloud(obj, start, voxel_size=voxel_size)
+        yield i, cloud, push.action[0].float(), robot, start, truth
+
+
 def coverage(run: Path) -> None:
     models = _models(run)
     for obj_name, trained in TRAINING_OF.items():
         residual, obj = models[trained], load_object(obj_name)
-        records = load_records(_one(f"{run}/truth/*_{obj_name}_paper_default_paper_default*"))
         inside: dict[str, list] = {"density": [], "corrected kernels alone": []}
-        for i in torch.nonzero(records.valid).reshape(-1).tolist():
-            push = records.take(torch.tensor([i]))
-            start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
-            robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
-            truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
-            cloud = capture_partial_cloud(obj, start, voxel_size=residual.settings.voxel_size)
-            prediction = predict_residual(residual, cloud, push.action[0].float(), i, robot_start=robot)
+        for i, cloud, action, robot, start, truth in _test_pushes(run, obj, residual.settings.voxel_size):
+            prediction = predict_residual(residual, cloud, action, i, robot_start=robot)
             for label, density in zip(inside, (prediction.density, narrow_density(prediction)), strict=True):
                 regions = hdr_thresholds(density, generator=torch.Generator().manual_seed(i), symmetry=obj.symmetry,
                                          plane=prediction.start)
@@ -152,6 +167,32 @@ def coverage(run: Path) -> None:
         shares = {label: torch.stack(rows).mean(0).tolist() for label, rows in inside.items()}
         print(f"{obj_name:14s} ({trained}'s model, {len(inside['density'])} pushes) 50 % / 90 % coverage: "
               + "; ".join(f"{label} {v[0]:.2f} / {v[1]:.2f}" for label, v in shares.items()), flush=True)
+
+
+def _hacc(estimate: se3.Pose, final: se3.Pose, start: se3.Pose, truth: se3.Pose, obj) -> float:
+    """H_acc of the displacement ``estimate → final`` applied to ``start``, against ``truth``."""
+    moved = displaced(estimate.to(torch.float64), final.to(torch.float64), start.to(torch.float64))
+    return float(hacc(moved, truth.to(torch.float64), obj.dimensions, obj.symmetry).reshape(-1)[0])
+
+
+def disagreement(run: Path) -> None:
+    models = _models(run)
+    for obj_name, trained in TRAINING_OF.items():
+        residual, obj = models[trained], load_object(obj_name)
+        rows = []
+        for i, cloud, action, robot, start, truth in _test_pushes(run, obj, residual.settings.voxel_size):
+            own = predict(residual.model, cloud, action, torch.Generator().manual_seed(i), robot_start=robot)
+            corrected = predict_residual(residual, cloud, action, i, condition=own.condition)
+            learned = learned_point((own.condition.object_pose, own.final_pose), corrected.start)
+            as_corrected = displaced(corrected.start.to(torch.float64), corrected.final_pose.to(torch.float64),
+                                     start.to(torch.float64))
+            rows.append((_hacc(corrected.start, learned, start, as_corrected, obj),
+                         _hacc(corrected.start, corrected.final_pose, start, truth, obj),
+                         _hacc(corrected.start, learned, start, truth, obj)))
+        table = np.asarray(rows)
+        print(f"{obj_name:14s} ({trained}'s model, {len(rows)} pushes) disagreement median {np.median(table[:, 0]):.3f}"
+              f" mean {table[:, 0].mean():.3f}; H_acc corrected mode {table[:, 1].mean():.3f}, push model "
+              f"{table[:, 2].mean():.3f}", flush=True)
 
 
 def _model_of(models: dict, prediction):
@@ -226,7 +267,7 @@ def target(run: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("what", choices=("distance", "novelty", "coverage", "weights", "target"))
+    parser.add_argument("what", choices=("distance", "novelty", "coverage", "disagreement", "weights", "target"))
     parser.add_argument("run", type=Path)
     parser.add_argument("--pushes", type=int, default=15)
     args = parser.parse_args()
@@ -234,8 +275,8 @@ def main() -> None:
         distance(args.run, args.pushes)
     elif args.what == "novelty":
         novelty(args.run, args.pushes)
-    elif args.what == "coverage":
-        coverage(args.run)
+    elif args.what in ("coverage", "disagreement"):
+        (coverage if args.what == "coverage" else disagreement)(args.run)
     else:
         (weights if args.what == "weights" else target)(args.run)
 
