@@ -238,10 +238,12 @@ def test_conditioned_on_observed_pushes_the_ensemble_draws_from_the_posterior(tr
 def test_predict_predict_many_and_a_library_take_residual_models(trained, residual):
     """The library's interface works unchanged with residual models: predict and predict_many give each condition
     the residual prediction predict_residual gives it (predict_many's per-condition seeds as for push models), and
-    a library of residual models selects, conditions and predicts with them."""
+    a library of residual models selects, conditions and predicts with them; predict_candidates, whose batched
+    density is a product of experts, refuses them by name."""
     from pushtorch.models.library import ConditionedLibrary, ModelLibrary
     from pushtorch.models.push_condition import features_for
-    from pushtorch.prediction import ResidualPrediction, predict_many
+    from pushtorch.errors import ModelError
+    from pushtorch.prediction import ResidualPrediction, predict_candidates, predict_many
 
     cube, records, model = trained
     clouds = [capture_partial_cloud(cube, cube.resting_pose(yaw=y)) for y in (0.25, -0.3)]
@@ -266,6 +268,9 @@ def test_predict_predict_many_and_a_library_take_residual_models(trained, residu
     picked = predict(conditioned, clouds[1], model.actions[1], torch.Generator().manual_seed(2))
     assert isinstance(picked, ResidualPrediction)
     assert bool(torch.isfinite(picked.density.log_prob(picked.final_pose.vector())))
+    for batched in (residual, library):  # a planner's batched candidates: refused, never pushtorch's answer instead
+        with pytest.raises(ModelError, match="residual model.*predict_many"):
+            predict_candidates(batched, clouds[0], [alone.condition.robot_start], model.actions[2])
 
 
 def test_the_predict_app_reads_a_residual_model_file_and_records_its_rollouts_beside_its_density(residual,

@@ -509,7 +509,8 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
             < 1, or an unknown ``kernels``.
         InvalidPoseError: a start that is not a finite pose.
         ModelError: a model that widens each prediction by its transfer distance (a calibrated pooled model,
-            ``transfer_widening > 0``): its candidates' densities differ in bandwidth.
+            ``transfer_widening > 0``): its candidates' densities differ in bandwidth; a residual model (or a library
+            that chooses one): its candidates' densities are its own ensembles' mixtures.
     """
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
         raise InvalidParameterError(f"chunk_size must be an integer >= 1, got {chunk_size!r}")
@@ -528,6 +529,11 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
     first = model.models[0] if isinstance(model, ModelLibrary) else model
     features = features_for(cloud, first.settings, first.position)
     chosen = model.select(features)[0] if isinstance(model, ModelLibrary) else model
+    if isinstance(chosen, ResidualModel):  # it would pass for its push model and answer with pushtorch's densities
+        raise ModelError(
+            f"model {chosen.name!r} is a residual model: each of its candidates rolls out an ensemble of its own and "
+            "its density is not a product of experts, so its candidates cannot be one batched density; predict them "
+            "with predict_many(model, [cloud] * C, actions, robot_starts=...)")
     if chosen.settings.transfer_widening > 0:
         raise ModelError(
             f"model {chosen.name!r} widens each prediction by its own transfer distance (transfer_widening="
