@@ -348,10 +348,13 @@ def _predict_batch(
             # a learned point is its push model's prediction (annealed together), from the same push condition
             owns = share(m.model, [features[i] for i in rows], [m.action_index(actions[i]) for i in rows], generator,
                          False, [starts[i] for i in rows]) if m.point == "learned" else [None] * len(rows)
+            same = m.settings.feature_radius == first.settings.feature_radius  # the features made above serve it
             for i, own in zip(rows, owns, strict=True):
-                out[i] = predict_residual(m, clouds[i], actions[i], generator, robot_start=starts[i]) if own is None \
+                made = features[i] if same else None
+                out[i] = predict_residual(m, clouds[i], actions[i], generator, robot_start=starts[i],
+                                          features=made) if own is None \
                     else predict_residual(m, clouds[i], actions[i], generator, condition=own.condition,
-                                          learned=(own.condition.object_pose, own.final_pose))
+                                          learned=(own.condition.object_pose, own.final_pose), features=made)
             continue
         a_idx = [m.action_index(actions[i]) for i in rows]
         predictions = share(m, [features[i] for i in rows], a_idx, generator, record_history, [starts[i] for i in rows])

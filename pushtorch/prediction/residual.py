@@ -48,6 +48,7 @@ import torch
 from pushtorch import se3
 from pushtorch.distribution import DefensiveMixture, FinalPoseDistribution
 from pushtorch.errors import InvalidParameterError, ModelError
+from pushtorch.features import SurfaceFeatures
 from pushtorch.kde import Evaluation, KernelBandwidth, PoseKDE
 from pushtorch.kde.normaliser import NO_CUTOFF
 from pushtorch.models.clearance import check_start
@@ -121,7 +122,8 @@ class ResidualPrediction:
 
 def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Generator | int | None = None,
                      robot_start: se3.Pose | None = None, learned: tuple[se3.Pose, se3.Pose] | None = None,
-                     condition: PushCondition | None = None) -> ResidualPrediction:
+                     condition: PushCondition | None = None,
+                     features: SurfaceFeatures | None = None) -> ResidualPrediction:
     """Predict where the object in ``cloud`` ends up after ``action`` (module docstring).
 
     Args:
@@ -136,6 +138,9 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
         condition: the push condition of this cloud and action made already (the push model's prediction's, whose
             robot start and pose estimate the rollouts then share), instead of ``robot_start``: its pose query is
             not made twice.
+        features: the surface features of ``cloud`` under the model's settings, made already
+            (:func:`~pushtorch.models.push_condition.features_for`): not made twice; the body is still built
+            from the cloud's points.
 
     Raises:
         ModelError: a cloud that spans no volume, or a rollout with a non-finite outcome.
@@ -151,7 +156,7 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
                                     "pushtorch.prediction.predict, or give it (learned=(object start, final pose))")
     generator = as_generator(generator)
     a = model.action_index(action)
-    features = features_for(cloud, model.settings, model.position)
+    features = features_for(cloud if features is None else features, model.settings, model.position)
     if condition is None:
         start = None if robot_start is None else check_start(robot_start)
         condition = push_conditions(model, [features], [a], generator, False, [start])[0]
