@@ -497,7 +497,7 @@ def test_tiny_quickstart_recording_opens_ready_to_review(tiny_run):
     assert blueprint["timeline"] == "sim_time"
     kinds = {view["class"] for view in blueprint["views"]}
     assert {"3D", "TextDocument", "TimeSeries"} <= kinds
-    on_sim_time, series, modes = set(), set(), {}
+    on_sim_time, series, points = set(), set(), {}
     for chunk in RrdReader(str(out / "recording.rrd")).store().stream().to_chunks():
         batch = chunk.to_record_batch()
         names = batch.schema.names
@@ -505,14 +505,15 @@ def test_tiny_quickstart_recording_opens_ready_to_review(tiny_run):
             on_sim_time.add(str(chunk.entity_path))
         if "Scalars:scalars" in names:
             series.add(str(chunk.entity_path))
-        if str(chunk.entity_path).endswith("/density/mode") and "Points3D:positions" in names:
-            modes[str(chunk.entity_path)] = batch.column("Points3D:positions").to_pylist()[0]
-    # the residual model's logged example is the prediction its set holds (made once, kept for the recording)
+        if str(chunk.entity_path).endswith("/rollouts/point") and "Points3D:positions" in names:
+            points[str(chunk.entity_path)] = batch.column("Points3D:positions").to_pylist()[0]
+    # the residual model's logged example is the prediction its set holds (made once, kept for the recording): its
+    # point, whichever the model reports
     residual_set = PredictionSet.load(next((out / "predictions").glob("shape_transfer_prism_thin_shapes*.npz")))
     for j in range(2):
-        mode = modes["/world/model/prediction/shape_transfer/prism_thin/pushtorch_shapes/pushtorch_residual"
-                     f"/c0a{j}/density/mode"]
-        assert torch.allclose(torch.tensor(mode).reshape(3), residual_set.residual_final.take((0, j)).p, atol=1e-6)
+        point = points["/world/model/prediction/shape_transfer/prism_thin/pushtorch_shapes/pushtorch_residual"
+                       f"/c0a{j}/rollouts/point"]
+        assert torch.allclose(torch.tensor(point).reshape(3), residual_set.residual_final.take((0, j)).p, atol=1e-6)
     assert any(p.endswith("/truth_push/object") for p in on_sim_time)
     assert any(p.endswith("/truth_push/robot") for p in on_sim_time)
     assert any(p.startswith("/metrics/") and "/hacc/" in p for p in series)

@@ -240,9 +240,9 @@ def test_predict_predict_many_and_a_library_take_residual_models(trained, residu
     the residual prediction predict_residual gives it (predict_many's per-condition seeds as for push models), and
     a library of residual models selects, conditions and predicts with them; predict_candidates, whose batched
     density is a product of experts, refuses them by name."""
+    from pushtorch.errors import ModelError
     from pushtorch.models.library import ConditionedLibrary, ModelLibrary
     from pushtorch.models.push_condition import features_for
-    from pushtorch.errors import ModelError
     from pushtorch.prediction import ResidualPrediction, predict_candidates, predict_many
 
     cube, records, model = trained
@@ -292,7 +292,8 @@ def test_the_predict_app_reads_a_residual_model_file_and_records_its_rollouts_be
     assert all(math.isfinite(v) for v in entry["nll"]) and 0 <= summary["hacc_mean"] < 0.5
     paths = viz.read_entity_paths(tmp_path / "p" / "recording.rrd")
     root = "/world/model/prediction/action_1"
-    for entity in ("rollouts/finals", "rollouts/paths", "rollouts/start", "density/samples", "final_true"):
+    for entity in ("rollouts/finals", "rollouts/paths", "rollouts/start", "rollouts/point", "density/samples",
+                   "final_true"):
         assert f"{root}/{entity}" in paths, entity
     assert f"{root}/motion/experts" not in paths
 

@@ -12,7 +12,8 @@ prediction's root:
                                           Carlo estimate of the region's extent; a point set, no hull)
 ``<root>/density/ghosts``                 :data:`DENSITY_GHOSTS` of the draws as axis triads (their
                                           orientations)
-``<root>/density/mode``                   the density's mode (``prediction.final_pose``): a point; its axis
+``<root>/density/mode``                   the density's mode (a push model's ``prediction.final_pose``; a
+                                          residual model may report another point): a point; its axis
                                           triad at ``/axes``
 ``<root>/density/truth``                  the truth in the density's frame, if ``truth_final`` is given: the
                                           true motion applied to the estimated start, ``B1 ∘ B0⁻¹ ∘ B̂0``

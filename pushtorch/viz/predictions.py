@@ -39,8 +39,11 @@ the push started); everything else is static.
 ``<root>/rollouts/finals``                each simulator rollout's final body position, coloured by its
                                           friction; ``final_frames`` their axis triads, ``paths`` arrows from
                                           the start to each
+``<root>/rollouts/point``                 the residual model's point prediction in its density's frame (its
+                                          ``final_pose``: the density's mode, the shifted mode or its push
+                                          model's own, docs/method.md "The point prediction"); ``/axes``
 ``<root>/final_predicted``                predicted final pose (transform); ``/mesh``, ``/axes`` (a residual
-                                          prediction's: its mode's displacement applied to the estimate)
+                                          prediction's: its point's displacement applied to the estimate)
 ``<root>/initial_true``                   true initial pose, if given; ``/mesh``, ``/axes``
 ``<root>/final_true``                     true final pose, if given; ``/mesh``, ``/axes``
 ``<root>/initial_error``                  line from the estimated to the true initial centre, if given
@@ -57,7 +60,8 @@ the push started); everything else is static.
                                           Carlo estimate of the region's extent; a point set, no hull)
 ``<root>/density/ghosts``                 :data:`~pushtorch.viz.densities.DENSITY_GHOSTS` of the draws as axis
                                           triads (their orientations)
-``<root>/density/mode``                   the density's mode (``prediction.final_pose``): a point; its axis
+``<root>/density/mode``                   the density's mode (a push model's ``prediction.final_pose``; a
+                                          residual model's point is ``rollouts/point``): a point; its axis
                                           triad at ``/axes``
 ``<root>/density/truth``                  the truth in the density's frame, if ``truth_final`` is given: the
                                           true motion applied to the estimated start, ``B1 ∘ B0⁻¹ ∘ B̂0``
@@ -244,6 +248,10 @@ def _log_rollouts(rec: rr.RecordingStream, root: str, prediction: ResidualPredic
     start = prediction.start.p.reshape(3)
     finals = prediction.rollouts
     log_frames(rec, f"{root}/start", prediction.start.reshape(-1), length=0.05, static=True)
+    # the point the model reports, in the density's frame (its density's mode unless the model reports another)
+    point = prediction.final_pose.reshape(-1)
+    log_points(rec, f"{root}/point", point.p, colors=_PREDICTED_COLOUR[:3], radii=0.008, static=True)
+    log_frames(rec, f"{root}/point/axes", point, length=0.05, static=True)
     log_points(rec, f"{root}/finals", finals.p, colors=range_colors(prediction.physics[:, 0]), radii=0.006,
                static=True)
     shown = subsample(finals.p.shape[0], max_frames, finals.p.device)
