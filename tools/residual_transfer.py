@@ -31,6 +31,13 @@ point lies from the corrected mode (the H_acc of one displacement against the ot
 whether the two predictions' disagreement tells where the corrections do not carry (a per-prediction hedge's
 signal), never a choice.
 
+``scale <run>``: for the same run, each training object's residual model trained again from the run's pushes
+(its push model with another seed than the run's, so that its kernels know their pushes), ``--pushes`` of its
+pushes per action held out in turn and predicted as test pushes are, and the mean held-out nll at every kernels'
+scale of :data:`pushtorch.evaluation.transfer.RESIDUAL_SCALES`, without the hedges (what the scale is chosen on)
+and with the run's defensive part and uncorrected share: where a choice of the scale with the hedges in place
+would land.
+
 ``weights <run>``: for a shape-transfer run (``experiment=quickstart_transfer``), the pooled residual model's
 mean correction per training shape and action (translation cm / turn rad), and for each transfer object at three
 yaws the four training shapes whose kernels weigh most in its predictions (their share of the contact weight):
@@ -45,6 +52,7 @@ the better of the two, its nll and 90 % coverage. The last line is exactly ``obj
     .venv/bin/python tools/residual_transfer.py novelty runs/engine_gap [--pushes 15]
     .venv/bin/python tools/residual_transfer.py coverage runs/engine_gap_pybullet
     .venv/bin/python tools/residual_transfer.py disagreement runs/engine_gap_pybullet
+    .venv/bin/python tools/residual_transfer.py scale runs/engine_gap_pybullet [--pushes 10]
     .venv/bin/python tools/residual_transfer.py weights runs/quickstart_transfer
     .venv/bin/python tools/residual_transfer.py target runs/quickstart_transfer
 """
@@ -62,12 +70,14 @@ import numpy as np
 import torch
 
 from pushtorch import se3
+from pushtorch.errors import PushtorchError
 from pushtorch.evaluation.likelihood import covered, hdr_thresholds, nll
 from pushtorch.evaluation.metrics import displaced, hacc
-from pushtorch.evaluation.transfer import RESIDUAL_WIDENINGS
+from pushtorch.evaluation.transfer import RESIDUAL_SCALES, RESIDUAL_WIDENINGS, residual_nll_grid
 from pushtorch.experiments.figures import FIGURE_DATA, read_figure_data
-from pushtorch.models.residual import NOVELTY_WIDENINGS
+from pushtorch.models.residual import NOVELTY_WIDENINGS, train_residual_model
 from pushtorch.models.residual_file import load_residual_model
+from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.prediction import predict, transfer_distance
@@ -145,11 +155,16 @@ def _test_pushes(run: Path, obj, voxel_size: float):
     records = load_records(_one(f"{run}/truth/*_{obj.name}_paper_default_paper_default*"))
     for i in torch.nonzero(records.valid).reshape(-1).tolist():
         push = records.take(torch.tensor([i]))
-        start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
-        robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
-        truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
+        start, robot, truth = _poses(push)
         cloud = capture_partial_cloud(obj, start, voxel_size=voxel_size)
         yield i, cloud, push.action[0].float(), robot, start, truth
+
+
+def _poses(push) -> tuple[se3.Pose, se3.Pose, se3.Pose]:
+    """One push's (records of one) object start, robot start and true final pose, float32."""
+    start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
+    robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
+    return start, robot, se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
 
 
 def coverage(run: Path) -> None:
@@ -193,6 +208,39 @@ def disagreement(run: Path) -> None:
         print(f"{obj_name:14s} ({trained}'s model, {len(rows)} pushes) disagreement median {np.median(table[:, 0]):.3f}"
               f" mean {table[:, 0].mean():.3f}; H_acc corrected mode {table[:, 1].mean():.3f}, push model "
               f"{table[:, 2].mean():.3f}", flush=True)
+
+
+def scale(run: Path, pushes: int) -> None:
+    models = _models(run)
+    grid = list(RESIDUAL_SCALES)
+    for name, saved in models.items():
+        obj = load_object(name)
+        records = load_records(_one(f"{run}/data/{name}_*"))
+        model = train_push_model(obj, records, saved.model.settings, name=name,
+                                 generator=torch.Generator().manual_seed(0))
+        residual = dataclasses.replace(train_residual_model(model, obj, records, saved.sim, saved.ensemble),
+                                       point="corrected")
+        generator, valid, rows = torch.Generator().manual_seed(0), records.take(records.valid), []
+        for a, motion in enumerate(residual.model.motions):
+            mine = valid.take((valid.action.double() - motion.action.detach().double().cpu()).abs().amax(-1) <= 1e-6)
+            kept = motion.manipulator.push.cpu().unique()
+            for p in kept[torch.randperm(len(kept), generator=generator)[:pushes]].tolist():
+                start, robot, truth = _poses(mine.take(torch.tensor([p])))
+                cloud = capture_partial_cloud(obj, start, voxel_size=residual.settings.voxel_size)
+                try:
+                    prediction = predict_residual(residual.without_pushes(a, torch.tensor([p])), cloud,
+                                                  motion.action, generator, robot_start=robot)
+                except PushtorchError:  # its push gave every kernel, or it cannot be predicted from there
+                    continue
+                rows.append([residual_nll_grid(prediction, truth, start, obj, grid, [part], [rate]).numpy()
+                             for part, rate in (((0.0, 0.0, 0.0), 0.0), (saved.defensive, saved.uncorrected))])
+        table = np.asarray(rows).mean(0)
+        for label, nlls in zip(("without the hedges", "with the run's hedges"), table, strict=True):
+            print(f"{name:9s} {len(rows)} held-out pushes, {label}: held-out nll by scale "
+                  + ", ".join(f"{f:g}: {v:.2f}" for f, v in zip(grid, nlls, strict=True))
+                  + f"; best {grid[int(nlls.argmin())]:g}", flush=True)
+        print(f"{name:9s} the run's choice: scale {saved.meta['scale']['chosen']:g}, defensive part "
+              f"{tuple(saved.defensive)}, uncorrected rate {saved.uncorrected:g}")
 
 
 def _model_of(models: dict, prediction):
@@ -267,14 +315,15 @@ def target(run: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("what", choices=("distance", "novelty", "coverage", "disagreement", "weights", "target"))
+    parser.add_argument("what", choices=("distance", "novelty", "coverage", "disagreement", "scale", "weights",
+                                         "target"))
     parser.add_argument("run", type=Path)
     parser.add_argument("--pushes", type=int, default=15)
     args = parser.parse_args()
     if args.what == "distance":
         distance(args.run, args.pushes)
-    elif args.what == "novelty":
-        novelty(args.run, args.pushes)
+    elif args.what in ("novelty", "scale"):
+        (novelty if args.what == "novelty" else scale)(args.run, args.pushes)
     elif args.what in ("coverage", "disagreement"):
         (coverage if args.what == "coverage" else disagreement)(args.run)
     else:
