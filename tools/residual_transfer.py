@@ -72,7 +72,7 @@ import torch
 from pushtorch import se3
 from pushtorch.errors import PushtorchError
 from pushtorch.evaluation.likelihood import covered, hdr_thresholds, nll
-from pushtorch.evaluation.metrics import displaced, hacc
+from pushtorch.evaluation.metrics import accuracy, displaced
 from pushtorch.evaluation.transfer import RESIDUAL_SCALES, RESIDUAL_WIDENINGS, residual_nll_grid
 from pushtorch.experiments.figures import FIGURE_DATA, read_figure_data
 from pushtorch.models.residual import NOVELTY_WIDENINGS, train_residual_model
@@ -184,12 +184,6 @@ def coverage(run: Path) -> None:
               + "; ".join(f"{label} {v[0]:.2f} / {v[1]:.2f}" for label, v in shares.items()), flush=True)
 
 
-def _hacc(estimate: se3.Pose, final: se3.Pose, start: se3.Pose, truth: se3.Pose, obj) -> float:
-    """H_acc of the displacement ``estimate → final`` applied to ``start``, against ``truth``."""
-    moved = displaced(estimate.to(torch.float64), final.to(torch.float64), start.to(torch.float64))
-    return float(hacc(moved, truth.to(torch.float64), obj.dimensions, obj.symmetry).reshape(-1)[0])
-
-
 def disagreement(run: Path) -> None:
     models = _models(run)
     for obj_name, trained in TRAINING_OF.items():
@@ -199,11 +193,11 @@ def disagreement(run: Path) -> None:
             own = predict(residual.model, cloud, action, torch.Generator().manual_seed(i), robot_start=robot)
             corrected = predict_residual(residual, cloud, action, i, condition=own.condition)
             learned = learned_point((own.condition.object_pose, own.final_pose), corrected.start)
-            as_corrected = displaced(corrected.start.to(torch.float64), corrected.final_pose.to(torch.float64),
-                                     start.to(torch.float64))
-            rows.append((_hacc(corrected.start, learned, start, as_corrected, obj),
-                         _hacc(corrected.start, corrected.final_pose, start, truth, obj),
-                         _hacc(corrected.start, learned, start, truth, obj)))
+            # H_acc of a displacement from the body's start applied to the true start, against another pose
+            as_learned, as_corrected = (displaced(corrected.start, point, start)
+                                        for point in (learned, corrected.final_pose))
+            rows.append([float(accuracy(moved, against, obj).hacc) for moved, against in
+                         ((as_learned, as_corrected), (as_corrected, truth), (as_learned, truth))])
         table = np.asarray(rows)
         print(f"{obj_name:14s} ({trained}'s model, {len(rows)} pushes) disagreement median {np.median(table[:, 0]):.3f}"
               f" mean {table[:, 0].mean():.3f}; H_acc corrected mode {table[:, 1].mean():.3f}, push model "
