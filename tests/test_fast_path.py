@@ -6,6 +6,7 @@ path runs the same functions and is checked by the slow test at the end and by t
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from functools import partial
 
@@ -408,6 +409,11 @@ def test_predict_many_batches_conditions_and_keeps_single_seeds(small_cube_model
         predict_many(model, clouds, actions, batch_size=0)
     with pytest.raises(InvalidParameterError):
         predict(model, clouds[0], actions[0], method="approximate")
+    # one cloud given for every candidate (featured once) predicts as equal clouds given apart
+    copies = [dataclasses.replace(clouds[1], points=clouds[1].points.clone()) for _ in range(3)]
+    shared, apart = (predict_many(model, given, actions, seed=5, batch_size=3) for given in ([clouds[1]] * 3, copies))
+    for one, other in zip(shared, apart, strict=True):
+        assert torch.equal(one.final_pose.p, other.final_pose.p) and torch.equal(one.final_pose.q, other.final_pose.q)
 
 
 def _shared_product_problem(problems, kernels, candidates, seed):

@@ -337,7 +337,11 @@ def _predict_batch(
     """One batch of :func:`predict_many`: a library selects per cloud, then each model's share runs
     together (:func:`_predict_fast`, or :func:`_predict_dense` one by one)."""
     first = model.models[0] if isinstance(model, ModelLibrary) else model
-    features = [features_for(c, first.settings, first.position) for c in clouds]
+    made: dict[int, SurfaceFeatures] = {}  # a cloud given more than once (a planner's candidates) is featured once
+    for c in clouds:
+        if id(c) not in made:
+            made[id(c)] = features_for(c, first.settings, first.position)
+    features = [made[id(c)] for c in clouds]
     chosen = [model.select(f)[0] if isinstance(model, ModelLibrary) else model for f in features]
     out: list[Prediction | None] = [None] * len(clouds)
     distinct = [m for i, m in enumerate(chosen) if all(m is not c for c in chosen[:i])]  # first-use order
