@@ -238,12 +238,10 @@ def test_conditioned_on_observed_pushes_the_ensemble_draws_from_the_posterior(tr
 def test_predict_predict_many_and_a_library_take_residual_models(trained, residual):
     """The library's interface works unchanged with residual models: predict and predict_many give each condition
     the residual prediction predict_residual gives it (predict_many's per-condition seeds as for push models), and
-    a library of residual models selects, conditions and predicts with them; predict_candidates, whose batched
-    density is a product of experts, refuses them by name."""
-    from pushtorch.errors import ModelError
+    a library of residual models selects, conditions and predicts with them."""
     from pushtorch.models.library import ConditionedLibrary, ModelLibrary
     from pushtorch.models.push_condition import features_for
-    from pushtorch.prediction import ResidualPrediction, predict_candidates, predict_many
+    from pushtorch.prediction import ResidualPrediction, predict_many
 
     cube, records, model = trained
     clouds = [capture_partial_cloud(cube, cube.resting_pose(yaw=y)) for y in (0.25, -0.3)]
@@ -268,9 +266,49 @@ def test_predict_predict_many_and_a_library_take_residual_models(trained, residu
     picked = predict(conditioned, clouds[1], model.actions[1], torch.Generator().manual_seed(2))
     assert isinstance(picked, ResidualPrediction)
     assert bool(torch.isfinite(picked.density.log_prob(picked.final_pose.vector())))
-    for batched in (residual, library):  # a planner's batched candidates: refused, never pushtorch's answer instead
-        with pytest.raises(ModelError, match="residual model.*predict_many"):
-            predict_candidates(batched, clouds[0], [alone.condition.robot_start], model.actions[2])
+
+
+def test_a_planners_candidates_of_one_cloud_take_a_residual_model(trained, residual):
+    """predict_candidates with a residual model (or a library that chooses one): one pose estimate for every
+    candidate, each candidate's rollouts the same whatever its company and order (draws keyed by the candidate), a
+    start that touches nothing flagged, log_prob(goal) each density at the goal's motion moved onto its body (−inf
+    where not a push, with gradients), and a learned-point model's points the push model's candidate predictions."""
+    import dataclasses
+
+    from pushtorch.models.library import ModelLibrary
+    from pushtorch.prediction import ResidualCandidates, predict_candidates
+    from pushtorch.prediction.residual import learned_point
+
+    cube, records, model = trained
+    cloud = capture_partial_cloud(cube, cube.resting_pose(yaw=0.25))
+    own = predict(model, cloud, model.actions[1], torch.Generator().manual_seed(0)).condition
+    starts = [se3.compose(own.robot_start, se3.from_xy_yaw(0.0, dy, 0.0)) for dy in (-0.01, 0.01)]
+    far = se3.Pose.unchecked(torch.tensor([5.0, 5.0, 0.0]), torch.tensor([1.0, 0.0, 0.0, 0.0]))
+    result = predict_candidates(residual, cloud, [*starts, far], model.actions[1], seed=3)
+    assert isinstance(result, ResidualCandidates) and result.valid.tolist() == [True, True, False]
+    assert result.reasons[0] is None and "touches none" in result.reasons[2]
+    first, second = result.predictions[:2]
+    assert torch.equal(first.condition.object_pose.p, second.condition.object_pose.p)  # one estimate for all
+    for other in (predict_candidates(residual, cloud, [far, starts[1]], model.actions[1], seed=3),
+                  predict_candidates(ModelLibrary([residual]), cloud, [starts[1]], model.actions[1], seed=3)):
+        torch.testing.assert_close(other.predictions[-1].rollouts.p, second.rollouts.p, rtol=0, atol=0)
+    goal = result.estimate.vector().clone()
+    goal[0] += 0.08
+    goal.requires_grad_(True)
+    scores = result.log_prob(goal)
+    assert scores.shape == (3,) and bool(torch.isfinite(scores[:2]).all()) and scores[2] == -math.inf
+    target = se3.Pose.unchecked(goal.detach()[:3], goal.detach()[3:])
+    for score, made in zip(scores[:2], (first, second), strict=True):
+        want = made.density.log_prob(learned_point((result.estimate, target), made.start).vector())
+        torch.testing.assert_close(score.detach(), want.reshape(()).to(score), rtol=1e-5, atol=1e-5)
+    scores[:2].sum().backward()
+    assert bool(torch.isfinite(goal.grad).all()) and float(goal.grad.abs().sum()) > 0
+    learned = predict_candidates(dataclasses.replace(residual, point="learned"), cloud, starts, model.actions[1],
+                                 seed=3)
+    for made, push in zip(learned.predictions, predict_candidates(model, cloud, starts, model.actions[1],
+                                                                  seed=3).predictions, strict=True):
+        moved = learned_point((push.condition.object_pose, push.final_pose), made.start)
+        torch.testing.assert_close(made.final_pose.vector(), moved.vector(), rtol=0, atol=1e-6)
 
 
 def test_the_predict_app_reads_a_residual_model_file_and_records_its_rollouts_beside_its_density(residual,

@@ -12,6 +12,10 @@ It also prints what one pybullet rollout and its world cost (ensembles of 1 and 
 With ``--pool k`` (default 2) the same conditions are predicted again with every ensemble's rollouts split over
 ``k`` worker processes (:class:`pushtorch.sim.bodies.RolloutPool`), on a line of their own.
 
+One line times a planner's ``--candidates`` candidate starts of one cloud (16; the robot start shifted across the
+face), through ``predict_candidates`` (one pose estimate for all, docs/usage.md) and through ``predict_many``
+with the starts (a pose query each).
+
 Two lines time the residual model's other point predictions (docs/method.md, "The point prediction"): a model
 whose point is learned, predicted through ``pushtorch.prediction.predict`` (pushtorch's prediction, then the
 rollouts from its push condition), and one whose point is the shifted mode, from pushtorch's robot start.
@@ -20,6 +24,7 @@ The last line is exactly ``residual_p50_s=<..> pushtorch_p50_s=<..> ensemble100_
 line before it gives the host's CPU and the ratio residual / pushtorch (the gate: at most 3).
 
     .venv/bin/python tools/bench_residual.py [--conditions 12] [--ensemble 4] [--pushes 60] [--pool 2]
+        [--candidates 16]
 """
 
 from __future__ import annotations
@@ -108,6 +113,24 @@ def rollout_cost(conditions) -> tuple[float, float]:
     return statistics.median(per_rollout), statistics.median(world)
 
 
+def time_candidates(residual, condition, count: int) -> tuple[float, float]:
+    """Seconds for ``count`` candidate starts of one cloud (the condition's robot start shifted across the face, its
+    action) through ``predict_candidates`` and through ``predict_many`` with the starts, after one warm-up each."""
+    from pushtorch import se3
+    from pushtorch.prediction import predict_candidates, predict_many
+
+    cloud, action, prediction = condition
+    shifts = torch.linspace(-0.02, 0.02, count).tolist()
+    starts = [se3.compose(prediction.condition.robot_start, se3.from_xy_yaw(0.0, dy, 0.0)) for dy in shifts]
+    predict_candidates(residual, cloud, starts[:1], action, seed=0)
+    predict_many(residual, [cloud], action, seed=0, robot_starts=starts[:1])
+    started = time.perf_counter()
+    predict_candidates(residual, cloud, starts, action, seed=0)
+    middle = time.perf_counter()
+    predict_many(residual, [cloud] * count, action, seed=0, robot_starts=starts)
+    return middle - started, time.perf_counter() - middle
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--conditions", type=int, default=12)
@@ -115,6 +138,7 @@ def main() -> None:
                         help="the residual model's rollouts per prediction")
     parser.add_argument("--pushes", type=int, default=60, help="training pushes per action")
     parser.add_argument("--cache", default="runs/bench_residual")
+    parser.add_argument("--candidates", type=int, default=16, help="a planner's candidate starts of one cloud")
     parser.add_argument("--pool", type=int, default=2,
                         help="also time the residual and the ensemble with their rollouts split over this many "
                              "worker processes (pushtorch.sim.bodies.RolloutPool; 0: not)")
@@ -174,6 +198,9 @@ def main() -> None:
               f"{statistics.median(pooled['residual']):.3f} ensemble100_p50_s="
               f"{statistics.median(pooled['ensemble100']):.3f} (here, one after another: {p50['residual']:.3f}, "
               f"{p50['ensemble100']:.3f})")
+    candidates_s, many_s = time_candidates(residual, conditions[1], args.candidates)
+    print(f"a planner's {args.candidates} candidate starts of one cloud: predict_candidates {candidates_s:.2f} s "
+          f"(one pose estimate), predict_many with the starts {many_s:.2f} s ({many_s / candidates_s:.2f} ×)")
     print(f"a model whose point is learned, through predict (its push model's prediction, then the residual's "
           f"from that push condition): p50 {p50['learned']:.3f} s, {p50['learned'] / p50['pushtorch']:.2f} × pushtorch")
     print(f"a model whose point is the corrected kernels' shifted mode, from the same robot start: p50 "

@@ -36,7 +36,7 @@ from pushtorch.prediction.forward import (
     transfer_bandwidth,
     transfer_distance,
 )
-from pushtorch.prediction.residual import ResidualPrediction, predict_residual
+from pushtorch.prediction.residual import ResidualCandidates, ResidualPrediction, predict_residual
 
 __all__ = [
     "CandidatePredictions",
@@ -46,6 +46,7 @@ __all__ = [
     "OCCLUDED_STEP",
     "Prediction",
     "PushCondition",
+    "ResidualCandidates",
     "ResidualPrediction",
     "START_CLEARANCE",
     "clear_robot_start",

@@ -58,7 +58,12 @@ from pushtorch.models.push_condition import (
 from pushtorch.models.residual import ResidualModel
 from pushtorch.models.settings import as_generator, check_action
 from pushtorch.perception import PointCloud
-from pushtorch.prediction.residual import ResidualPrediction, predict_residual
+from pushtorch.prediction.residual import (
+    ResidualCandidates,
+    ResidualPrediction,
+    predict_residual,
+    residual_candidates,
+)
 from pushtorch.streams import KeyedStream, content_keys
 
 __all__ = [
@@ -482,10 +487,10 @@ def _cat_poses(values: list) -> se3.Pose | torch.Tensor:
     return torch.cat(values)
 
 
-def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | SurfaceFeatures, robot_starts,
-                       actions, seed: int = 0, generator: torch.Generator | None = None, chunk_size: int = 64,
-                       kernels: str = "full",
-                       normaliser_samples: int = PLANNER_NORMALISER_SAMPLES) -> CandidatePredictions:
+def predict_candidates(model: PushModel | ResidualModel | ModelLibrary, cloud: PointCloud | SurfaceFeatures,
+                       robot_starts, actions, seed: int = 0, generator: torch.Generator | None = None,
+                       chunk_size: int = 64, kernels: str = "full", normaliser_samples: int = PLANNER_NORMALISER_SAMPLES
+                       ) -> CandidatePredictions | ResidualCandidates:
     """Many candidate pushes of one observed object, as a planner asks for them: each candidate is a robot start
     and an action, and the result scores any goal pose for all of them in one call
     (:meth:`CandidatePredictions.log_prob`).
@@ -495,9 +500,14 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
     (:func:`~pushtorch.models.push_condition.candidate_conditions`). Each candidate's product of experts is
     annealed in chunks of ``chunk_size`` candidates together (memory grows with the chunk). A start that touches
     nothing the camera saw, or overlaps the object, is flagged (``valid``, ``reasons``) rather than failing the call.
+    A residual model (:mod:`pushtorch.prediction.residual`) gives :class:`ResidualCandidates`: the same push
+    conditions made once, each candidate's ensemble rolled out with draws keyed by the candidate
+    (:func:`~pushtorch.prediction.residual.residual_candidates`; a learned point's push-model predictions annealed
+    here first), each density scored on its own.
 
     Args:
-        model: a model (conditioned or pooled) or a library (its model chosen once, by the cloud's ``H_r``).
+        model: a model (conditioned, pooled or residual) or a library (its model chosen once, by the cloud's
+            ``H_r``).
         cloud: the observed cloud or its :class:`~pushtorch.features.SurfaceFeatures`.
         robot_starts: ``(C,)`` start poses (a batched :class:`~pushtorch.se3.Pose`) or a list of ``C`` poses.
         actions: ``(2,)`` for every candidate, or ``(C, 2)``; each one of ``model.actions``.
@@ -516,8 +526,7 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
             < 1, or an unknown ``kernels``.
         InvalidPoseError: a start that is not a finite pose.
         ModelError: a model that widens each prediction by its transfer distance (a calibrated pooled model,
-            ``transfer_widening > 0``): its candidates' densities differ in bandwidth; a residual model (or a library
-            that chooses one): its candidates' densities are its own ensembles' mixtures.
+            ``transfer_widening > 0``): its candidates' densities differ in bandwidth.
     """
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
         raise InvalidParameterError(f"chunk_size must be an integer >= 1, got {chunk_size!r}")
@@ -536,11 +545,18 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
     first = model.models[0] if isinstance(model, ModelLibrary) else model
     features = features_for(cloud, first.settings, first.position)
     chosen = model.select(features)[0] if isinstance(model, ModelLibrary) else model
-    if isinstance(chosen, ResidualModel):  # it would pass for its push model and answer with pushtorch's densities
-        raise ModelError(
-            f"model {chosen.name!r} is a residual model: each of its candidates rolls out an ensemble of its own and "
-            "its density is not a product of experts, so its candidates cannot be one batched density; predict them "
-            "with predict_many(model, [cloud] * C, actions, robot_starts=...)")
+    every = se3.Pose.stack(starts) if every is None else every
+    identity = torch.cat([every.p.reshape(-1, 3), every.q.reshape(-1, 4), actions.to(every.p)], -1).detach().float()
+    keys = content_keys(identity.cpu())  # each candidate's draws keyed by what it is (its start and action)
+    if isinstance(chosen, ResidualModel):  # its push conditions made once; each candidate's own ensemble
+        own = predict_candidates(chosen.model, features, starts, actions, seed, chunk_size=chunk_size) \
+            if chosen.point == "learned" else None
+        conditions, reasons = candidate_conditions(chosen.model, features, starts, [chosen.action_index(a) for a in
+                                                                                     actions], generator) \
+            if own is None else ([None if p is None else p.condition for p in own.predictions], own.reasons)
+        return residual_candidates(chosen, cloud, features, conditions, reasons, actions, keys, None if own is None
+                                   else [None if p is None else (p.condition.object_pose, p.final_pose)
+                                         for p in own.predictions])
     if chosen.settings.transfer_widening > 0:
         raise ModelError(
             f"model {chosen.name!r} widens each prediction by its own transfer distance (transfer_widening="
@@ -554,10 +570,8 @@ def predict_candidates(model: PushModel | ModelLibrary, cloud: PointCloud | Surf
     valid = torch.tensor([c is not None for c in conditions], dtype=torch.bool)
     if not rows:
         return CandidatePredictions([None] * len(starts), valid, tuple(reasons), None)
-    # each candidate's draws keyed by what it is (its start and action): no order, chunk or company changes them
-    every = se3.Pose.stack(starts) if every is None else every
-    identity = torch.cat([every.p.reshape(-1, 3), every.q.reshape(-1, 4), actions.to(every.p)], -1).detach().float()
-    stream = KeyedStream(int(seed), content_keys(identity.cpu()).to(chosen.device))
+    # each candidate's draws keyed by what it is: no order, chunk or company changes them
+    stream = KeyedStream(int(seed), keys.to(chosen.device))
     parts, results = [], []
     for begin in range(0, len(rows), chunk_size):
         chunk = rows[begin:begin + chunk_size]

@@ -35,6 +35,8 @@ the mode stays the corrected kernels'. The point prediction ``final_pose`` is th
 corrected kernels' local mode at the push model's motion width (``shifted``, :func:`shifted_mode`), or the push
 model's own prediction of the same push from the same push condition, in the cloud body's frame (``learned``):
 :func:`pushtorch.prediction.predict` makes that prediction first, a caller of :func:`predict_residual` gives it.
+A planner's candidates of one cloud share their push conditions (one pose estimate) and roll out an ensemble each
+(:func:`residual_candidates`, through :func:`pushtorch.prediction.predict_candidates`).
 """
 
 from __future__ import annotations
@@ -251,6 +253,71 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
                               se3.Pose.unchecked(finals.p.to(dtype), finals.q.to(dtype)), drawn, thrown, log_w, d2,
                               p_std / residual.bandwidth.p_std, novelty, spread, uncorrected, spread_c,
                               residual.point)
+
+
+@dataclass(frozen=True)
+class ResidualCandidates:
+    """Many candidate pushes of one cloud predicted by a residual model
+    (:func:`pushtorch.prediction.predict_candidates`, :func:`residual_candidates`).
+
+    Attributes:
+        predictions: per candidate, its :class:`ResidualPrediction`, or None where it is not a push.
+        valid: ``(C,)`` bool, the candidates that are pushes.
+        reasons: per candidate, why it is not a push (None where it is).
+        estimate: ``()`` the object's pose estimate every candidate's push condition shares (None: no candidate).
+    """
+
+    predictions: list[ResidualPrediction | None]
+    valid: torch.Tensor
+    reasons: tuple[str | None, ...]
+    estimate: se3.Pose | None
+
+    def log_prob(self, goal: torch.Tensor) -> torch.Tensor:
+        """``(C,)`` the log density (nats) each candidate gives the object ending at ``goal`` ``(7,)`` (x, y, z, w,
+        x, y, z), a pose of the estimated object as a push model's candidates take it (the motion from
+        :attr:`estimate` to ``goal``, applied to each prediction's cloud body, :func:`learned_point`), −inf for a
+        candidate that is not a push; differentiable with respect to ``goal``. Each density is scored on its own:
+        their widths differ with each push's contact distance and novelty, so they are not one batched density."""
+        out = torch.full((len(self.predictions),), -math.inf, dtype=goal.dtype, device=goal.device)
+        if self.estimate is None:
+            return out
+        target = se3.Pose.unchecked(goal.reshape(7)[:3], goal.reshape(7)[3:])
+        values = [p.density.log_prob(learned_point((self.estimate, target), p.start).vector()).reshape(()).to(goal)
+                  for p in self.predictions if p is not None]
+        return out.index_put((self.valid.nonzero(as_tuple=True)[0].to(goal.device),), torch.stack(values))
+
+
+def residual_candidates(residual: ResidualModel, cloud, features, conditions: list[PushCondition | None],
+                        reasons: list[str | None], actions: torch.Tensor, keys: torch.Tensor,
+                        learned: list[tuple[se3.Pose, se3.Pose] | None] | None = None) -> ResidualCandidates:
+    """A residual model's predictions of a planner's candidates of one cloud from their push conditions, made once
+    for all (one pose estimate, :func:`~pushtorch.models.push_condition.candidate_conditions`): each candidate's
+    ensemble drawn from a generator seeded by its ``keys`` entry (its start and action,
+    :func:`~pushtorch.streams.content_keys`), so no order or other candidate changes it. A candidate whose rollouts
+    fail (a non-finite outcome) is flagged, with the reason, as a start that is not a push is.
+
+    Args:
+        cloud, features: the cloud (its points build the body) and its surface features under the model's settings.
+        conditions, reasons: per candidate its push condition, or None and why not.
+        actions: ``(C, 2)`` each candidate's action; keys: ``(C,)`` int64 its key.
+        learned: per candidate the push model's own ``(object start, final pose)``, for a model whose point is
+            learned (None otherwise).
+    """
+    predictions: list[ResidualPrediction | None] = []
+    reasons = list(reasons)
+    for i, condition in enumerate(conditions):  # each candidate rolls its own ensemble out: a simulator call each
+        made = None
+        if condition is not None:
+            generator = torch.Generator().manual_seed(int(keys[i]) & 0x7FFFFFFFFFFFFFFF)
+            try:
+                made = predict_residual(residual, cloud, actions[i], generator, condition=condition, features=features,
+                                        learned=None if learned is None else learned[i])
+            except ModelError as exc:  # its rollouts failed: not a prediction
+                reasons[i] = str(exc)
+        predictions.append(made)
+    estimate = next((c.object_pose for c in conditions if c is not None), None)
+    valid = torch.tensor([p is not None for p in predictions], dtype=torch.bool)
+    return ResidualCandidates(predictions, valid, tuple(reasons), None if not bool(valid.any()) else estimate)
 
 
 def learned_point(learned: tuple[se3.Pose, se3.Pose], body_start: se3.Pose) -> se3.Pose:
