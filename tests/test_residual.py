@@ -292,6 +292,8 @@ def test_a_planners_candidates_of_one_cloud_take_a_residual_model(trained, resid
     for other in (predict_candidates(residual, cloud, [far, starts[1]], model.actions[1], seed=3),
                   predict_candidates(ModelLibrary([residual]), cloud, [starts[1]], model.actions[1], seed=3)):
         torch.testing.assert_close(other.predictions[-1].rollouts.p, second.rollouts.p, rtol=0, atol=0)
+    reseeded = predict_candidates(residual, cloud, starts, model.actions[1], seed=4).predictions[1]
+    assert not torch.equal(reseeded.physics, second.physics)  # the call's seed draws the ensembles' physics too
     goal = result.estimate.vector().clone()
     goal[0] += 0.08
     goal.requires_grad_(True)

@@ -554,9 +554,10 @@ def predict_candidates(model: PushModel | ResidualModel | ModelLibrary, cloud: P
         conditions, reasons = candidate_conditions(chosen.model, features, starts, [chosen.action_index(a) for a in
                                                                                      actions], generator) \
             if own is None else ([None if p is None else p.condition for p in own.predictions], own.reasons)
-        return residual_candidates(chosen, cloud, features, conditions, reasons, actions, keys, None if own is None
-                                   else [None if p is None else (p.condition.object_pose, p.final_pose)
-                                         for p in own.predictions])
+        return residual_candidates(chosen, cloud, features, conditions, reasons, actions, keys, seed,
+                                   None if own is None else [None if p is None else (p.condition.object_pose,
+                                                                                     p.final_pose)
+                                                             for p in own.predictions])
     if chosen.settings.transfer_widening > 0:
         raise ModelError(
             f"model {chosen.name!r} widens each prediction by its own transfer distance (transfer_widening="

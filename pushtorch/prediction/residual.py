@@ -288,11 +288,11 @@ class ResidualCandidates:
 
 
 def residual_candidates(residual: ResidualModel, cloud, features, conditions: list[PushCondition | None],
-                        reasons: list[str | None], actions: torch.Tensor, keys: torch.Tensor,
+                        reasons: list[str | None], actions: torch.Tensor, keys: torch.Tensor, seed: int,
                         learned: list[tuple[se3.Pose, se3.Pose] | None] | None = None) -> ResidualCandidates:
     """A residual model's predictions of a planner's candidates of one cloud from their push conditions, made once
     for all (one pose estimate, :func:`~pushtorch.models.push_condition.candidate_conditions`): each candidate's
-    ensemble drawn from a generator seeded by its ``keys`` entry (its start and action,
+    ensemble drawn from a generator seeded by the call's ``seed`` and its ``keys`` entry (its start and action,
     :func:`~pushtorch.streams.content_keys`), so no order or other candidate changes it. A candidate whose rollouts
     fail (a non-finite outcome) is flagged, with the reason, as a start that is not a push is.
 
@@ -308,7 +308,8 @@ def residual_candidates(residual: ResidualModel, cloud, features, conditions: li
     for i, condition in enumerate(conditions):  # each candidate rolls its own ensemble out: a simulator call each
         made = None
         if condition is not None:
-            generator = torch.Generator().manual_seed(int(keys[i]) & 0x7FFFFFFFFFFFFFFF)
+            generator = torch.Generator().manual_seed((int(seed) * 0x9E3779B97F4A7C15 + int(keys[i]))
+                                                      & 0x7FFFFFFFFFFFFFFF)
             try:
                 made = predict_residual(residual, cloud, actions[i], generator, condition=condition, features=features,
                                         learned=None if learned is None else learned[i])
