@@ -23,7 +23,9 @@ apart, never a choice.
 robot starts) predicted again by its training object's residual model from fresh single-shot clouds (other draws
 than the run's), and the share of truths inside the 50 % and 90 % regions (docs/method.md, "Likelihood score") of
 the whole density and of its corrected kernels alone (:func:`pushtorch.prediction.residual.narrow_density`): what
-the defensive part and the uncorrected share do to calibration, and how much a second draw moves it.
+the defensive part and the uncorrected share do to calibration, and how much a second draw moves it (``--draw k``:
+the predictions' seeds moved by 1000 k; the last line counts the objects whose 90 % coverage lies in the engine
+gap's band, [0.80, 0.97]).
 
 ``disagreement <run>``: for the same run, each catalogue object's test pushes predicted again from fresh clouds by
 its training object's push model and, from the same push condition, its residual model: how far the push model's
@@ -50,7 +52,7 @@ the better of the two, its nll and 90 % coverage. The last line is exactly ``obj
 
     .venv/bin/python tools/residual_transfer.py distance runs/engine_gap [--pushes 15]
     .venv/bin/python tools/residual_transfer.py novelty runs/engine_gap [--pushes 15]
-    .venv/bin/python tools/residual_transfer.py coverage runs/engine_gap_pybullet
+    .venv/bin/python tools/residual_transfer.py coverage runs/engine_gap_pybullet [--draw 0]
     .venv/bin/python tools/residual_transfer.py disagreement runs/engine_gap_pybullet
     .venv/bin/python tools/residual_transfer.py scale runs/engine_gap_pybullet [--pushes 10]
     .venv/bin/python tools/residual_transfer.py weights runs/quickstart_transfer
@@ -167,21 +169,24 @@ def _poses(push) -> tuple[se3.Pose, se3.Pose, se3.Pose]:
     return start, robot, se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
 
 
-def coverage(run: Path) -> None:
+def coverage(run: Path, draw: int) -> None:
     models = _models(run)
+    in_band = 0
     for obj_name, trained in TRAINING_OF.items():
         residual, obj = models[trained], load_object(obj_name)
         inside: dict[str, list] = {"density": [], "corrected kernels alone": []}
         for i, cloud, action, robot, start, truth in _test_pushes(run, obj, residual.settings.voxel_size):
-            prediction = predict_residual(residual, cloud, action, i, robot_start=robot)
+            prediction = predict_residual(residual, cloud, action, i + 1000 * draw, robot_start=robot)
             for label, density in zip(inside, (prediction.density, narrow_density(prediction)), strict=True):
                 regions = hdr_thresholds(density, generator=torch.Generator().manual_seed(i), symmetry=obj.symmetry,
                                          plane=prediction.start)
                 scored = nll(density, truth, start, prediction.start, obj.symmetry)
                 inside[label].append(covered(scored, regions).reshape(-1).double())
         shares = {label: torch.stack(rows).mean(0).tolist() for label, rows in inside.items()}
+        in_band += 0.80 <= shares["density"][1] <= 0.97
         print(f"{obj_name:14s} ({trained}'s model, {len(inside['density'])} pushes) 50 % / 90 % coverage: "
               + "; ".join(f"{label} {v[0]:.2f} / {v[1]:.2f}" for label, v in shares.items()), flush=True)
+    print(f"draw={draw} coverage_ok={in_band} of {len(TRAINING_OF)} (the density's 90 % coverage in [0.80, 0.97])")
 
 
 def disagreement(run: Path) -> None:
@@ -313,13 +318,16 @@ def main() -> None:
                                          "target"))
     parser.add_argument("run", type=Path)
     parser.add_argument("--pushes", type=int, default=15)
+    parser.add_argument("--draw", type=int, default=0, help="coverage: which draw of the predictions (their seeds)")
     args = parser.parse_args()
     if args.what == "distance":
         distance(args.run, args.pushes)
     elif args.what in ("novelty", "scale"):
         (novelty if args.what == "novelty" else scale)(args.run, args.pushes)
-    elif args.what in ("coverage", "disagreement"):
-        (coverage if args.what == "coverage" else disagreement)(args.run)
+    elif args.what == "coverage":
+        coverage(args.run, args.draw)
+    elif args.what == "disagreement":
+        disagreement(args.run)
     else:
         (weights if args.what == "weights" else target)(args.run)
 
