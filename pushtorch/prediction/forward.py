@@ -548,22 +548,22 @@ def predict_candidates(model: PushModel | ResidualModel | ModelLibrary, cloud: P
     every = se3.Pose.stack(starts) if every is None else every
     identity = torch.cat([every.p.reshape(-1, 3), every.q.reshape(-1, 4), actions.to(every.p)], -1).detach().float()
     keys = content_keys(identity.cpu())  # each candidate's draws keyed by what it is (its start and action)
+    a_idx = [chosen.action_index(a) for a in actions]
     if isinstance(chosen, ResidualModel):  # its push conditions made once; each candidate's own ensemble
-        own = predict_candidates(chosen.model, features, starts, actions, seed, chunk_size=chunk_size) \
-            if chosen.point == "learned" else None
-        conditions, reasons = candidate_conditions(chosen.model, features, starts, [chosen.action_index(a) for a in
-                                                                                     actions], generator) \
-            if own is None else ([None if p is None else p.condition for p in own.predictions], own.reasons)
-        return residual_candidates(chosen, cloud, features, conditions, reasons, actions, keys, seed,
-                                   None if own is None else [None if p is None else (p.condition.object_pose,
-                                                                                     p.final_pose)
-                                                             for p in own.predictions])
+        learned = None
+        if chosen.point == "learned":  # the push model's candidate predictions: their conditions and points
+            pushed = predict_candidates(chosen.model, features, starts, actions, seed, chunk_size=chunk_size)
+            made = list(pushed.predictions)  # each built once
+            conditions, reasons = [None if p is None else p.condition for p in made], pushed.reasons
+            learned = [None if p is None else (p.condition.object_pose, p.final_pose) for p in made]
+        else:
+            conditions, reasons = candidate_conditions(chosen.model, features, starts, a_idx, generator)
+        return residual_candidates(chosen, cloud, features, conditions, reasons, actions, keys, seed, learned)
     if chosen.settings.transfer_widening > 0:
         raise ModelError(
             f"model {chosen.name!r} widens each prediction by its own transfer distance (transfer_widening="
             f"{chosen.settings.transfer_widening:g}), so its candidates' densities do not share one bandwidth and "
             "cannot be one batched density; predict its candidates with predict(..., robot_start=...) one by one")
-    a_idx = [chosen.action_index(a) for a in actions]
     conditions, reasons = candidate_conditions(chosen, features, starts, a_idx, generator)
     settings = chosen.settings
     schedule = anneal_schedule(settings, False, Evaluation.FAST)

@@ -75,8 +75,9 @@ from pushtorch.models.settings import as_generator
 from pushtorch.perception import PointCloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
 
-__all__ = ["ResidualPrediction", "corrected_mode", "defensive_factors", "learned_point", "narrow_density",
-           "novelty_factors", "predict_residual", "rescaled", "scaled_parts", "shifted_mode"]
+__all__ = ["ResidualCandidates", "ResidualPrediction", "corrected_mode", "defensive_factors", "learned_point",
+           "narrow_density", "novelty_factors", "predict_residual", "rescaled", "residual_candidates", "scaled_parts",
+           "shifted_mode"]
 
 
 @dataclass
