@@ -164,7 +164,9 @@ def radius_neighbourhoods(
 
     o3d = import_open3d()
 
-    data = o3d.core.Tensor(np.ascontiguousarray(points.detach().cpu().numpy().astype(np.float32)))
+    # searched in float32 about the cloud's centre: a cloud far from the origin keeps its neighbourhoods
+    centred = points.detach().cpu().double()
+    data = o3d.core.Tensor(np.ascontiguousarray((centred - centred.mean(0)).numpy().astype(np.float32)))
     nns = o3d.core.nns.NearestNeighborSearch(data)
     nns.hybrid_index(float(radius))
     index, _, _ = nns.hybrid_search(data, float(radius), int(max_neighbours))
@@ -172,6 +174,25 @@ def radius_neighbourhoods(
     mask = index >= 0
     self_index = torch.arange(points.shape[0], device=points.device).unsqueeze(-1)
     return torch.where(mask, index, self_index), mask
+
+
+#: The coarsest spacing between representable coordinates, as a share of the feature radius, at which a cloud's
+#: neighbourhoods still hold their shape: float32 spaces coordinates 1.2e-4 m apart 1 km from the origin and
+#: 0.06 m apart 1,000 km away, where a 12 mm neighbourhood is a handful of grid points
+RESOLUTION_SHARE = 0.05
+
+
+def _check_resolution(points: Tensor, radius: float) -> None:
+    """Refuse a cloud whose coordinates lie so far from the origin that its dtype cannot tell points within
+    ``radius`` apart (a world frame centred elsewhere: a map's, a GPS datum's)."""
+    far = float(points.detach().abs().amax())
+    spacing = far * torch.finfo(points.dtype).eps
+    if spacing > RESOLUTION_SHARE * radius:
+        raise InvalidPointCloudError(
+            f"the cloud lies {far:.3g} m from the origin, where {points.dtype} coordinates are up to {spacing:.2g} m "
+            f"apart, too coarse for surface features within {radius} m: express it in a frame near the object "
+            "(the robot's or the table's)"
+        )
 
 
 def compute_surface_features(
@@ -202,7 +223,8 @@ def compute_surface_features(
         too small or degenerate neighbourhood are left out (``index`` maps rows to cloud points).
 
     Raises:
-        InvalidPointCloudError: empty cloud, NaN/inf points, fewer points than ``min_neighbours``, or no
+        InvalidPointCloudError: empty cloud, NaN/inf points, fewer points than ``min_neighbours``, a cloud so far
+            from the origin that its dtype cannot resolve a neighbourhood (:data:`RESOLUTION_SHARE`), or no
             point with enough neighbours within ``radius`` (the cloud is too sparse for it).
         InvalidParameterError: non-positive radius, or ``min_neighbours`` below 6 or above ``max_neighbours``.
     """
@@ -229,6 +251,7 @@ def compute_surface_features(
         )
 
     points = cloud.points
+    _check_resolution(points, radius)
     neighbours, mask = radius_neighbourhoods(points, radius, max_neighbours)
     if cloud.view_origins is not None:
         outward_hint = cloud.view_origins - points

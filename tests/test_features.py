@@ -308,6 +308,23 @@ def test_bad_clouds_raise():
         compute_surface_features(line)
 
 
+
+def test_a_cloud_far_from_the_origin_is_refused_where_its_dtype_cannot_resolve_it():
+    """Far from the origin float32 coordinates are too coarse for a neighbourhood: the cloud is refused by name,
+    not reported as too sparse; in float64 the same cloud there has the features it has at home."""
+    cloud = _partial_cylinder_cloud()
+    home = compute_surface_features(cloud)
+    home64 = compute_surface_features(PointCloud(cloud.points.double(), cloud.view_origins.double()))
+    far = torch.tensor([1.0e6, -2.0e6, 0.0])
+    with pytest.raises(InvalidPointCloudError, match="from the origin.*frame near the object"):
+        compute_surface_features(PointCloud(cloud.points + far, cloud.view_origins + far))
+    double = compute_surface_features(PointCloud(cloud.points.double() + far.double(),
+                                                 cloud.view_origins.double() + far.double()))
+    assert torch.equal(double.index, home64.index)
+    assert torch.allclose(double.r, home64.r, rtol=1e-4, atol=1e-6)
+    near = compute_surface_features(PointCloud(cloud.points + far / 1e4, cloud.view_origins + far / 1e4))
+    assert len(near) >= 0.95 * len(home)
+
 def test_bad_parameters_raise():
     patch = _paraboloid_patch(1.0, 0.0, 1.0).float()
     for kwargs in [{"radius": 0.0}, {"radius": -0.01}, {"radius": float("nan")}, {"min_neighbours": 5},
