@@ -36,6 +36,12 @@ of :data:`SHAPE_WIDTH`), and with the defensive part spread over three widths, `
 thirds (``graded``). The last line per form counts the objects in the engine gap's band: whether another hedge
 would calibrate the density, never a choice (the test pushes choose nothing).
 
+``calibration <run>``: for the same run, each training object's models trained again from the run's pushes (as
+``scale``), ``--pushes`` of its pushes per action held out in turn and predicted as test pushes are, at the run's
+kernels' scale and with its hedges: the share of them inside the 90 % region, with the hedges and of the corrected
+kernels alone. Set beside ``hedges``' own objects: whether held-out training pushes calibrate as the test pushes do
+(what a choice of the hedges by calibration on them would rest on).
+
 ``disagreement <run>``: for the same run, each catalogue object's test pushes predicted again from fresh clouds by
 its training object's push model and, from the same push condition, its residual model: how far the push model's
 point lies from the corrected mode (the H_acc of one displacement against the other), beside each one's H_acc:
@@ -65,6 +71,7 @@ the better of the two, its nll and 90 % coverage. The last line is exactly ``obj
     .venv/bin/python tools/residual_transfer.py hedges runs/engine_gap_pybullet [--draw 0]
     .venv/bin/python tools/residual_transfer.py disagreement runs/engine_gap_pybullet
     .venv/bin/python tools/residual_transfer.py scale runs/engine_gap_pybullet [--pushes 10]
+    .venv/bin/python tools/residual_transfer.py calibration runs/engine_gap_pybullet [--pushes 10]
     .venv/bin/python tools/residual_transfer.py weights runs/quickstart_transfer
     .venv/bin/python tools/residual_transfer.py target runs/quickstart_transfer
 """
@@ -298,30 +305,41 @@ def disagreement(run: Path) -> None:
               f"{table[:, 2].mean():.3f}", flush=True)
 
 
+def _own_held_out(run: Path, name: str, saved, pushes: int, as_run: bool):
+    """``pushes`` per action of the run's training pushes of ``name`` held out in turn of its models trained again
+    from them (its push model with another seed than the run's, so that its kernels know their pushes), each
+    predicted as a test push is: yields ``(object, prediction, start, truth, push)``. With ``as_run`` the residual
+    kernels take the run's model's scaled stds and pairing width (its hedges are the caller's); without, they are
+    as trained."""
+    obj = load_object(name)
+    records = load_records(_one(f"{run}/data/{name}_*"))
+    model = train_push_model(obj, records, saved.model.settings, name=name, generator=torch.Generator().manual_seed(0))
+    residual = dataclasses.replace(train_residual_model(model, obj, records, saved.sim, saved.ensemble),
+                                   point="corrected")
+    if as_run:
+        residual = dataclasses.replace(residual, bandwidth=saved.bandwidth, outcome_width=saved.outcome_width)
+    generator, valid = torch.Generator().manual_seed(0), records.take(records.valid)
+    for a, motion in enumerate(residual.model.motions):
+        mine = valid.take((valid.action.double() - motion.action.detach().double().cpu()).abs().amax(-1) <= 1e-6)
+        kept = motion.manipulator.push.cpu().unique()
+        for p in kept[torch.randperm(len(kept), generator=generator)[:pushes]].tolist():
+            start, robot, truth = _poses(mine.take(torch.tensor([p])))
+            cloud = capture_partial_cloud(obj, start, voxel_size=residual.settings.voxel_size)
+            try:
+                prediction = predict_residual(residual.without_pushes(a, torch.tensor([p])), cloud, motion.action,
+                                              generator, robot_start=robot)
+            except PushtorchError:  # its push gave every kernel, or it cannot be predicted from there
+                continue
+            yield obj, prediction, start, truth, p
+
+
 def scale(run: Path, pushes: int) -> None:
     models = _models(run)
     grid = list(RESIDUAL_SCALES)
     for name, saved in models.items():
-        obj = load_object(name)
-        records = load_records(_one(f"{run}/data/{name}_*"))
-        model = train_push_model(obj, records, saved.model.settings, name=name,
-                                 generator=torch.Generator().manual_seed(0))
-        residual = dataclasses.replace(train_residual_model(model, obj, records, saved.sim, saved.ensemble),
-                                       point="corrected")
-        generator, valid, rows = torch.Generator().manual_seed(0), records.take(records.valid), []
-        for a, motion in enumerate(residual.model.motions):
-            mine = valid.take((valid.action.double() - motion.action.detach().double().cpu()).abs().amax(-1) <= 1e-6)
-            kept = motion.manipulator.push.cpu().unique()
-            for p in kept[torch.randperm(len(kept), generator=generator)[:pushes]].tolist():
-                start, robot, truth = _poses(mine.take(torch.tensor([p])))
-                cloud = capture_partial_cloud(obj, start, voxel_size=residual.settings.voxel_size)
-                try:
-                    prediction = predict_residual(residual.without_pushes(a, torch.tensor([p])), cloud,
-                                                  motion.action, generator, robot_start=robot)
-                except PushtorchError:  # its push gave every kernel, or it cannot be predicted from there
-                    continue
-                rows.append([residual_nll_grid(prediction, truth, start, obj, grid, [part], [rate]).numpy()
-                             for part, rate in (((0.0, 0.0, 0.0), 0.0), (saved.defensive, saved.uncorrected))])
+        rows = [[residual_nll_grid(prediction, truth, start, obj, grid, [part], [rate]).numpy()
+                 for part, rate in (((0.0, 0.0, 0.0), 0.0), (saved.defensive, saved.uncorrected))]
+                for obj, prediction, start, truth, _ in _own_held_out(run, name, saved, pushes, False)]
         table = np.asarray(rows).mean(0)
         for label, nlls in zip(("without the hedges", "with the run's hedges"), table, strict=True):
             print(f"{name:9s} {len(rows)} held-out pushes, {label}: held-out nll by scale "
@@ -329,6 +347,24 @@ def scale(run: Path, pushes: int) -> None:
                   + f"; best {grid[int(nlls.argmin())]:g}", flush=True)
         print(f"{name:9s} the run's choice: scale {saved.meta['scale']['chosen']:g}, defensive part "
               f"{tuple(saved.defensive)}, uncorrected rate {saved.uncorrected:g}")
+
+
+def calibration(run: Path, pushes: int) -> None:
+    models = _models(run)
+    for name, saved in models.items():
+        rows = []
+        for obj, prediction, start, truth, p in _own_held_out(run, name, saved, pushes, True):
+            row = []
+            for density in (_hedged(prediction, saved, "run", 0.0), prediction.density):
+                regions = hdr_thresholds(density, generator=torch.Generator().manual_seed(p), symmetry=obj.symmetry,
+                                         plane=prediction.start)
+                row.append(float(covered(nll(density, truth, start, prediction.start, obj.symmetry),
+                                         regions).reshape(-1)[1]))
+            rows.append(row + [prediction.outcome_novelty])
+        table = np.asarray(rows)
+        print(f"{name:9s} {len(rows)} held-out training pushes: 90 % coverage {table[:, 0].mean():.2f} with the run's "
+              f"hedges, {table[:, 1].mean():.2f} of the corrected kernels alone; median novelty "
+              f"{np.median(table[:, 2]):.3f}", flush=True)
 
 
 def _model_of(models: dict, prediction):
@@ -403,8 +439,8 @@ def target(run: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("what", choices=("distance", "novelty", "coverage", "hedges", "disagreement", "scale",
-                                         "weights", "target"))
+    parser.add_argument("what", choices=("distance", "novelty", "coverage", "hedges", "calibration", "disagreement",
+                                         "scale", "weights", "target"))
     parser.add_argument("run", type=Path)
     parser.add_argument("--pushes", type=int, default=15)
     parser.add_argument("--draw", type=int, default=0,
@@ -412,8 +448,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.what == "distance":
         distance(args.run, args.pushes)
-    elif args.what in ("novelty", "scale"):
-        (novelty if args.what == "novelty" else scale)(args.run, args.pushes)
+    elif args.what in ("novelty", "scale", "calibration"):
+        {"novelty": novelty, "scale": scale, "calibration": calibration}[args.what](args.run, args.pushes)
     elif args.what in ("coverage", "hedges"):
         (coverage if args.what == "coverage" else hedges)(args.run, args.draw)
     elif args.what == "disagreement":
