@@ -174,6 +174,28 @@ def test_an_ensemble_split_over_a_rollout_pool_is_the_same_ensemble(engine):
     assert float((here.object_final.p - pose.p).norm(dim=-1).min()) > 0.05  # every rollout pushed the body
 
 
+
+@pytest.mark.parametrize("engine", ["pybullet", "mujoco"])
+def test_a_push_in_a_map_frame_far_from_the_origin_is_rolled_out_as_at_home(engine):
+    """A body 2 km from the origin (beyond the simulated ground) is pushed as it is at home, the outcome moved with
+    it: the simulator's ground is flat and alike everywhere."""
+    cylinder = load_object("cylinder")
+    pose = cylinder.resting_pose(yaw=0.2).to(torch.float64)
+    body, start = cloud_body(capture_partial_cloud(cylinder, pose).points, pose)
+    robot = place_robot_against(cylinder.mesh, pose, 0.2, 0.0, 0.002)
+    friction = torch.tensor([0.2, 0.6], dtype=torch.float64)
+    mass = torch.tensor([0.5, 1.5], dtype=torch.float64)
+    settings = SimSettings(engine=engine)
+    home = rollout_ensemble(body, start, robot, make_actions(3)[2], friction, mass, settings)
+    shift = torch.tensor([1000.0, -2000.0, 0.0], dtype=torch.float64)
+    far = rollout_ensemble(body, se3.Pose.unchecked(start.p + shift, start.q),
+                           se3.Pose.unchecked(robot.p.double() + shift, robot.q), make_actions(3)[2], friction, mass,
+                           settings)
+    for name in ("object_final", "object_initial", "robot_start"):
+        torch.testing.assert_close(getattr(far, name).p - shift, getattr(home, name).p, rtol=0, atol=1e-9)
+        torch.testing.assert_close(getattr(far, name).q, getattr(home, name).q, rtol=0, atol=1e-9)
+    assert float((home.object_final.p - start.p).norm(dim=-1).min()) > 0.05  # it was pushed
+
 def test_a_cloud_with_no_body_is_refused_with_a_clear_error(trained, residual):
     cube, records, model = trained
     g = torch.Generator().manual_seed(0)

@@ -98,6 +98,11 @@ def rollout_ensemble(body: ObjectModel, start: se3.Pose, robot_start: se3.Pose, 
     if n < 1 or mass.shape[0] != n:
         raise InvalidParameterError(f"an ensemble needs as many masses as frictions, at least one: got "
                                     f"{n} and {int(mass.shape[0])}")
+    offset = _local_offset(start, robot_start, settings)
+    if offset is not None:  # the same push about the origin, moved back
+        start = se3.Pose.unchecked(start.p.double() - offset, start.q)
+        robot_start = se3.Pose.unchecked(robot_start.p.double() - offset, robot_start.q)
+        return _moved(rollout_ensemble(body, start, robot_start, action, friction, mass, settings), offset)
     pool = _ACTIVE.get()
     if pool is not None and n > 1:
         return pool.rollout(body, start, robot_start, action, friction, mass, settings)
@@ -107,6 +112,26 @@ def rollout_ensemble(body: ObjectModel, start: se3.Pose, robot_start: se3.Pose, 
                                  start.q.double().reshape(1, 4).expand(n, 4))
     act = torch.as_tensor(action, dtype=torch.float64).reshape(1, 2).expand(n, 2)
     return simulate_pushes(body, robot, initial, act, mass, friction, settings=settings)
+
+
+def _local_offset(start: se3.Pose, robot_start: se3.Pose, settings) -> torch.Tensor | None:
+    """``(3,)`` float64 the body's start on the ground plane where it or the robot starts more than a quarter of the
+    simulated ground's width from its centre (a map's frame): the push is then rolled out about the origin (the
+    ground is flat and alike everywhere) and moved back; None nearer, where it is rolled out where it is."""
+    from pushtorch.sim.settings import SimSettings
+
+    half = (settings or SimSettings()).ground_half_extent
+    body, robot = start.p.detach().double().reshape(3), robot_start.p.detach().double().reshape(3)
+    if max(float(body[:2].abs().max()), float(robot[:2].abs().max())) <= half / 2:
+        return None
+    return torch.cat([body[:2], body.new_zeros(1)])
+
+
+def _moved(records, offset: torch.Tensor):
+    """``records`` with every pose translated by ``offset (3,)``."""
+    moved = {f.name: se3.Pose.unchecked(value.p + offset.to(value.p), value.q)
+             for f in dataclasses.fields(records) if isinstance(value := getattr(records, f.name), se3.Pose)}
+    return dataclasses.replace(records, **moved)
 
 
 def active_rollout_pool() -> RolloutPool | None:
