@@ -32,6 +32,7 @@ import trimesh
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.objects import ObjectModel, Symmetry
+from pushtorch.sim.settings import SimSettings
 
 __all__ = ["RolloutPool", "active_rollout_pool", "cloud_body", "rollout_ensemble"]
 
@@ -118,8 +119,6 @@ def _local_offset(start: se3.Pose, robot_start: se3.Pose, settings) -> torch.Ten
     """``(3,)`` float64 the body's start on the ground plane where it or the robot starts more than a quarter of the
     simulated ground's width from its centre (a map's frame): the push is then rolled out about the origin (the
     ground is flat and alike everywhere) and moved back; None nearer, where it is rolled out where it is."""
-    from pushtorch.sim.settings import SimSettings
-
     half = (settings or SimSettings()).ground_half_extent
     body, robot = start.p.detach().double().reshape(3), robot_start.p.detach().double().reshape(3)
     if max(float(body[:2].abs().max()), float(robot[:2].abs().max())) <= half / 2:
