@@ -201,6 +201,14 @@ def _poses(push) -> tuple[se3.Pose, se3.Pose, se3.Pose]:
     return start, robot, se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
 
 
+def _scored_regions(density, prediction, obj, start, truth, seed: int) -> tuple[torch.Tensor, float]:
+    """``(L,)`` float64 whether the truth lies inside each of the density's regions (50 % and 90 %: docs/method.md,
+    "Likelihood score"; thresholds from draws seeded ``seed``), and its nll."""
+    regions = hdr_thresholds(density, generator=torch.Generator().manual_seed(seed), symmetry=obj.symmetry,
+                             plane=prediction.start)
+    scored = nll(density, truth, start, prediction.start, obj.symmetry)
+    return covered(scored, regions).reshape(-1).double(), float(scored.reshape(-1)[0])
+
 def coverage(run: Path, draw: int) -> None:
     models = _models(run)
     in_band = 0
@@ -210,10 +218,7 @@ def coverage(run: Path, draw: int) -> None:
         for i, cloud, action, robot, start, truth in _test_pushes(run, obj, residual.settings.voxel_size):
             prediction = predict_residual(residual, cloud, action, i + 1000 * draw, robot_start=robot)
             for label, density in zip(inside, (prediction.density, narrow_density(prediction)), strict=True):
-                regions = hdr_thresholds(density, generator=torch.Generator().manual_seed(i), symmetry=obj.symmetry,
-                                         plane=prediction.start)
-                scored = nll(density, truth, start, prediction.start, obj.symmetry)
-                inside[label].append(covered(scored, regions).reshape(-1).double())
+                inside[label].append(_scored_regions(density, prediction, obj, start, truth, i)[0])
         shares = {label: torch.stack(rows).mean(0).tolist() for label, rows in inside.items()}
         in_band += 0.80 <= shares["density"][1] <= 0.97
         print(f"{obj_name:14s} ({trained}'s model, {len(inside['density'])} pushes) 50 % / 90 % coverage: "
@@ -270,11 +275,9 @@ def hedges(run: Path, draw: int) -> None:
             prediction = predict_residual(plain, cloud, action, i + 1000 * draw, robot_start=robot)
             d2 = float(((bodies[trained] - _radii(cloud.points, prediction.condition.object_pose)) ** 2).sum(1).min())
             for form in HEDGES:
-                density = _hedged(prediction, residual, form, d2)
-                regions = hdr_thresholds(density, generator=torch.Generator().manual_seed(i), symmetry=obj.symmetry,
-                                         plane=prediction.start)
-                scored = nll(density, truth, start, prediction.start, obj.symmetry)
-                rows[form].append([float(covered(scored, regions).reshape(-1)[1]), float(scored.reshape(-1)[0])])
+                inside, scored = _scored_regions(_hedged(prediction, residual, form, d2), prediction, obj, start,
+                                                 truth, i)
+                rows[form].append([float(inside[1]), scored])
         for form in HEDGES:
             table[form].append(np.asarray(rows[form]).mean(0))
         print(f"{obj_name:14s} ({trained}'s model, {len(rows['run'])} pushes) shape distance {d2:.3f} (last push)",
@@ -354,13 +357,9 @@ def calibration(run: Path, pushes: int) -> None:
     for name, saved in models.items():
         rows = []
         for obj, prediction, start, truth, p in _own_held_out(run, name, saved, pushes, True):
-            row = []
-            for density in (_hedged(prediction, saved, "run", 0.0), prediction.density):
-                regions = hdr_thresholds(density, generator=torch.Generator().manual_seed(p), symmetry=obj.symmetry,
-                                         plane=prediction.start)
-                row.append(float(covered(nll(density, truth, start, prediction.start, obj.symmetry),
-                                         regions).reshape(-1)[1]))
-            rows.append(row + [prediction.outcome_novelty])
+            rows.append([float(_scored_regions(density, prediction, obj, start, truth, p)[0][1])
+                         for density in (_hedged(prediction, saved, "run", 0.0), prediction.density)]
+                        + [prediction.outcome_novelty])
         table = np.asarray(rows)
         print(f"{name:9s} {len(rows)} held-out training pushes: 90 % coverage {table[:, 0].mean():.2f} with the run's "
               f"hedges, {table[:, 1].mean():.2f} of the corrected kernels alone; median novelty "
