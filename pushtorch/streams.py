@@ -24,7 +24,7 @@ from pushtorch.errors import InvalidParameterError
 
 Tensor = torch.Tensor
 
-__all__ = ["KeyedStream", "content_keys", "is_keyed"]
+__all__ = ["KeyedStream", "content_keys", "is_keyed", "keyed_seed"]
 
 _MASK = 0xFFFFFFFF
 _GOLDEN = 0x9E3779B9
@@ -68,6 +68,13 @@ def content_keys(values: Tensor) -> Tensor:
         h = _mix((h ^ column) & _MASK)
     return h
 
+
+
+def keyed_seed(seed: int, key: int) -> int:
+    """A ``torch.Generator`` seed for the problem of ``key`` (:func:`content_keys`) under a call's ``seed``: where a
+    problem's draws come from a library call that takes a generator (a simulator ensemble) rather than a
+    :class:`KeyedStream`."""
+    return (int(seed) * 0x9E3779B97F4A7C15 + int(key)) & 0x7FFFFFFFFFFFFFFF
 
 def is_keyed(generator) -> bool:
     """Whether ``generator`` is a :class:`KeyedStream` (else a ``torch.Generator`` or None)."""

@@ -174,7 +174,6 @@ def test_an_ensemble_split_over_a_rollout_pool_is_the_same_ensemble(engine):
     assert float((here.object_final.p - pose.p).norm(dim=-1).min()) > 0.05  # every rollout pushed the body
 
 
-
 @pytest.mark.parametrize("engine", ["pybullet", "mujoco"])
 def test_a_push_in_a_map_frame_far_from_the_origin_is_rolled_out_as_at_home(engine):
     """A body 2 km from the origin (beyond the simulated ground) is pushed as it is at home, the outcome moved with
@@ -195,6 +194,7 @@ def test_a_push_in_a_map_frame_far_from_the_origin_is_rolled_out_as_at_home(engi
         torch.testing.assert_close(getattr(far, name).p - shift, getattr(home, name).p, rtol=0, atol=1e-9)
         torch.testing.assert_close(getattr(far, name).q, getattr(home, name).q, rtol=0, atol=1e-9)
     assert float((home.object_final.p - start.p).norm(dim=-1).min()) > 0.05  # it was pushed
+
 
 def test_a_cloud_with_no_body_is_refused_with_a_clear_error(trained, residual):
     cube, records, model = trained

@@ -359,11 +359,11 @@ def _predict_batch(
                          False, [starts[i] for i in rows]) if m.point == "learned" else [None] * len(rows)
             same = m.settings.feature_radius == first.settings.feature_radius  # the features made above serve it
             for i, own in zip(rows, owns, strict=True):
-                made = features[i] if same else None
+                given = features[i] if same else None
                 out[i] = predict_residual(m, clouds[i], actions[i], generator, robot_start=starts[i],
-                                          features=made) if own is None \
+                                          features=given) if own is None \
                     else predict_residual(m, clouds[i], actions[i], generator, condition=own.condition,
-                                          learned=(own.condition.object_pose, own.final_pose), features=made)
+                                          learned=(own.condition.object_pose, own.final_pose), features=given)
             continue
         a_idx = [m.action_index(actions[i]) for i in rows]
         predictions = share(m, [features[i] for i in rows], a_idx, generator, record_history, [starts[i] for i in rows])

@@ -74,6 +74,7 @@ from pushtorch.models.residual import (
 from pushtorch.models.settings import as_generator
 from pushtorch.perception import PointCloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
+from pushtorch.streams import keyed_seed
 
 __all__ = ["ResidualCandidates", "ResidualPrediction", "corrected_mode", "defensive_factors", "learned_point",
            "narrow_density", "novelty_factors", "predict_residual", "rescaled", "residual_candidates", "scaled_parts",
@@ -309,8 +310,7 @@ def residual_candidates(residual: ResidualModel, cloud, features, conditions: li
     for i, condition in enumerate(conditions):  # each candidate rolls its own ensemble out: a simulator call each
         made = None
         if condition is not None:
-            generator = torch.Generator().manual_seed((int(seed) * 0x9E3779B97F4A7C15 + int(keys[i]))
-                                                      & 0x7FFFFFFFFFFFFFFF)
+            generator = torch.Generator().manual_seed(keyed_seed(seed, int(keys[i])))
             try:
                 made = predict_residual(residual, cloud, actions[i], generator, condition=condition, features=features,
                                         learned=None if learned is None else learned[i])
