@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
 from pushtorch import se3
-from pushtorch.errors import ModelError
+from pushtorch.errors import InvalidParameterError, ModelError
 from pushtorch.evaluation.baselines import (
     cloud_body,
     nearest_push_prediction,
@@ -20,6 +21,7 @@ from pushtorch.evaluation.baselines import (
     physics_from_cloud_prediction,
 )
 from pushtorch.evaluation.likelihood import (
+    calibrated_choice,
     log_rotation_normaliser,
     mean_motion_density,
     motion_product_density,
@@ -208,3 +210,41 @@ def test_a_flat_cloud_cannot_make_a_body():
     flat[:, 2] = 0.0
     with pytest.raises(ModelError, match="spans no volume"):
         cloud_body(flat, se3.identity())
+
+
+@given(st.integers(2, 30), st.integers(1, 12), st.integers(0, 2**31 - 1), st.floats(0.0, 4.0))
+def test_a_calibrated_choice_keeps_the_tied_setting_nearest_its_level(pushes, settings, seed, margin):
+    """Whatever the scores, the kept setting is within ``margin`` paired SE of the likeliest, and of those it is
+    the one whose coverage is nearest the level (the likelier on a tie); the likeliest is always a candidate."""
+    generator = torch.Generator().manual_seed(seed)
+    rows = torch.randn(pushes, settings, generator=generator, dtype=torch.float64) \
+        + 3.0 * torch.rand(settings, generator=generator, dtype=torch.float64)
+    inside = torch.rand(pushes, settings, generator=generator) < torch.rand(settings, generator=generator)
+    asked = []
+    chosen, report = calibrated_choice(rows, lambda c: asked.append(c) or inside[:, c], 0.9, margin)
+    mean = rows.mean(0)
+    likeliest = int(mean.argmin())
+    differences = rows - rows[:, likeliest:likeliest + 1]
+    se = [float(np.clip(d, *np.quantile(d, [0.05, 0.95])).std(ddof=1)) / math.sqrt(pushes)
+          for d in differences.T.numpy()]  # winsorised: a few pushes far worse tie with nothing
+    tied = [c for c in range(settings) if mean[c] - mean[likeliest] <= margin * se[c]]
+    assert sorted(report["candidates"]) == sorted(tied) == sorted(asked) and report["candidates"][0] == likeliest
+    share = inside.double().mean(0)
+    assert chosen == min(tied, key=lambda c: (abs(float(share[c]) - 0.9), float(mean[c])))
+    assert report["coverage"] == pytest.approx([float(share[c]) for c in report["candidates"]])
+    with pytest.raises(InvalidParameterError, match="nll rows"):
+        calibrated_choice(rows[:1], lambda c: inside[:1, c])
+
+
+def test_a_setting_far_worse_on_a_few_pushes_ties_with_nothing():
+    """Two settings alike on 57 pushes, one 3,000 nats worse on 3: its mean is 150 nats worse, within 2 plain
+    paired SE (85), and its better coverage would choose it."""
+    rows = torch.zeros(60, 2, dtype=torch.float64)
+    rows[:, 0] = torch.linspace(-1.0, 1.0, 60, dtype=torch.float64)
+    rows[:, 1] = rows[:, 0] + 0.01 * torch.linspace(-1.0, 1.0, 60, dtype=torch.float64).flip(0)
+    rows[:3, 1] += 3000.0
+    inside = torch.stack([torch.zeros(60, dtype=torch.bool), torch.ones(60, dtype=torch.bool)], 1)
+    difference = rows[:, 1] - rows[:, 0]
+    assert float(difference.mean()) < 2.0 * float(difference.std() / math.sqrt(60))  # tied by the plain SE
+    chosen, report = calibrated_choice(rows, lambda c: inside[:, c])
+    assert chosen == 0 and report["candidates"] == [0]

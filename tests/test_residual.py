@@ -485,12 +485,23 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
     assert chosen[0].novelty_widening in NOVELTY_WIDENINGS and chosen[0].defensive in DEFENSIVE_PARTS
     meta = chosen[0].meta["novelty"]
     assert meta["pushes"] == 8 and meta["across"] == ["cube", "cube"] and meta["shapes"] == ["cube"]
+    assert meta["own_pushes"] + meta["skipped"] == 12  # two of each action's own pushes per model, held out
     rates, parts = len(UNCORRECTED_RATES), len(DEFENSIVE_PARTS)
     assert len(meta["nll"]) == len(NOVELTY_WIDENINGS) * parts * rates
-    best = min(range(len(meta["nll"])), key=meta["nll"].__getitem__)  # the combination of lowest held-out nll
+    # of the combinations likelihood cannot tell apart, the one whose 90 % regions hold the truths nearest 90 %
+    calibration = meta["calibration"]
+    candidates, shares = calibration["candidates"], calibration["coverage"]
+    likeliest = min(range(len(meta["nll"])), key=meta["nll"].__getitem__)
+    assert calibration["likeliest"] == likeliest == candidates[0] and calibration["level"] == 0.9
+    assert all(meta["nll"][c] - meta["nll"][likeliest] <= 2 * se + 1e-12
+               for c, se in zip(candidates, calibration["se"], strict=True))
+    best = candidates[min(range(len(candidates)), key=lambda k: (abs(shares[k] - 0.9), meta["nll"][candidates[k]]))]
     assert (chosen[0].novelty_widening, chosen[0].defensive, chosen[0].uncorrected) == (
         NOVELTY_WIDENINGS[best // (parts * rates)], DEFENSIVE_PARTS[best // rates % parts],
         UNCORRECTED_RATES[best % rates])
+    with pytest.raises(InvalidParameterError, match="trained in this session"):  # its own pushes cannot be held out
+        choose_novelty_widening([load_residual_model(residual.save(tmp_path / "own.npz")), residual], [cube, cube],
+                                [records, records], pushes_per_shape=1)
     with pytest.raises(InvalidParameterError, match="two models or more"):
         choose_novelty_widening([residual], [cube], [records])
     with pytest.raises(InvalidParameterError, match="one set per extra shape"):
@@ -580,7 +591,7 @@ def test_an_uncorrected_share_puts_the_rollouts_themselves_in_the_density_and_is
         uncorrected_share,
     )
     from pushtorch.models.residual_file import load_residual_model
-    from pushtorch.prediction.residual import narrow_density, novelty_factors
+    from pushtorch.prediction.residual import hedged_density, narrow_density, novelty_factors
 
     cube, records, model = trained
     pose = cube.resting_pose(yaw=0.3)
@@ -623,6 +634,9 @@ def test_an_uncorrected_share_puts_the_rollouts_themselves_in_the_density_and_is
     torch.testing.assert_close(narrow_density(predicted).means.p, plain.density.means.p, rtol=0, atol=0)
     draws = predicted.density.sample((16,), torch.Generator().manual_seed(3))
     assert draws.shape == (16, 7) and bool(torch.isfinite(predicted.density.log_prob(draws)).all())
+    # and the density a choice draws from to measure the hedges' calibration is the one the prediction makes
+    rebuilt = hedged_density(plain, novelty_factors(plain, nu), part, rate)
+    torch.testing.assert_close(rebuilt.log_prob(draws), predicted.density.log_prob(draws))
     grid = residual_nll_grid(plain, truth, plain.start, cube, [novelty_factors(plain, v) for v in NOVELTY_WIDENINGS])
     assert grid.shape == (len(NOVELTY_WIDENINGS) * len(DEFENSIVE_PARTS) * len(UNCORRECTED_RATES),)
     assert bool(torch.isfinite(grid).all())
@@ -649,7 +663,6 @@ def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes
 
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import RESIDUAL_SCALES, choose_residual_scale
-    from pushtorch.models.residual import DEFENSIVE_PARTS, NOVELTY_WIDENINGS, UNCORRECTED_RATES
     from pushtorch.models.residual_file import load_residual_model
 
     cube, records, model = trained
@@ -671,7 +684,5 @@ def test_the_kernels_scale_is_chosen_on_held_out_pushes_predicted_as_test_pushes
         assert pulled(meta["chosen"]), (factor, meta)
         assert chosen.bandwidth.p_std == pytest.approx(off.bandwidth.p_std * meta["chosen"])
         assert chosen.novelty_widening == 0.3  # scored unwidened, returned as given
-        assert meta["novelty"]["grid"] == list(NOVELTY_WIDENINGS) and len(meta["novelty"]["nll"]) == \
-            len(NOVELTY_WIDENINGS) * len(DEFENSIVE_PARTS) * len(UNCORRECTED_RATES)
     with pytest.raises(InvalidParameterError, match="trained in this session"):
         choose_residual_scale(load_residual_model(residual.save(tmp_path / "r.npz")), cube, records, 2)

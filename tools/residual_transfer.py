@@ -95,7 +95,7 @@ from pushtorch.evaluation.likelihood import covered, hdr_thresholds, nll
 from pushtorch.evaluation.metrics import accuracy, displaced
 from pushtorch.evaluation.transfer import RESIDUAL_SCALES, RESIDUAL_WIDENINGS, residual_nll_grid
 from pushtorch.experiments.figures import FIGURE_DATA, read_figure_data
-from pushtorch.models.residual import NOVELTY_WIDENINGS, defensive_share, train_residual_model, uncorrected_share
+from pushtorch.models.residual import NOVELTY_WIDENINGS, defensive_share, train_residual_model
 from pushtorch.models.residual_file import load_residual_model
 from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
@@ -103,12 +103,12 @@ from pushtorch.perception import capture_partial_cloud
 from pushtorch.prediction import predict, transfer_distance
 from pushtorch.prediction.residual import (
     defensive_factors,
+    hedged_density,
     learned_point,
     narrow_density,
     novelty_factors,
     predict_residual,
     rescaled,
-    scaled_parts,
 )
 from pushtorch.sim.bodies import cloud_body
 from pushtorch.sim.records import load_records
@@ -239,22 +239,19 @@ def _hedged(prediction, residual, form: str, shape_d2: float):
     novelty = prediction.outcome_novelty + (shape_d2 / SHAPE_WIDTH**2 if form == "shape" else 0.0)
     p = dataclasses.replace(prediction, outcome_novelty=novelty)
     rate = {"tau=0": 0.0, "tau=1": 1.0}.get(form, residual.uncorrected)
-    rho, eps = uncorrected_share(rate, novelty), defensive_share(residual.defensive, novelty)
     factors = novelty_factors(p, residual.novelty_widening)
+    eps = defensive_share(residual.defensive, novelty)
+    if form != "graded" or eps == 0:
+        return hedged_density(p, factors, residual.defensive, rate)
+    w = residual.defensive[2]  # the defensive part spread over w/3, w and 3w in equal shares
 
-    def part(f):
-        corrected, rollouts = scaled_parts(p, f)
-        return corrected if rho == 0 else DefensiveMixture(corrected, rollouts, rho)
+    def part(f):  # the corrected kernels and the uncorrected share, without a defensive part
+        return hedged_density(p, f, (0.0, 0.0, 0.0), rate)
 
-    density = part(factors)
-    if eps > 0:
-        w = residual.defensive[2]
-        widths = (w / 3, w, 3 * w) if form == "graded" else (w,)
-        wide = part(defensive_factors(p, factors, widths[0]))
-        for k, width in enumerate(widths[1:], 2):  # equal shares: each new width takes 1/k of the k so far
-            wide = DefensiveMixture(wide, part(defensive_factors(p, factors, width)), 1.0 / k)
-        density = DefensiveMixture(density, wide, eps)
-    return density
+    wide = part(defensive_factors(p, factors, w / 3))
+    for k, width in enumerate((w, 3 * w), 2):  # each new width takes 1/k of the k so far
+        wide = DefensiveMixture(wide, part(defensive_factors(p, factors, width)), 1.0 / k)
+    return DefensiveMixture(part(factors), wide, eps)
 
 
 def hedges(run: Path, draw: int) -> None:

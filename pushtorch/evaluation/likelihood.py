@@ -62,14 +62,17 @@ Tensor = torch.Tensor
 
 __all__ = [
     "COVERAGE_LEVELS",
+    "CALIBRATION_CANDIDATES",
     "COVERAGE_SAMPLES",
     "IMPORTANCE_SAMPLES",
     "MIN_P_STD",
     "MIN_ROT_STD",
+    "WINSOR",
     "log_kernel_normaliser",
     "log_normaliser",
     "log_rotation_normaliser",
     "covered",
+    "calibrated_choice",
     "ensemble_density",
     "hdr_thresholds",
     "mean_motion_density",
@@ -89,6 +92,10 @@ MIN_ROT_STD = 1e-3
 COVERAGE_LEVELS = (0.5, 0.9)
 #: Draws from a density that set its regions' thresholds: the 10 % tail's quantile from 40 draws below it.
 COVERAGE_SAMPLES = 400
+#: The most settings, tied in held-out likelihood, whose held-out coverage :func:`calibrated_choice` measures
+CALIBRATION_CANDIDATES = 48
+#: The share of paired differences in each tail that :func:`calibrated_choice` winsorises before their SE
+WINSOR = 0.05
 _CONTINUOUS_STEPS = 120  # a 3° grid about a continuous symmetry axis
 _REFINE = torch.linspace(-1.5, 1.5, 37, dtype=torch.float64)  # ±1.5 grid steps (±4.5°) in 0.25° steps
 #: A draw's search about a continuous axis (:func:`_nearest_copy_scores`): 9 turns over nll's refined span, then 9
@@ -341,3 +348,39 @@ def covered(nll_values: Tensor, thresholds: Tensor) -> Tensor:
     """``(..., L)`` bool: each truth scored ``nll_values (...)`` is inside each region of ``thresholds (..., L)``
     (broadcast): ``−nll ≥ t_α``."""
     return (-nll_values.double()).unsqueeze(-1) >= thresholds.double()
+
+
+def calibrated_choice(nll_rows: Tensor, covered_at, level: float = 0.9, margin: float = 2.0,
+                      most: int = CALIBRATION_CANDIDATES) -> tuple[int, dict]:
+    """The setting, of those held-out likelihood cannot tell apart, whose regions hold the truths as often as
+    they say: ``nll_rows (n, C)`` the held-out truths' nll under each of ``C`` settings of one density (the same
+    ``n`` pushes); the candidates are the settings whose mean nll is within ``margin`` paired SE of the lowest
+    (at most ``most``, lowest mean first; the lowest always). The SE is that of the paired differences
+    winsorised at their :data:`WINSOR` quantiles: a setting hundreds of nats worse on a few pushes has
+    differences whose plain SE is as large as their mean, and would tie with anything. ``covered_at(c)`` gives
+    ``(n,)`` whether each truth lies inside the ``level`` region of setting ``c``'s density
+    (:func:`hdr_thresholds`, :func:`covered`); the candidate whose share inside is nearest ``level`` is kept, the
+    lower mean nll on a tie. Likelihood alone
+    trades a sharp core against wide tails and can put the held-out truths' coverage anywhere the tails' weight
+    leaves it (docs/method.md, "An uncorrected share"). Returns ``(index, report)``: the report holds the
+    candidates, their mean nll, paired SE and coverage.
+
+    Raises:
+        InvalidParameterError: rows that are not ``(n, C)`` with ``n >= 2``, or a level outside (0, 1).
+    """
+    rows = torch.as_tensor(nll_rows, dtype=torch.float64)
+    if rows.dim() != 2 or rows.shape[0] < 2 or rows.shape[1] < 1 or not 0.0 < level < 1.0:
+        raise InvalidParameterError(f"a calibrated choice needs (pushes >= 2, settings) nll rows and a level in "
+                                    f"(0, 1), got {tuple(rows.shape)} and {level}")
+    mean = rows.mean(0)
+    best = int(mean.argmin())
+    differences = rows - rows[:, best:best + 1]
+    low, high = torch.quantile(differences, WINSOR, dim=0), torch.quantile(differences, 1.0 - WINSOR, dim=0)
+    se = differences.clamp(low, high).std(0) / math.sqrt(rows.shape[0])
+    tied = torch.nonzero(mean - mean[best] <= margin * se).reshape(-1)
+    tied = tied[torch.argsort(mean[tied], stable=True)][:max(1, int(most))].tolist()  # the lowest first
+    shares = [float(torch.as_tensor(covered_at(c)).double().mean()) for c in tied]
+    chosen = min(range(len(tied)), key=lambda k: (abs(shares[k] - level), float(mean[tied[k]])))
+    return tied[chosen], {"level": level, "margin": margin, "candidates": tied,
+                          "nll": [float(mean[c]) for c in tied], "se": [float(se[c]) for c in tied],
+                          "coverage": shares, "likeliest": best}

@@ -29,7 +29,9 @@ same held-out pushes of shapes the model did not see and the same rollouts, ever
 uncorrected share (:data:`~pushtorch.models.residual.UNCORRECTED_RATES`), the rollouts themselves keeping a share
 that grows with novelty: every combination is scored from the log densities of the corrected kernels and of the
 rollouts at each distinct width, at the truth's symmetric copies, mixed at each combination's weights
-(:func:`residual_nll_grid`).
+(:func:`residual_nll_grid`). Across training objects, the combinations that held-out likelihood cannot tell apart
+(within 2 paired SE of the likeliest) are told apart by calibration: the one whose 90 % regions hold the same
+held-out truths nearest 90 % of the time is kept (:func:`choose_novelty_widening`).
 """
 
 from __future__ import annotations
@@ -43,7 +45,14 @@ import torch
 
 from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, InvalidPoseError, ModelError
-from pushtorch.evaluation.likelihood import nll, product_density, truth_copies
+from pushtorch.evaluation.likelihood import (
+    calibrated_choice,
+    covered,
+    hdr_thresholds,
+    nll,
+    product_density,
+    truth_copies,
+)
 from pushtorch.evaluation.metrics import displaced, hacc
 from pushtorch.models.model import PushModel
 from pushtorch.models.pooled import ShapeParts, pool_parts
@@ -53,12 +62,11 @@ from pushtorch.models.residual import (
     NOVELTY_WIDENINGS,
     UNCORRECTED_RATES,
     defensive_share,
-    novelty_scored_as_now,
     uncorrected_share,
 )
 from pushtorch.objects import ObjectModel
 
-__all__ = ["RESIDUAL_SCALES", "RESIDUAL_SCALE_PUSHES", "RESIDUAL_WIDENINGS", "SCALES", "WIDENINGS",
+__all__ = ["HEDGE_LEVEL", "RESIDUAL_SCALES", "RESIDUAL_SCALE_PUSHES", "RESIDUAL_WIDENINGS", "SCALES", "WIDENINGS",
            "choose_novelty_widening", "choose_residual_scale", "choose_residual_widening", "choose_widening",
            "residual_nll_grid"]
 
@@ -74,6 +82,9 @@ RESIDUAL_WIDENINGS = (0.0, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
 #: training pushes per action it holds out to choose one
 RESIDUAL_SCALES = (0.125, 0.18, 0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 3.0)
 RESIDUAL_SCALE_PUSHES = 8
+#: The region whose held-out coverage breaks a tie in the choice of a residual model's hedges
+#: (:func:`choose_novelty_widening`): the 90 % the reports' coverage names
+HEDGE_LEVEL = 0.9
 #: Importance samples per expert of each scored density's normaliser in the search (the scores' default is 64): a
 #: quarter of the cost; the search compares means over many pushes, not single scores
 SEARCH_SAMPLES = 16
@@ -205,62 +216,62 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     if isinstance(pushes_per_action, bool) or int(pushes_per_action) != pushes_per_action or pushes_per_action < 1:
         raise InvalidParameterError(f"the pushes held out per action must be a whole number >= 1, got "
                                     f"{pushes_per_action!r}")
-    from pushtorch.prediction.residual import novelty_factors
-
     generator = generator or torch.Generator().manual_seed(0)
     grid = [float(f) for f in scales]
-    valid = records.take(records.valid)
     unwidened = replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0,
                         point="corrected")  # as trained
     scores, cases, skipped = [], [], 0
-    for a, motion in enumerate(residual.model.motions):
-        push = motion.manipulator.push
-        if push is None:
-            raise InvalidParameterError("choosing the residual kernels' scale needs a model trained in this session "
-                                        "(its kernels know their pushes), not a loaded one")
-        action = motion.action.detach().double().cpu()
-        pushes = valid.take((valid.action.double() - action).abs().amax(-1) <= 1e-6)
-        if int(push.max()) >= len(pushes):
-            raise InvalidParameterError(f"the records hold {len(pushes)} pushes of action {action.tolist()}, the "
-                                        f"model's kernels come from {int(push.max()) + 1}: give the model's own")
-        kept = push.cpu().unique()
-        for p in kept[torch.randperm(len(kept), generator=generator)[:int(pushes_per_action)]].tolist():
-            try:
-                held_out = unwidened.without_pushes(a, torch.tensor([p]))
-            except InvalidParameterError:  # its push gave every kernel of the action
-                skipped += 1
-                continue
-            case = _push_case(obj, pushes.take(torch.tensor([p])), residual.settings.voxel_size)
-            scored = _predicted_scores(held_out, obj, case, generator, lambda p, truth, start: residual_nll_grid(
-                p, truth, start, obj, grid, [(0.0, 0.0, 0.0)], [0.0]))
-            if scored is None:
-                skipped += 1
-                continue
-            scores.append(scored[1])
-            cases.append((scored[0], case[4], case[3], _learned_hacc(held_out, obj, case, generator), obj))
+    for held_out, case in _own_pushes(unwidened, obj, records, pushes_per_action, generator, "kernels' scale"):
+        scored = None if held_out is None else _predicted_scores(
+            held_out, obj, case, generator,
+            lambda p, truth, start: residual_nll_grid(p, truth, start, obj, grid, [(0.0, 0.0, 0.0)], [0.0]))
+        if scored is None:
+            skipped += 1
+            continue
+        scores.append(scored[1])
+        cases.append((scored[0], case[4], case[3], _learned_hacc(held_out, obj, case, generator), obj))
     if not scores:
         raise InvalidParameterError(f"no held-out push of {obj.name} could be predicted to choose the residual "
                                     "kernels' scale")
     mean = torch.stack(scores).mean(0)
     best = int(mean.argmin())
-    # the same held-out pushes at every novelty widening, defensive part and uncorrected share, at the chosen
-    # scale: the own-object side of the choice across objects (choose_novelty_widening), kept since a model read
-    # from its file cannot hold pushes out
-    own = torch.stack([residual_nll_grid(p, truth, start, obj, [novelty_factors(p, v, grid[best])
-                                                               for v in NOVELTY_WIDENINGS])
-                       for p, truth, start, _, _ in cases]).mean(0)
     point = _point_choice(cases, lambda p: grid[best], residual.settings.motion_bandwidth, obj.name)
     log.info("residual kernels' scale %g for %s (held-out nll %.2f against %s at 1, %d pushes)", grid[best],
              obj.name, float(mean[best]), f"{float(mean[grid.index(1.0)]):.2f}" if 1.0 in grid else "—", len(scores))
     bandwidth = replace(residual.bandwidth, p_std=residual.bandwidth.p_std * grid[best],
                         rot_std=residual.bandwidth.rot_std * grid[best])
     chosen = {"chosen": grid[best], "grid": grid, "nll": mean.tolist(), "pushes": len(scores), "skipped": skipped,
-              "pushes_per_action": int(pushes_per_action),
-              "novelty": {"grid": list(NOVELTY_WIDENINGS), "form": NOVELTY_FORM,
-                          "defensive": [list(d) for d in DEFENSIVE_PARTS], "uncorrected": list(UNCORRECTED_RATES),
-                          "nll": own.tolist()},
-              "point": point}
+              "pushes_per_action": int(pushes_per_action), "point": point}
     return replace(residual, bandwidth=bandwidth, point=point["chosen"], meta={**residual.meta, "scale": chosen})
+
+
+def _own_pushes(residual, obj: ObjectModel, records, per_action: int, generator: torch.Generator, what: str):
+    """Up to ``per_action`` of each action's training pushes of ``residual`` (a model of one object, trained in
+    this session on ``records``), drawn at random: each ``(held_out, case)``, the model without that push's kernels
+    (:meth:`~pushtorch.models.residual.ResidualModel.without_pushes`; None where the push gave every kernel of its
+    action) and the push (:func:`_push_case`). ``what`` names the choice in the errors.
+
+    Raises:
+        InvalidParameterError: a model read from its file (its kernels no longer know their pushes), or records
+            that are not its own."""
+    valid = records.take(records.valid)
+    for a, motion in enumerate(residual.model.motions):
+        push = motion.manipulator.push
+        if push is None:
+            raise InvalidParameterError(f"choosing the residual's {what} holds its own pushes out: it needs a model "
+                                        "trained in this session (its kernels know their pushes), not a loaded one")
+        action = motion.action.detach().double().cpu()
+        pushes = valid.take((valid.action.double() - action).abs().amax(-1) <= 1e-6)
+        if int(push.max()) >= len(pushes):
+            raise InvalidParameterError(f"the records hold {len(pushes)} pushes of action {action.tolist()}, the "
+                                        f"model's kernels come from {int(push.max()) + 1}: give the model's own")
+        kept = push.cpu().unique()
+        for p in kept[torch.randperm(len(kept), generator=generator)[:int(per_action)]].tolist():
+            try:
+                held_out = residual.without_pushes(a, torch.tensor([p]))
+            except InvalidParameterError:  # its push gave every kernel of the action
+                held_out = None
+            yield held_out, _push_case(obj, pushes.take(torch.tensor([p])), residual.settings.voxel_size)
 
 
 def _learned_hacc(held_out, obj: ObjectModel, case, generator: torch.Generator) -> float:
@@ -466,17 +477,21 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     (:mod:`pushtorch.prediction.residual`: a share ``ν·n / (1 + ν·n)`` of the residuals' spread, ``n`` the
     prediction's outcome novelty), and with each defensive part ``(ε0, λ, w)`` of
     :data:`~pushtorch.models.residual.DEFENSIVE_PARTS`, and each uncorrected share's rate ``τ`` of
-    :data:`~pushtorch.models.residual.UNCORRECTED_RATES`. A model whose scale was chosen
-    (:func:`choose_residual_scale`) adds its own held-out pushes, scored then at every combination: the pushes of
-    small novelty, where widening costs. Each model also predicts ``pushes_per_shape`` pushes of each of
-    ``shapes`` (generated training shapes, with their ``shape_records``, that no model was trained on): rollouts of
-    intermediate novelty, between the own object's and another training object's. The combination of lowest mean
-    nll over all the pushes is given to all (kept in ``meta["novelty"]``).
-    What an experiment with several training objects does for their residual models; a single object has no shape
-    to hold out and keeps ``ν = 0``.
+    :data:`~pushtorch.models.residual.UNCORRECTED_RATES`. Each model also predicts ``pushes_per_shape`` pushes of
+    each of ``shapes`` (generated training shapes, with their ``shape_records``, that no model was trained on):
+    rollouts of intermediate novelty, between the own object's and another training object's; and
+    ``pushes_per_shape`` of each action's own training pushes, each held out of it in turn
+    (:meth:`~pushtorch.models.residual.ResidualModel.without_pushes`): the pushes of small novelty, where widening
+    costs. The combinations whose mean nll over all the pushes is within 2 paired SE of the lowest are tied; of
+    them, the one whose 90 % regions hold the truths of the same pushes nearest 90 % of the time is given to all
+    (:func:`~pushtorch.evaluation.likelihood.calibrated_choice`, each combination's density drawn from as
+    :func:`~pushtorch.prediction.residual.hedged_density` builds it; kept in ``meta["novelty"]`` with the
+    candidates' coverage). What an experiment with several training objects does for their residual models; a
+    single object has no shape to hold out and keeps ``ν = 0``.
 
     Raises:
-        InvalidParameterError: fewer than two models, objects or records not one per model, or no push predicted.
+        InvalidParameterError: fewer than two models, objects or records not one per model, a model read from its
+            file (its kernels no longer know their pushes), or no push predicted.
     """
     if len(residuals) < 2 or len(objects) != len(residuals) or len(records) != len(residuals) \
             or len(shapes) != len(shape_records):
@@ -486,43 +501,65 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
                                     f"{len(objects)} and {len(records)} ({len(shapes)} shapes, "
                                     f"{len(shape_records)} sets)")
     _check_pushes(pushes_per_shape)
-    from pushtorch.prediction.residual import novelty_factors
+    if any(m.manipulator.push is None for r in residuals for m in r.model.motions):
+        raise InvalidParameterError("choosing the residual's novelty widening holds each model's own pushes out: it "
+                                    "needs models trained in this session (their kernels know their pushes), not "
+                                    "loaded ones")
+    from pushtorch.prediction.residual import hedged_density, novelty_factors
 
     generator = generator or torch.Generator().manual_seed(0)
     grid = [float(v) for v in widenings]
-    scores, skipped = [], 0
+
+    def factors(p):
+        return [novelty_factors(p, v) for v in grid]
+
+    scores, cases, skipped = [], [], 0
     others = list(zip(objects, records, strict=True)) + list(zip(shapes, shape_records, strict=True))
-    for i, residual in enumerate(residuals):
+    plain = [replace(r, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0) for r in residuals]
+    for i, residual in enumerate(plain):
         for j, (obj, other) in enumerate(others):
             if j != i:
-                plain = replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0)
-                more, missed, _ = _residual_scores(plain, obj, other, pushes_per_shape, generator,
-                                                   lambda p: [novelty_factors(p, v) for v in grid])
+                more, missed, made = _residual_scores(residual, obj, other, pushes_per_shape, generator, factors)
                 scores += more
                 skipped += missed
+                cases += [(p, obj) for _, p in made]
+    count = len(scores)
+    for residual, obj, own in zip(plain, objects, records, strict=True):  # each model's own pushes, held out
+        for held_out, case in _own_pushes(residual, obj, own, pushes_per_shape, generator, "novelty widening"):
+            scored = None if held_out is None else _predicted_scores(
+                held_out, obj, case, generator,
+                lambda p, truth, start, obj=obj: residual_nll_grid(p, truth, start, obj, factors(p)))
+            if scored is None:
+                skipped += 1
+                continue
+            scores.append(scored[1])
+            cases.append((scored[0], obj))
     if not scores:
-        raise InvalidParameterError("no push of another training object could be predicted to choose the "
-                                    "residual's novelty widening")
-    total, count = torch.stack(scores).sum(0), len(scores)
-    own_pushes = 0
-    for residual in residuals:  # each model's own held-out pushes, scored when its scale was chosen
-        own = (residual.meta.get("scale") or {})
-        if novelty_scored_as_now(own.get("novelty"), grid):
-            total = total + torch.tensor(own["novelty"]["nll"], dtype=torch.float64) * int(own["pushes"])
-            own_pushes += int(own["pushes"])
-    mean = total / (count + own_pushes)
-    best = int(mean.argmin())
+        raise InvalidParameterError("no held-out push could be predicted to choose the residual's novelty widening")
+    rows = torch.stack(scores)
+
+    def covered_at(c: int) -> torch.Tensor:
+        nu, part, rate = _combination(grid, c)
+        return torch.tensor([bool(covered(rows[k, c], hdr_thresholds(
+            hedged_density(p, novelty_factors(p, nu), part, rate), (HEDGE_LEVEL,),
+            generator=torch.Generator().manual_seed(k), symmetry=obj.symmetry, plane=p.start)).reshape(-1)[0])
+            for k, (p, obj) in enumerate(cases)])
+
+    best, calibration = calibrated_choice(rows, covered_at, HEDGE_LEVEL)
+    mean = rows.mean(0)
     nu, part, rate = _combination(grid, best)
-    log.info("residual novelty widening %g, defensive part %s, uncorrected rate %g across %s (held-out nll %.2f "
-             "against %.2f unwidened; %d pushes of other objects and shapes, %d of their own)", nu, part, rate,
-             [o.name for o in objects], float(mean[best]), float(mean[0]) if grid[0] == 0.0 else math.nan, count,
-             own_pushes)
+    shares = dict(zip(calibration["candidates"], calibration["coverage"], strict=True))
+    log.info("residual novelty widening %g, defensive part %s, uncorrected rate %g across %s (held-out nll %.2f, "
+             "90 %% coverage %.2f; the likeliest %.2f and %.2f; %d combinations within 2 paired SE of it; %d pushes "
+             "of other objects and shapes, %d of their own)", nu, part, rate, [o.name for o in objects],
+             float(mean[best]), shares[best], float(mean[calibration["likeliest"]]),
+             shares[calibration["likeliest"]], len(shares), count, len(scores) - count)
     chosen = {"chosen": nu, "defensive_chosen": list(part), "across": [o.name for o in objects],
               "shapes": [o.name for o in shapes], "grid": grid,
               "defensive": [list(d) for d in DEFENSIVE_PARTS], "uncorrected_chosen": rate,
               "uncorrected": list(UNCORRECTED_RATES), "form": NOVELTY_FORM, "nll": mean.tolist(),
-              "pushes": count, "own_pushes": own_pushes, "pushes_per_shape": int(pushes_per_shape),
-              "skipped": skipped}
+              "pushes": count, "own_pushes": len(scores) - count, "pushes_per_shape": int(pushes_per_shape),
+              "skipped": skipped, "calibration": calibration}
     return [replace(r, novelty_widening=nu, defensive=part, uncorrected=rate,
                     meta={**r.meta, "novelty": chosen}) for r in residuals]
 

@@ -213,11 +213,7 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
         except RecordFormatError as exc:
             log.warning("retraining the residual of %s: %s", key, exc)
     records = training_records(ctx, obj, friction, mass, progress=False)
-    fresh = model
-    if any(m.manipulator.push is None for m in model.motions):  # read from its file: train it again
-        fresh = train_push_model(obj, records, ctx.settings, name=key,
-                                 generator=torch.Generator().manual_seed(stable_seed(ctx.seed, "fit", key)),
-                                 meta={k: v for k, v in model.meta.items() if k not in _SEARCHED})
+    fresh = _knowing_pushes(ctx, obj, model, records, key)
     log.info("training the residual of %s against %s on %d pushes", key, ctx.physics.engine,
              int(records.valid.sum()))
     residual = train_residual_model(fresh, obj, records, ctx.physics, ensemble)
@@ -226,6 +222,16 @@ def train_residual(ctx: ExperimentContext, obj: ObjectModel, friction: str, mass
                                          torch.Generator().manual_seed(stable_seed(ctx.seed, "residual_scale", key)))
     residual.save(path)
     return saved_as(residual, _read_residual, str(path), int(ensemble))
+
+
+def _knowing_pushes(ctx: ExperimentContext, obj, model, records, key: str):
+    """``model``, or where it was read from its file (its kernels no longer know which push gave them, which
+    holding a push out needs) the same model trained again from the same cached pushes and seed, bit for bit."""
+    if all(m.manipulator.push is not None for m in model.motions):
+        return model
+    return train_push_model(obj, records, ctx.settings, name=key,
+                            generator=torch.Generator().manual_seed(stable_seed(ctx.seed, "fit", key)),
+                            meta={k: v for k, v in model.meta.items() if k not in _SEARCHED})
 
 
 def _asked(meta: dict) -> dict:
@@ -238,20 +244,20 @@ def _scale_chosen(residual, pushes: int) -> bool:
     """Whether a cached residual model's kernels' scale was chosen as asked: on ``pushes`` held-out pushes per
     action over today's grid, with its point prediction (0: not chosen)."""
     from pushtorch.evaluation.transfer import RESIDUAL_SCALES
-    from pushtorch.models.residual import POINTS, novelty_scored_as_now
+    from pushtorch.models.residual import POINTS
 
     chosen = residual.meta.get("scale") or {}
     return chosen.get("pushes_per_action", 0) == pushes and (not pushes or (
-        chosen.get("grid") == list(RESIDUAL_SCALES) and novelty_scored_as_now(chosen.get("novelty"))
-        and (chosen.get("point") or {}).get("points") == list(POINTS)))
+        chosen.get("grid") == list(RESIDUAL_SCALES) and (chosen.get("point") or {}).get("points") == list(POINTS)))
 
 
 def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: int, shapes: str | None = None) -> dict:
     """``{(object, friction, mass): residual model}`` with one novelty widening, defensive part and uncorrected
     share chosen across the training objects of each prior
     (:func:`pushtorch.evaluation.transfer.choose_novelty_widening`: each object's model scores ``pushes`` of every
-    other's training pushes per object, and as many of each generated shape of ``shapes``, a
-    ``shapes:<kind>:<count>`` entry, pushed under the same prior), each saved back to its file. A prior with one
+    other's training pushes per object, as many of each generated shape of ``shapes``, a ``shapes:<kind>:<count>``
+    entry, pushed under the same prior, and as many of each action's own, held out; a tie in likelihood is broken
+    by the same pushes' 90 % coverage), each saved back to its file. A prior with one
     training object keeps its models as they are; a model whose file already holds the choice across the same
     objects and shapes is kept as read."""
     from pushtorch.evaluation.transfer import choose_novelty_widening
@@ -275,6 +281,8 @@ def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: in
             continue
         objects = [load_object(t) for t in names]
         records = [training_records(ctx, o, f, m, progress=False) for o in objects]
+        models = [replace(r, model=_knowing_pushes(ctx, o, r.model, rec, _model_key(t, f, m)))  # own pushes held out
+                  for r, o, rec, t in zip(models, objects, records, names, strict=True)]
         shape_records = [training_records(ctx, o, f, m, progress=False) for o in generated]
         generator = torch.Generator().manual_seed(stable_seed(ctx.seed, "residual_novelty", f, m, *names))
         widened = choose_novelty_widening(models, objects, records, pushes, generator, shapes=generated,

@@ -97,8 +97,9 @@ DEFENSIVE_TURN = 5.0
 #: Which form of the novelty widening a model's choice of ``ν`` was made for (kept beside it in its ``meta``; a
 #: cached choice of another form is made again): 2, a share of the outcomes' spread added to the variances; 3, as 2
 #: and chosen jointly with a defensive part (:data:`DEFENSIVE_PARTS`); 4, as 3 and with an uncorrected share
-#: (:data:`UNCORRECTED_RATES`); 5, as 4 with the uncorrected rollouts' kernels widened by the corrections' spread
-NOVELTY_FORM = 5
+#: (:data:`UNCORRECTED_RATES`); 5, as 4 with the uncorrected rollouts' kernels widened by the corrections' spread;
+#: 6, as 5 with the own pushes held out in the choice itself and a tie in likelihood broken by calibration
+NOVELTY_FORM = 6
 #: A model's point predictions: ``corrected``, its density's mode (the highest corrected kernel centre);
 #: ``shifted``, that mixture's local mode at the push model's motion kernels' width (where pushtorch anneals its
 #: own mode), found by mean shift from its highest kernel centres (:func:`pushtorch.prediction.residual.
@@ -179,9 +180,9 @@ def correction_spread(residuals: se3.Pose) -> tuple[float, float]:
 
 def novelty_scored_as_now(entry: dict | None, grid=NOVELTY_WIDENINGS, parts=DEFENSIVE_PARTS,
                           rates=UNCORRECTED_RATES) -> bool:
-    """Whether a model's ``meta`` entry of novelty-widening scores (``meta["novelty"]``, or the own held-out
-    pushes' ``meta["scale"]["novelty"]``) was made over ``grid`` × the defensive ``parts`` × the uncorrected
-    shares' ``rates`` and for today's :data:`NOVELTY_FORM`: one made otherwise is made again."""
+    """Whether a model's ``meta`` entry of novelty-widening scores (``meta["novelty"]``) was made over ``grid`` ×
+    the defensive ``parts`` × the uncorrected shares' ``rates`` and for today's :data:`NOVELTY_FORM`: one made
+    otherwise is made again."""
     entry = entry or {}
     return (entry.get("grid") == [float(v) for v in grid] and entry.get("form") == NOVELTY_FORM
             and entry.get("defensive") == [[float(v) for v in part] for part in parts]

@@ -76,9 +76,9 @@ from pushtorch.perception import PointCloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
 from pushtorch.streams import keyed_seed
 
-__all__ = ["ResidualCandidates", "ResidualPrediction", "corrected_mode", "defensive_factors", "learned_point",
-           "narrow_density", "novelty_factors", "predict_residual", "rescaled", "residual_candidates", "scaled_parts",
-           "shifted_mode"]
+__all__ = ["ResidualCandidates", "ResidualPrediction", "corrected_mode", "defensive_factors", "hedged_density",
+           "learned_point", "narrow_density", "novelty_factors", "predict_residual", "rescaled", "residual_candidates",
+           "scaled_parts", "shifted_mode"]
 
 
 @dataclass
@@ -408,6 +408,26 @@ def scaled_parts(prediction: ResidualPrediction, factor: tuple[float, float]
     mode = density.mode  # the corrected kernels' (a learned point is not the density's mode)
     return (_mixture(density.means, density.log_weights, bandwidth, mode),
             _rollout_mixture(prediction.rollouts, bandwidth, prediction.correction_spread, mode))
+
+
+def hedged_density(prediction: ResidualPrediction, factors: tuple[float, float], part: tuple[float, float, float],
+                   rate: float) -> FinalPoseDistribution | DefensiveMixture:
+    """``prediction``'s density (made without hedges) with its narrow kernels' stds times ``factors``, the
+    defensive part ``part = (ε0, λ, w)`` and the uncorrected share's ``rate`` at its outcome novelty: the density
+    :func:`predict_residual` makes from the same rollouts for a model of those hedges (what
+    :func:`pushtorch.evaluation.transfer.residual_nll_grid` scores without building it, and a choice of the hedges
+    draws from to measure their calibration)."""
+    rho = uncorrected_share(rate, prediction.outcome_novelty)
+    eps = defensive_share(part, prediction.outcome_novelty)
+
+    def mixed(f: tuple[float, float]) -> FinalPoseDistribution | DefensiveMixture:
+        corrected_part, rollouts = scaled_parts(prediction, f)
+        return corrected_part if rho == 0 else DefensiveMixture(corrected_part, rollouts, rho)
+
+    density = mixed(factors)
+    if eps > 0:
+        density = DefensiveMixture(density, mixed(defensive_factors(prediction, factors, part[2])), eps)
+    return density
 
 
 def _rollout_mixture(rollouts: se3.Pose, bandwidth, spread: tuple[float, float], mode: torch.Tensor
