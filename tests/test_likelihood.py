@@ -234,6 +234,8 @@ def test_a_calibrated_choice_keeps_the_tied_setting_nearest_its_level(pushes, se
     assert report["coverage"] == pytest.approx([float(share[c]) for c in report["candidates"]])
     with pytest.raises(InvalidParameterError, match="nll rows"):
         calibrated_choice(rows[:1], lambda c: inside[:1, c])
+    with pytest.raises(InvalidParameterError, match="NaN"):
+        calibrated_choice(torch.where(rows == rows[0, 0], math.nan, rows), lambda c: inside[:, c])
 
 
 def test_a_setting_far_worse_on_a_few_pushes_ties_with_nothing():
@@ -248,3 +250,5 @@ def test_a_setting_far_worse_on_a_few_pushes_ties_with_nothing():
     assert float(difference.mean()) < 2.0 * float(difference.std() / math.sqrt(60))  # tied by the plain SE
     chosen, report = calibrated_choice(rows, lambda c: inside[:, c])
     assert chosen == 0 and report["candidates"] == [0]
+    rows[5, 1] = math.inf  # a setting that gives a truth no density is never tied, the likeliest always kept
+    assert calibrated_choice(rows, lambda c: inside[:, c])[1]["candidates"] == [0]

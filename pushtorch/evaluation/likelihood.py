@@ -366,18 +366,21 @@ def calibrated_choice(nll_rows: Tensor, covered_at, level: float = 0.9, margin: 
     candidates, their mean nll, paired SE and coverage.
 
     Raises:
-        InvalidParameterError: rows that are not ``(n, C)`` with ``n >= 2``, or a level outside (0, 1).
+        InvalidParameterError: rows that are not ``(n, C)`` with ``n >= 2`` or that hold a NaN, or a level outside
+            (0, 1).
     """
     rows = torch.as_tensor(nll_rows, dtype=torch.float64)
     if rows.dim() != 2 or rows.shape[0] < 2 or rows.shape[1] < 1 or not 0.0 < level < 1.0:
         raise InvalidParameterError(f"a calibrated choice needs (pushes >= 2, settings) nll rows and a level in "
                                     f"(0, 1), got {tuple(rows.shape)} and {level}")
+    if bool(torch.isnan(rows).any()):
+        raise InvalidParameterError(f"a calibrated choice's nll rows hold {int(torch.isnan(rows).sum())} NaN")
     mean = rows.mean(0)
     best = int(mean.argmin())
     differences = rows - rows[:, best:best + 1]
     low, high = torch.quantile(differences, WINSOR, dim=0), torch.quantile(differences, 1.0 - WINSOR, dim=0)
     se = differences.clamp(low, high).std(0) / math.sqrt(rows.shape[0])
-    tied = torch.nonzero(mean - mean[best] <= margin * se).reshape(-1)
+    tied = torch.nonzero((mean - mean[best] <= margin * se) | (torch.arange(len(mean)) == best)).reshape(-1)
     tied = tied[torch.argsort(mean[tied], stable=True)][:max(1, int(most))].tolist()  # the lowest first
     shares = [float(torch.as_tensor(covered_at(c)).double().mean()) for c in tied]
     chosen = min(range(len(tied)), key=lambda k: (abs(shares[k] - level), float(mean[tied[k]])))
