@@ -48,6 +48,14 @@ point lies from the corrected mode (the H_acc of one displacement against the ot
 whether the two predictions' disagreement tells where the corrections do not carry (a per-prediction hedge's
 signal), never a choice.
 
+``signals <run>``: for the same run, each training object's residual model predicts ``--pushes`` of the other
+object's training pushes and of each generated shape's that choose its hedges (the run's
+``residual_novelty_shapes``), and, from the same push condition, its push model: per group, the share of truths
+inside the density's 90 % region, the median novelty and disagreement (as ``disagreement``), and among the pushes
+of low and of high novelty (below and above the median) the coverage where the two predictions agree and where
+they disagree: whether the disagreement tells the held-out pushes whose corrections do not carry, where novelty
+does not (a hedge's signal measured on training pushes, never on the test objects).
+
 ``scale <run>``: for the same run, each training object's residual model trained again from the run's pushes
 (its push model with another seed than the run's, so that its kernels know their pushes), ``--pushes`` of its
 pushes per action held out in turn and predicted as test pushes are, and the mean held-out nll at every kernels'
@@ -70,6 +78,7 @@ the better of the two, its nll and 90 % coverage. The last line is exactly ``obj
     .venv/bin/python tools/residual_transfer.py coverage runs/engine_gap_pybullet [--draw 0]
     .venv/bin/python tools/residual_transfer.py hedges runs/engine_gap_pybullet [--draw 0]
     .venv/bin/python tools/residual_transfer.py disagreement runs/engine_gap_pybullet
+    .venv/bin/python tools/residual_transfer.py signals runs/engine_gap_pybullet [--pushes 15]
     .venv/bin/python tools/residual_transfer.py scale runs/engine_gap_pybullet [--pushes 10]
     .venv/bin/python tools/residual_transfer.py calibration runs/engine_gap_pybullet [--pushes 10]
     .venv/bin/python tools/residual_transfer.py weights runs/quickstart_transfer
@@ -87,6 +96,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 
 from pushtorch import se3
 from pushtorch.distribution import DefensiveMixture
@@ -99,6 +109,7 @@ from pushtorch.models.residual import NOVELTY_WIDENINGS, defensive_share, train_
 from pushtorch.models.residual_file import load_residual_model
 from pushtorch.models.training import train_push_model
 from pushtorch.objects import load_object
+from pushtorch.objects.shapes import training_shapes
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.prediction import predict, transfer_distance
 from pushtorch.prediction.residual import (
@@ -285,6 +296,61 @@ def hedges(run: Path, draw: int) -> None:
         print(f"{form:8s} " + " ".join(f"{c[0]:6.2f} /{c[1]:6.1f}" for c in cells) + f"  in band {band} of 6")
 
 
+def _apart(own, corrected, obj, start, truth) -> list[float]:
+    """H_acc of the push model's prediction ``own`` against the residual's corrected mode (``corrected``, made from
+    the same push condition), and of each against ``truth``: each a displacement from the body's start applied to
+    the true ``start``."""
+    learned = learned_point((own.condition.object_pose, own.final_pose), corrected.start)
+    as_learned, as_corrected = (displaced(corrected.start, point, start) for point in (learned, corrected.final_pose))
+    return [float(accuracy(moved, against, obj).hacc) for moved, against in
+            ((as_learned, as_corrected), (as_corrected, truth), (as_learned, truth))]
+
+
+def _hedge_shapes(run: Path) -> list:
+    """The generated shapes whose pushes chose the run's hedges (its parts' ``residual_novelty_shapes``)."""
+    parts = OmegaConf.load(run / "resolved_config.yaml").experiment.parts
+    specs = {str(part.residual_novelty_shapes) for part in parts.values() if part.get("residual_novelty_shapes")}
+    if len(specs) != 1:
+        raise SystemExit(f"{run} names {len(specs)} sets of shapes for its hedges, not one")
+    return training_shapes(specs.pop())
+
+
+def signals(run: Path, pushes: int) -> None:
+    models = _models(run)
+    generator = torch.Generator().manual_seed(1)
+    rows, groups = [], []
+    for name, saved in models.items():
+        plain = dataclasses.replace(saved, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0)
+        for obj in [load_object(o) for o in models if o != name] + _hedge_shapes(run):
+            records = load_records(_one(f"{run}/data/{obj.name}_*"))
+            valid = records.take(records.valid)
+            for k in torch.randperm(len(valid), generator=generator)[:pushes].tolist():
+                push = valid.take(torch.tensor([k]))
+                start, robot, truth = _poses(push)
+                cloud = capture_partial_cloud(obj, start, voxel_size=saved.settings.voxel_size)
+                try:
+                    own = predict(saved.model, cloud, push.action[0].float(), torch.Generator().manual_seed(k),
+                                  robot_start=robot)
+                    corrected = predict_residual(plain, cloud, push.action[0].float(), k, condition=own.condition)
+                except PushtorchError:
+                    continue
+                inside, _ = _scored_regions(_hedged(corrected, saved, "run", 0.0), corrected, obj, start, truth, k)
+                rows.append([float(inside[1]), corrected.outcome_novelty] + _apart(own, corrected, obj, start, truth))
+                groups.append(f"{name}'s model on {obj.name}")
+    table = np.asarray(rows)
+    inside, novel, apart = table[:, 0], table[:, 1], table[:, 2]
+    for group in dict.fromkeys(groups):
+        mine = np.asarray(groups) == group
+        print(f"{group:36s} {int(mine.sum())} pushes: 90 % coverage {inside[mine].mean():.2f}, median novelty "
+              f"{np.median(novel[mine]):.2f}, disagreement {np.median(apart[mine]):.3f}; H_acc corrected mode "
+              f"{table[mine, 3].mean():.3f}, push model {table[mine, 4].mean():.3f}")
+    for label, low in (("low", novel <= np.median(novel)), ("high", novel > np.median(novel))):
+        near = apart[low] <= np.median(apart[low])
+        print(f"novelty {label:4s} ({int(low.sum())} pushes): 90 % coverage {inside[low][near].mean():.2f} where the "
+              f"two agree (disagreement <= {np.median(apart[low]):.3f}), {inside[low][~near].mean():.2f} where they "
+              "disagree")
+
+
 def disagreement(run: Path) -> None:
     models = _models(run)
     for obj_name, trained in TRAINING_OF.items():
@@ -293,12 +359,7 @@ def disagreement(run: Path) -> None:
         for i, cloud, action, robot, start, truth in _test_pushes(run, obj, residual.settings.voxel_size):
             own = predict(residual.model, cloud, action, torch.Generator().manual_seed(i), robot_start=robot)
             corrected = predict_residual(residual, cloud, action, i, condition=own.condition)
-            learned = learned_point((own.condition.object_pose, own.final_pose), corrected.start)
-            # H_acc of a displacement from the body's start applied to the true start, against another pose
-            as_learned, as_corrected = (displaced(corrected.start, point, start)
-                                        for point in (learned, corrected.final_pose))
-            rows.append([float(accuracy(moved, against, obj).hacc) for moved, against in
-                         ((as_learned, as_corrected), (as_corrected, truth), (as_learned, truth))])
+            rows.append(_apart(own, corrected, obj, start, truth))
         table = np.asarray(rows)
         print(f"{obj_name:14s} ({trained}'s model, {len(rows)} pushes) disagreement median {np.median(table[:, 0]):.3f}"
               f" mean {table[:, 0].mean():.3f}; H_acc corrected mode {table[:, 1].mean():.3f}, push model "
@@ -436,7 +497,7 @@ def target(run: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("what", choices=("distance", "novelty", "coverage", "hedges", "calibration", "disagreement",
-                                         "scale", "weights", "target"))
+                                         "signals", "scale", "weights", "target"))
     parser.add_argument("run", type=Path)
     parser.add_argument("--pushes", type=int, default=15)
     parser.add_argument("--draw", type=int, default=0,
@@ -444,8 +505,9 @@ def main() -> None:
     args = parser.parse_args()
     if args.what == "distance":
         distance(args.run, args.pushes)
-    elif args.what in ("novelty", "scale", "calibration"):
-        {"novelty": novelty, "scale": scale, "calibration": calibration}[args.what](args.run, args.pushes)
+    elif args.what in ("novelty", "scale", "calibration", "signals"):
+        {"novelty": novelty, "scale": scale, "calibration": calibration, "signals": signals}[args.what](args.run,
+                                                                                                       args.pushes)
     elif args.what in ("coverage", "hedges"):
         (coverage if args.what == "coverage" else hedges)(args.run, args.draw)
     elif args.what == "disagreement":
