@@ -227,8 +227,10 @@ def test_a_calibrated_choice_keeps_the_tied_setting_nearest_its_level(pushes, se
     differences = rows - rows[:, likeliest:likeliest + 1]
     se = [float(np.clip(d, *np.quantile(d, [0.05, 0.95])).std(ddof=1)) / math.sqrt(pushes)
           for d in differences.T.numpy()]  # winsorised: a few pushes far worse tie with nothing
-    tied = [c for c in range(settings) if mean[c] - mean[likeliest] <= margin * se[c]]
-    assert sorted(report["candidates"]) == sorted(tied) == sorted(asked) and report["candidates"][0] == likeliest
+    surely, maybe = ({c for c in range(settings) if mean[c] - mean[likeliest] <= margin * se[c] + slack} | {likeliest}
+                     for slack in (-1e-9, 1e-9))  # the two computations may differ in the last digits at the edge
+    tied = report["candidates"]
+    assert surely <= set(tied) <= maybe and sorted(tied) == sorted(asked) and tied[0] == likeliest
     share = inside.double().mean(0)
     assert chosen == min(tied, key=lambda c: (abs(float(share[c]) - 0.9), float(mean[c])))
     assert report["coverage"] == pytest.approx([float(share[c]) for c in report["candidates"]])

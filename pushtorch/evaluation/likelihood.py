@@ -360,10 +360,10 @@ def calibrated_choice(nll_rows: Tensor, covered_at, level: float = 0.9, margin: 
     differences whose plain SE is as large as their mean, and would tie with anything. ``covered_at(c)`` gives
     ``(n,)`` whether each truth lies inside the ``level`` region of setting ``c``'s density
     (:func:`hdr_thresholds`, :func:`covered`); the candidate whose share inside is nearest ``level`` is kept, the
-    lower mean nll on a tie. Likelihood alone
-    trades a sharp core against wide tails and can put the held-out truths' coverage anywhere the tails' weight
-    leaves it (docs/method.md, "An uncorrected share"). Returns ``(index, report)``: the report holds the
-    candidates, their mean nll, paired SE and coverage.
+    lower mean nll on a tie. Likelihood alone trades a sharp core against wide tails and can put the held-out
+    truths' coverage anywhere the tails' weight leaves it (docs/method.md, "A tie in likelihood is broken by
+    calibration"). Returns ``(index, report)``: the report holds the candidates, their mean nll, paired SE and
+    coverage.
 
     Raises:
         InvalidParameterError: rows that are not ``(n, C)`` with ``n >= 2`` or that hold a NaN, or a level outside
