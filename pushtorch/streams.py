@@ -69,7 +69,6 @@ def content_keys(values: Tensor) -> Tensor:
     return h
 
 
-
 def keyed_seed(seed: int, key: int) -> int:
     """A ``torch.Generator`` seed for the problem of ``key`` (:func:`content_keys`) under a call's ``seed``: where a
     problem's draws come from a library call that takes a generator (a simulator ensemble) rather than a

@@ -103,7 +103,12 @@ from pushtorch.distribution import DefensiveMixture
 from pushtorch.errors import PushtorchError
 from pushtorch.evaluation.likelihood import covered, hdr_thresholds, nll
 from pushtorch.evaluation.metrics import accuracy, displaced
-from pushtorch.evaluation.transfer import RESIDUAL_SCALES, RESIDUAL_WIDENINGS, residual_nll_grid
+from pushtorch.evaluation.transfer import (
+    RESIDUAL_SCALES,
+    RESIDUAL_WIDENINGS,
+    own_held_out_pushes,
+    residual_nll_grid,
+)
 from pushtorch.experiments.figures import FIGURE_DATA, read_figure_data
 from pushtorch.models.residual import NOVELTY_WIDENINGS, defensive_share, train_residual_model
 from pushtorch.models.residual_file import load_residual_model
@@ -379,19 +384,16 @@ def _own_held_out(run: Path, name: str, saved, pushes: int, as_run: bool):
                                    point="corrected")
     if as_run:
         residual = dataclasses.replace(residual, bandwidth=saved.bandwidth, outcome_width=saved.outcome_width)
-    generator, valid = torch.Generator().manual_seed(0), records.take(records.valid)
-    for a, motion in enumerate(residual.model.motions):
-        mine = valid.take((valid.action.double() - motion.action.detach().double().cpu()).abs().amax(-1) <= 1e-6)
-        kept = motion.manipulator.push.cpu().unique()
-        for p in kept[torch.randperm(len(kept), generator=generator)[:pushes]].tolist():
-            start, robot, truth = _poses(mine.take(torch.tensor([p])))
-            cloud = capture_partial_cloud(obj, start, voxel_size=residual.settings.voxel_size)
-            try:
-                prediction = predict_residual(residual.without_pushes(a, torch.tensor([p])), cloud, motion.action,
-                                              generator, robot_start=robot)
-            except PushtorchError:  # its push gave every kernel, or it cannot be predicted from there
-                continue
-            yield obj, prediction, start, truth, p
+    generator = torch.Generator().manual_seed(0)
+    for p, held_out, (cloud, action, robot, start, truth) in own_held_out_pushes(residual, obj, records, pushes,
+                                                                                  generator):
+        if held_out is None:  # its push gave every kernel of its action
+            continue
+        try:
+            prediction = predict_residual(held_out, cloud, action, generator, robot_start=robot)
+        except PushtorchError:  # it cannot be predicted from there
+            continue
+        yield obj, prediction, start, truth, p
 
 
 def scale(run: Path, pushes: int) -> None:

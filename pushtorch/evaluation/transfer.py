@@ -68,7 +68,7 @@ from pushtorch.objects import ObjectModel
 
 __all__ = ["HEDGE_LEVEL", "RESIDUAL_SCALES", "RESIDUAL_SCALE_PUSHES", "RESIDUAL_WIDENINGS", "SCALES", "WIDENINGS",
            "choose_novelty_widening", "choose_residual_scale", "choose_residual_widening", "choose_widening",
-           "residual_nll_grid"]
+           "own_held_out_pushes", "residual_nll_grid"]
 
 log = logging.getLogger(__name__)
 
@@ -221,7 +221,8 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     unwidened = replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0,
                         point="corrected")  # as trained
     scores, cases, skipped = [], [], 0
-    for held_out, case in _own_pushes(unwidened, obj, records, pushes_per_action, generator, "kernels' scale"):
+    for _, held_out, case in own_held_out_pushes(unwidened, obj, records, pushes_per_action, generator,
+                                                 "choosing the residual kernels' scale"):
         scored = None if held_out is None else _predicted_scores(
             held_out, obj, case, generator,
             lambda p, truth, start: residual_nll_grid(p, truth, start, obj, grid, [(0.0, 0.0, 0.0)], [0.0]))
@@ -245,11 +246,14 @@ def choose_residual_scale(residual, obj: ObjectModel, records, pushes_per_action
     return replace(residual, bandwidth=bandwidth, point=point["chosen"], meta={**residual.meta, "scale": chosen})
 
 
-def _own_pushes(residual, obj: ObjectModel, records, per_action: int, generator: torch.Generator, what: str):
+def own_held_out_pushes(residual, obj: ObjectModel, records, per_action: int, generator: torch.Generator,
+                        what: str = "holding a push out"):
     """Up to ``per_action`` of each action's training pushes of ``residual`` (a model of one object, trained in
-    this session on ``records``), drawn at random: each ``(held_out, case)``, the model without that push's kernels
+    this session on ``records``), drawn at random by ``generator``: each ``(push, held_out, case)``, the push's
+    index among its action's valid pushes, the model without that push's kernels
     (:meth:`~pushtorch.models.residual.ResidualModel.without_pushes`; None where the push gave every kernel of its
-    action) and the push (:func:`_push_case`). ``what`` names the choice in the errors.
+    action) and the push as ``(cloud, action, robot start, start, truth)``, its single-shot cloud at its start.
+    What the choices of a model's scale and hedges predict as test pushes; ``what`` names the caller in the errors.
 
     Raises:
         InvalidParameterError: a model read from its file (its kernels no longer know their pushes), or records
@@ -258,8 +262,8 @@ def _own_pushes(residual, obj: ObjectModel, records, per_action: int, generator:
     for a, motion in enumerate(residual.model.motions):
         push = motion.manipulator.push
         if push is None:
-            raise InvalidParameterError(f"choosing the residual's {what} holds its own pushes out: it needs a model "
-                                        "trained in this session (its kernels know their pushes), not a loaded one")
+            raise InvalidParameterError(f"{what} holds the model's own pushes out: it needs a model trained in this "
+                                        "session (its kernels know their pushes), not a loaded one")
         action = motion.action.detach().double().cpu()
         pushes = valid.take((valid.action.double() - action).abs().amax(-1) <= 1e-6)
         if int(push.max()) >= len(pushes):
@@ -271,7 +275,7 @@ def _own_pushes(residual, obj: ObjectModel, records, per_action: int, generator:
                 held_out = residual.without_pushes(a, torch.tensor([p]))
             except InvalidParameterError:  # its push gave every kernel of the action
                 held_out = None
-            yield held_out, _push_case(obj, pushes.take(torch.tensor([p])), residual.settings.voxel_size)
+            yield p, held_out, _push_case(obj, pushes.take(torch.tensor([p])), residual.settings.voxel_size)
 
 
 def _learned_hacc(held_out, obj: ObjectModel, case, generator: torch.Generator) -> float:
@@ -525,7 +529,8 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
                 cases += [(p, obj) for _, p in made]
     count = len(scores)
     for residual, obj, own in zip(plain, objects, records, strict=True):  # each model's own pushes, held out
-        for held_out, case in _own_pushes(residual, obj, own, pushes_per_shape, generator, "novelty widening"):
+        for _, held_out, case in own_held_out_pushes(residual, obj, own, pushes_per_shape, generator,
+                                                     "choosing the residual's novelty widening"):
             scored = None if held_out is None else _predicted_scores(
                 held_out, obj, case, generator,
                 lambda p, truth, start, obj=obj: residual_nll_grid(p, truth, start, obj, factors(p)))
