@@ -447,7 +447,13 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
 
     from pushtorch.errors import InvalidParameterError
     from pushtorch.evaluation.transfer import choose_novelty_widening
-    from pushtorch.models.residual import DEFENSIVE_PARTS, NOVELTY_WIDENINGS, UNCORRECTED_RATES, outcome_spread
+    from pushtorch.models.residual import (
+        DEFENSIVE_PARTS,
+        DISAGREEMENT_WEIGHTS,
+        NOVELTY_WIDENINGS,
+        UNCORRECTED_RATES,
+        outcome_spread,
+    )
     from pushtorch.models.residual_file import load_residual_model
     from pushtorch.prediction.residual import novelty_factors, rescaled
 
@@ -481,13 +487,13 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
     chosen = choose_novelty_widening([residual, residual], [cube, cube], [records, records], pushes_per_shape=2,
                                      generator=torch.Generator().manual_seed(0), shapes=[cube],
                                      shape_records=[records])  # and a shape no model was trained on
-    assert len({(m.novelty_widening, m.defensive, m.uncorrected) for m in chosen}) == 1
+    assert len({(m.novelty_widening, m.defensive, m.uncorrected, m.disagreement) for m in chosen}) == 1
     assert chosen[0].novelty_widening in NOVELTY_WIDENINGS and chosen[0].defensive in DEFENSIVE_PARTS
     meta = chosen[0].meta["novelty"]
     assert meta["pushes"] == 8 and meta["across"] == ["cube", "cube"] and meta["shapes"] == ["cube"]
     assert meta["own_pushes"] + meta["skipped"] == 12  # two of each action's own pushes per model, held out
-    rates, parts = len(UNCORRECTED_RATES), len(DEFENSIVE_PARTS)
-    assert len(meta["nll"]) == len(NOVELTY_WIDENINGS) * parts * rates
+    rates, parts, block = len(UNCORRECTED_RATES), len(DEFENSIVE_PARTS), len(meta["nll"]) // len(DISAGREEMENT_WEIGHTS)
+    assert block == len(NOVELTY_WIDENINGS) * parts * rates and meta["disagreement"] == list(DISAGREEMENT_WEIGHTS)
     # of the combinations likelihood cannot tell apart, the one whose 90 % regions hold the truths nearest 90 %
     calibration = meta["calibration"]
     candidates, shares = calibration["candidates"], calibration["coverage"]
@@ -496,9 +502,9 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
     assert all(meta["nll"][c] - meta["nll"][likeliest] <= 2 * se + 1e-12
                for c, se in zip(candidates, calibration["se"], strict=True))
     best = candidates[min(range(len(candidates)), key=lambda k: (abs(shares[k] - 0.9), meta["nll"][candidates[k]]))]
-    assert (chosen[0].novelty_widening, chosen[0].defensive, chosen[0].uncorrected) == (
-        NOVELTY_WIDENINGS[best // (parts * rates)], DEFENSIVE_PARTS[best // rates % parts],
-        UNCORRECTED_RATES[best % rates])
+    assert (chosen[0].disagreement, chosen[0].novelty_widening, chosen[0].defensive, chosen[0].uncorrected) == (
+        DISAGREEMENT_WEIGHTS[best // block], NOVELTY_WIDENINGS[best % block // (parts * rates)],
+        DEFENSIVE_PARTS[best // rates % parts], UNCORRECTED_RATES[best % rates])
     with pytest.raises(InvalidParameterError, match="trained in this session"):  # its own pushes cannot be held out
         choose_novelty_widening([load_residual_model(residual.save(tmp_path / "own.npz")), residual], [cube, cube],
                                 [records, records], pushes_per_shape=1)
@@ -506,6 +512,66 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
         choose_novelty_widening([residual], [cube], [records])
     with pytest.raises(InvalidParameterError, match="one set per extra shape"):
         choose_novelty_widening([residual, residual], [cube, cube], [records, records], shapes=[cube])
+
+
+def test_a_prediction_whose_push_model_disagrees_is_hedged_as_if_its_rollouts_were_newer(trained, residual,
+                                                                                          tmp_path):
+    """The disagreement hedge: ``δ²`` is how far the push model's own point lies from the corrected mode, in the
+    training outcomes' stds; a model of weight ``ξ`` hedges with the novelty ``n + ξ·δ²`` (its kernels as a
+    novelty ``n + ξ·δ²`` widens them, the mode where it was), through ``predict`` as through ``predict_residual``
+    given the push model's prediction, and refuses to predict without it; the file keeps ``ξ``."""
+    import dataclasses
+
+    from pushtorch.errors import InvalidParameterError, RecordFormatError
+    from pushtorch.models.residual import novelty_share, outcome_disagreement, outcome_spread, rollout_outcome
+    from pushtorch.models.residual_file import load_residual_model
+    from pushtorch.prediction.residual import learned_point
+
+    cube, records, model = trained
+    cloud, action = capture_partial_cloud(cube, cube.resting_pose(yaw=0.35)), model.actions[2]
+    own = predict(model, cloud, action, torch.Generator().manual_seed(3))
+    learned = (own.condition.object_pose, own.final_pose)
+    plain = predict_residual(residual, cloud, action, 3, condition=own.condition, learned=learned)
+    robot = own.condition.robot_start
+    expected = outcome_disagreement(*(rollout_outcome(robot, plain.start, pose) for pose in (
+        learned_point(learned, plain.start), plain.final_pose)), residual.outcomes[2])
+    assert plain.disagreement == pytest.approx(expected, rel=1e-4) and plain.disagreement > 0
+    widening = dataclasses.replace(residual, novelty_widening=3.0)
+    hedge = dataclasses.replace(widening, disagreement=2.0)
+    assert hedge.needs_learned and not widening.needs_learned
+    hedged = predict_residual(hedge, cloud, action, 3, condition=own.condition, learned=learned)
+    unhedged = predict_residual(widening, cloud, action, 3, condition=own.condition, learned=learned)
+    n = plain.outcome_novelty + 2.0 * plain.disagreement
+    assert hedged.outcome_novelty == pytest.approx(n) and hedged.disagreement == pytest.approx(plain.disagreement)
+    spread_p, _ = outcome_spread(residual.outcomes[2])
+    assert hedged.density.bandwidth.p_std == pytest.approx(math.sqrt(plain.density.bandwidth.p_std**2
+                                                                      + novelty_share(3.0, n) * spread_p**2))
+    assert hedged.density.bandwidth.p_std > unhedged.density.bandwidth.p_std
+    torch.testing.assert_close(hedged.final_pose.vector(), unhedged.final_pose.vector(), rtol=0, atol=0)
+    assert abs(float(hedged.density.log_normaliser())) < 0.05
+    with pytest.raises(InvalidParameterError, match="hedges by its push model"):
+        predict_residual(hedge, cloud, action, 3)
+    through = predict(hedge, cloud, action, torch.Generator().manual_seed(3))
+    assert through.disagreement > 0 and through.outcome_novelty > through.disagreement
+    back = load_residual_model(hedge.save(tmp_path / "hedged.npz"))
+    assert back.disagreement == 2.0
+    with pytest.raises(RecordFormatError, match="disagreement weight"):
+        load_residual_model(dataclasses.replace(hedge, disagreement=-1.0).save(tmp_path / "negative.npz"))
+
+
+@given(st.lists(st.floats(-0.2, 0.2), min_size=3, max_size=3), st.lists(st.floats(-0.2, 0.2), min_size=3, max_size=3),
+       st.integers(0, 2**16))
+def test_a_disagreement_is_a_symmetric_squared_distance_in_the_outcomes_stds(a, b, seed):
+    """``δ²(a, b) = δ²(b, a) ≥ 0``, 0 at ``a = b``, and ``δ²`` of outcomes apart by one std of one component is 1."""
+    from pushtorch.models.residual import outcome_disagreement
+
+    outcomes = torch.randn(6, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) * 0.05
+    a, b = torch.tensor(a, dtype=torch.float64), torch.tensor(b, dtype=torch.float64)
+    assert outcome_disagreement(a, b, outcomes) == pytest.approx(outcome_disagreement(b, a, outcomes), abs=1e-9)
+    assert outcome_disagreement(a, b, outcomes) >= 0 and outcome_disagreement(a, a, outcomes) == 0
+    step = a.clone()
+    step[0] += outcomes.std(0)[0]
+    assert outcome_disagreement(a, step, outcomes) == pytest.approx(1.0)
 
 
 def test_a_defensive_part_keeps_far_truths_likely_and_the_density_normalised(trained, residual, tmp_path):

@@ -156,7 +156,8 @@ def _scored(residual, obj, run: Path, pushes: int, generator: torch.Generator, f
         start = se3.Pose.unchecked(push.object_initial.p[0].float(), push.object_initial.q[0].float())
         robot = se3.Pose.unchecked(push.robot_start.p[0].float(), push.robot_start.q[0].float())
         cloud = capture_partial_cloud(obj, start, voxel_size=residual.settings.voxel_size)
-        prediction = predict_residual(residual, cloud, push.action[0].float(), i, robot_start=robot)
+        prediction = predict_residual(dataclasses.replace(residual, disagreement=0.0), cloud, push.action[0].float(),
+                                      i, robot_start=robot)
         truth = se3.Pose.unchecked(push.object_final.p.float(), push.object_final.q.float())
         rows.append([float(nll(rescaled(prediction, f), truth, start, prediction.start, obj.symmetry)[0])
                      for f in factors(prediction)])
@@ -174,9 +175,24 @@ def _per_object(models: dict, generator: torch.Generator, what: str, value) -> N
             yaw = float(torch.empty(()).uniform_(-math.pi / 4, math.pi / 4, generator=generator))
             cloud = capture_partial_cloud(obj, obj.resting_pose(yaw=yaw), voxel_size=residual.settings.voxel_size)
             for a in range(len(residual.actions)):
-                values.append(float(value(predict_residual(residual, cloud, residual.actions[a], 3 * k + a), a)))
+                values.append(float(value(predict_residual(dataclasses.replace(residual, disagreement=0.0), cloud,
+                                                           residual.actions[a], 3 * k + a), a)))
         q10, median, q90 = np.quantile(values, [0.1, 0.5, 0.9])
         print(f"{obj_name:14s} ({trained}'s model) {what} median {median:.2f} (10 % {q10:.2f}, 90 % {q90:.2f})")
+
+
+def _predicted(residual, cloud, action, seed: int | torch.Generator, robot, unhedged: bool = False):
+    """One push predicted by ``residual`` as the run predicts it: from its push model's push condition where its
+    disagreement hedge needs that model's point (``seed``, or a generator, drawn from by both); ``unhedged``: without
+    the hedges, the prediction knowing the disagreement (:func:`_hedged` hedges it as the run's model)."""
+    model = dataclasses.replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0,
+                                disagreement=0.0) if unhedged else residual
+    if residual.disagreement == 0:
+        return predict_residual(model, cloud, action, seed, robot_start=robot)
+    own = predict(residual.model, cloud, action, torch.Generator().manual_seed(seed) if isinstance(seed, int)
+                  else seed, robot_start=robot)
+    return predict_residual(model, cloud, action, seed, condition=own.condition,
+                            learned=(own.condition.object_pose, own.final_pose))
 
 
 def _models(run: Path) -> dict:
@@ -232,7 +248,7 @@ def coverage(run: Path, draw: int) -> None:
         residual, obj = models[trained], load_object(obj_name)
         inside: dict[str, list] = {"density": [], "corrected kernels alone": []}
         for i, cloud, action, robot, start, truth in _test_pushes(run, obj, residual.settings.voxel_size):
-            prediction = predict_residual(residual, cloud, action, i + 1000 * draw, robot_start=robot)
+            prediction = _predicted(residual, cloud, action, i + 1000 * draw, robot)
             for label, density in zip(inside, (prediction.density, narrow_density(prediction)), strict=True):
                 inside[label].append(_scored_regions(density, prediction, obj, start, truth, i)[0])
         shares = {label: torch.stack(rows).mean(0).tolist() for label, rows in inside.items()}
@@ -252,7 +268,8 @@ def _radii(points: torch.Tensor, estimate: se3.Pose) -> np.ndarray:
 
 def _hedged(prediction, residual, form: str, shape_d2: float):
     """``prediction`` (made without hedges) hedged as ``residual`` hedges it, or in one of the other ``HEDGES``."""
-    novelty = prediction.outcome_novelty + (shape_d2 / SHAPE_WIDTH**2 if form == "shape" else 0.0)
+    novelty = prediction.outcome_novelty + residual.disagreement * prediction.disagreement \
+        + (shape_d2 / SHAPE_WIDTH**2 if form == "shape" else 0.0)
     p = dataclasses.replace(prediction, outcome_novelty=novelty)
     rate = {"tau=0": 0.0, "tau=1": 1.0}.get(form, residual.uncorrected)
     factors = novelty_factors(p, residual.novelty_widening)
@@ -282,10 +299,9 @@ def hedges(run: Path, draw: int) -> None:
     table = {form: [] for form in HEDGES}
     for obj_name, trained in TRAINING_OF.items():
         residual, obj = models[trained], load_object(obj_name)
-        plain = dataclasses.replace(residual, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0)
         rows = {form: [] for form in HEDGES}
         for i, cloud, action, robot, start, truth in _test_pushes(run, obj, residual.settings.voxel_size):
-            prediction = predict_residual(plain, cloud, action, i + 1000 * draw, robot_start=robot)
+            prediction = _predicted(residual, cloud, action, i + 1000 * draw, robot, unhedged=True)
             d2 = float(((bodies[trained] - _radii(cloud.points, prediction.condition.object_pose)) ** 2).sum(1).min())
             for form in HEDGES:
                 inside, scored = _scored_regions(_hedged(prediction, residual, form, d2), prediction, obj, start,
@@ -325,7 +341,8 @@ def signals(run: Path, pushes: int) -> None:
     generator = torch.Generator().manual_seed(1)
     rows, groups = [], []
     for name, saved in models.items():
-        plain = dataclasses.replace(saved, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0)
+        plain = dataclasses.replace(saved, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0,
+                                    disagreement=0.0)
         for obj in [load_object(o) for o in models if o != name] + _hedge_shapes(run):
             records = load_records(_one(f"{run}/data/{obj.name}_*"))
             valid = records.take(records.valid)
@@ -336,7 +353,8 @@ def signals(run: Path, pushes: int) -> None:
                 try:
                     own = predict(saved.model, cloud, push.action[0].float(), torch.Generator().manual_seed(k),
                                   robot_start=robot)
-                    corrected = predict_residual(plain, cloud, push.action[0].float(), k, condition=own.condition)
+                    corrected = predict_residual(plain, cloud, push.action[0].float(), k, condition=own.condition,
+                                                 learned=(own.condition.object_pose, own.final_pose))
                 except PushtorchError:
                     continue
                 inside, _ = _scored_regions(_hedged(corrected, saved, "run", 0.0), corrected, obj, start, truth, k)
@@ -363,7 +381,8 @@ def disagreement(run: Path) -> None:
         rows = []
         for i, cloud, action, robot, start, truth in _test_pushes(run, obj, residual.settings.voxel_size):
             own = predict(residual.model, cloud, action, torch.Generator().manual_seed(i), robot_start=robot)
-            corrected = predict_residual(residual, cloud, action, i, condition=own.condition)
+            corrected = predict_residual(residual, cloud, action, i, condition=own.condition,
+                                         learned=(own.condition.object_pose, own.final_pose))
             rows.append(_apart(own, corrected, obj, start, truth))
         table = np.asarray(rows)
         print(f"{obj_name:14s} ({trained}'s model, {len(rows)} pushes) disagreement median {np.median(table[:, 0]):.3f}"
@@ -390,7 +409,8 @@ def _own_held_out(run: Path, name: str, saved, pushes: int, as_run: bool):
         if held_out is None:  # its push gave every kernel of its action
             continue
         try:
-            prediction = predict_residual(held_out, cloud, action, generator, robot_start=robot)
+            prediction = _predicted(dataclasses.replace(held_out, disagreement=saved.disagreement), cloud, action,
+                                    generator, robot, unhedged=True)
         except PushtorchError:  # it cannot be predicted from there
             continue
         yield obj, prediction, start, truth, p

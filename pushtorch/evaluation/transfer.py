@@ -58,6 +58,7 @@ from pushtorch.models.model import PushModel
 from pushtorch.models.pooled import ShapeParts, pool_parts
 from pushtorch.models.residual import (
     DEFENSIVE_PARTS,
+    DISAGREEMENT_WEIGHTS,
     NOVELTY_FORM,
     NOVELTY_WIDENINGS,
     UNCORRECTED_RATES,
@@ -328,15 +329,16 @@ def _point_choice(cases: list, factor, motion_bandwidth, of: str) -> dict:
 
 
 def _residual_scores(residual, obj: ObjectModel, records, count: int, generator: torch.Generator,
-                     factors) -> tuple[list[torch.Tensor], int, list]:
-    """Each held-out push's nll under ``residual``'s prediction at every combination of the narrow widenings
+                     factors, weights=(0.0,)) -> tuple[list[torch.Tensor], int, list]:
+    """Each held-out push's nll under ``residual``'s prediction at every combination of the disagreement
+    ``weights`` (unless ``(0,)``, each push predicted from its push model's push condition), the narrow widenings
     ``factors(prediction)``, the defensive parts and the uncorrected shares (:func:`residual_nll_grid`), from one
     prediction per push (the same rollouts), how many pushes could not be predicted, and each predicted push's
     ``(case, prediction)`` (:func:`_push_case`)."""
     scores, skipped, predicted = [], 0, []
     for case in _held_out_pushes(obj, records, count, residual.settings.voxel_size, generator):
-        scored = _predicted_scores(residual, obj, case, generator,
-                                   lambda p, truth, start: residual_nll_grid(p, truth, start, obj, factors(p)))
+        scored = _predicted_scores(residual, obj, case, generator, lambda p, truth, start: _weighed_scores(
+            p, truth, start, obj, factors, weights), tuple(weights) != (0.0,))
         if scored is None:
             skipped += 1
         else:
@@ -345,16 +347,36 @@ def _residual_scores(residual, obj: ObjectModel, records, count: int, generator:
     return scores, skipped, predicted
 
 
-def _predicted_scores(residual, obj: ObjectModel, case, generator: torch.Generator, score):
-    """One push ``case`` (:func:`_push_case`) predicted by ``residual`` from its cloud and robot start, and
+def _disagreeing(prediction, weight: float):
+    """``prediction`` (made unhedged, knowing its push model's disagreement ``δ²``) as a model of disagreement
+    weight ``ξ = weight`` hedges it: its novelty ``n + ξ·δ²``."""
+    return replace(prediction, outcome_novelty=prediction.outcome_novelty + weight * prediction.disagreement)
+
+
+def _weighed_scores(prediction, truth: se3.Pose, start: se3.Pose, obj: ObjectModel, factors, weights) -> torch.Tensor:
+    """:func:`residual_nll_grid` of ``prediction`` at each disagreement weight of ``weights`` in turn (weight-major;
+    the narrow widenings ``factors(prediction)`` at each)."""
+    return torch.cat([residual_nll_grid(p, truth, start, obj, factors(p))
+                      for p in (_disagreeing(prediction, w) for w in weights)])
+
+
+def _predicted_scores(residual, obj: ObjectModel, case, generator: torch.Generator, score, learned: bool = False):
+    """One push ``case`` (:func:`_push_case`) predicted by ``residual`` from its cloud and robot start (with
+    ``learned``, from its push model's push condition, the prediction knowing that model's disagreement), and
     ``score(prediction, truth, start)``: ``(prediction, (F,))``, or None where the push cannot be predicted (no
     body, or the bumper meets no observed feature there)."""
+    from pushtorch.prediction import predict
     from pushtorch.prediction.residual import predict_residual
 
     cloud, action, robot, start, truth = case
-    try:  # the density is what is scored: the corrected point, whatever the model's
-        prediction = predict_residual(replace(residual, point="corrected"), cloud, action, generator,
-                                      robot_start=robot)
+    unhedged = replace(residual, point="corrected", disagreement=0.0)  # the density is scored, unhedged by ξ
+    try:
+        if learned:
+            own = predict(residual.model, cloud, action, generator, robot_start=robot)
+            prediction = predict_residual(unhedged, cloud, action, generator, condition=own.condition,
+                                          learned=(own.condition.object_pose, own.final_pose))
+        else:
+            prediction = predict_residual(unhedged, cloud, action, generator, robot_start=robot)
     except (ModelError, InvalidPoseError):
         return None
     return prediction, score(prediction, truth, start)
@@ -477,21 +499,19 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
                             shapes: list[ObjectModel] = (), shape_records: list = ()) -> list:
     """Residual models of one object each, trained on the same prior, with one novelty widening ``ν`` chosen
     across them: each model predicts ``pushes_per_shape`` of every *other* training object's pushes (a shape it
-    never saw, as a pooled model's held-out shape), its kernels widened at each ``ν``
-    (:mod:`pushtorch.prediction.residual`: a share ``ν·n / (1 + ν·n)`` of the residuals' spread, ``n`` the
-    prediction's outcome novelty), and with each defensive part ``(ε0, λ, w)`` of
-    :data:`~pushtorch.models.residual.DEFENSIVE_PARTS`, and each uncorrected share's rate ``τ`` of
-    :data:`~pushtorch.models.residual.UNCORRECTED_RATES`. Each model also predicts ``pushes_per_shape`` pushes of
-    each of ``shapes`` (generated training shapes, with their ``shape_records``, that no model was trained on):
-    rollouts of intermediate novelty, between the own object's and another training object's; and
-    ``pushes_per_shape`` of each action's own training pushes, each held out of it in turn
-    (:meth:`~pushtorch.models.residual.ResidualModel.without_pushes`): the pushes of small novelty, where widening
-    costs. The combinations whose mean nll over all the pushes is within 2 paired SE of the lowest are tied; of
-    them, the one whose 90 % regions hold the truths of the same pushes nearest 90 % of the time is given to all
-    (:func:`~pushtorch.evaluation.likelihood.calibrated_choice`, each combination's density drawn from as
-    :func:`~pushtorch.prediction.residual.hedged_density` builds it; kept in ``meta["novelty"]`` with the
-    candidates' coverage). What an experiment with several training objects does for their residual models; a
-    single object has no shape to hold out and keeps ``ν = 0``.
+    never saw), of each of ``shapes`` (generated training shapes no model was trained on, with their
+    ``shape_records``: rollouts of intermediate novelty) and of each action's own, each held out of it in turn
+    (:meth:`~pushtorch.models.residual.ResidualModel.without_pushes`: small novelty, where widening costs), from
+    its push model's push condition. Each prediction is hedged at every disagreement weight ``ξ`` of
+    :data:`~pushtorch.models.residual.DISAGREEMENT_WEIGHTS` (its novelty ``n + ξ·δ²``), novelty widening ``ν``
+    (:mod:`pushtorch.prediction.residual`), defensive part ``(ε0, λ, w)`` of
+    :data:`~pushtorch.models.residual.DEFENSIVE_PARTS` and uncorrected share's rate ``τ`` of
+    :data:`~pushtorch.models.residual.UNCORRECTED_RATES`. The combinations whose mean nll over all the pushes is
+    within 2 paired SE of the lowest are tied; of them, the one whose 90 % regions hold the truths of the same
+    pushes nearest 90 % of the time is given to all (:func:`~pushtorch.evaluation.likelihood.calibrated_choice`,
+    each density drawn from as :func:`~pushtorch.prediction.residual.hedged_density` builds it; kept in
+    ``meta["novelty"]`` with the candidates' coverage). What an experiment with several training objects does for
+    their residual models; a single object has no shape to hold out and keeps ``ν = ξ = 0``.
 
     Raises:
         InvalidParameterError: fewer than two models, objects or records not one per model, a model read from its
@@ -512,18 +532,20 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     from pushtorch.prediction.residual import hedged_density, novelty_factors
 
     generator = generator or torch.Generator().manual_seed(0)
-    grid = [float(v) for v in widenings]
+    grid, weights = [float(v) for v in widenings], [float(v) for v in DISAGREEMENT_WEIGHTS]
 
     def factors(p):
         return [novelty_factors(p, v) for v in grid]
 
     scores, cases, skipped = [], [], 0
     others = list(zip(objects, records, strict=True)) + list(zip(shapes, shape_records, strict=True))
-    plain = [replace(r, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0) for r in residuals]
+    plain = [replace(r, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0, disagreement=0.0)
+             for r in residuals]
     for i, residual in enumerate(plain):
         for j, (obj, other) in enumerate(others):
             if j != i:
-                more, missed, made = _residual_scores(residual, obj, other, pushes_per_shape, generator, factors)
+                more, missed, made = _residual_scores(residual, obj, other, pushes_per_shape, generator, factors,
+                                                      weights)
                 scores += more
                 skipped += missed
                 cases += [(p, obj) for _, p in made]
@@ -533,7 +555,7 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
                                                      "choosing the residual's novelty widening"):
             scored = None if held_out is None else _predicted_scores(
                 held_out, obj, case, generator,
-                lambda p, truth, start, obj=obj: residual_nll_grid(p, truth, start, obj, factors(p)))
+                lambda p, truth, start, obj=obj: _weighed_scores(p, truth, start, obj, factors, weights), True)
             if scored is None:
                 skipped += 1
                 continue
@@ -543,29 +565,33 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
         raise InvalidParameterError("no held-out push could be predicted to choose the residual's novelty widening")
     rows = torch.stack(scores)
 
+    block = len(grid) * len(DEFENSIVE_PARTS) * len(UNCORRECTED_RATES)
+
     def covered_at(c: int) -> torch.Tensor:
-        nu, part, rate = _combination(grid, c)
+        nu, part, rate = _combination(grid, c % block)
         return torch.tensor([bool(covered(rows[k, c], hdr_thresholds(
-            hedged_density(p, novelty_factors(p, nu), part, rate), (HEDGE_LEVEL,),
+            hedged_density(q, novelty_factors(q, nu), part, rate), (HEDGE_LEVEL,),
             generator=torch.Generator().manual_seed(k), symmetry=obj.symmetry, plane=p.start)).reshape(-1)[0])
-            for k, (p, obj) in enumerate(cases)])
+            for k, (p, obj) in enumerate(cases) for q in [_disagreeing(p, weights[c // block])]])
 
     best, calibration = calibrated_choice(rows, covered_at, HEDGE_LEVEL)
     mean = rows.mean(0)
-    nu, part, rate = _combination(grid, best)
+    xi, (nu, part, rate) = weights[best // block], _combination(grid, best % block)
     shares = dict(zip(calibration["candidates"], calibration["coverage"], strict=True))
-    log.info("residual novelty widening %g, defensive part %s, uncorrected rate %g across %s (held-out nll %.2f, "
+    log.info("residual novelty widening %g, defensive part %s, uncorrected rate %g, disagreement weight %g across "
+             "%s (held-out nll %.2f, "
              "90 %% coverage %.2f; the likeliest %.2f and %.2f; %d combinations within 2 paired SE of it; %d pushes "
-             "of other objects and shapes, %d of their own)", nu, part, rate, [o.name for o in objects],
+             "of other objects and shapes, %d of their own)", nu, part, rate, xi, [o.name for o in objects],
              float(mean[best]), shares[best], float(mean[calibration["likeliest"]]),
              shares[calibration["likeliest"]], len(shares), count, len(scores) - count)
     chosen = {"chosen": nu, "defensive_chosen": list(part), "across": [o.name for o in objects],
               "shapes": [o.name for o in shapes], "grid": grid,
               "defensive": [list(d) for d in DEFENSIVE_PARTS], "uncorrected_chosen": rate,
               "uncorrected": list(UNCORRECTED_RATES), "form": NOVELTY_FORM, "nll": mean.tolist(),
+              "disagreement": list(weights), "disagreement_chosen": xi,
               "pushes": count, "own_pushes": len(scores) - count, "pushes_per_shape": int(pushes_per_shape),
               "skipped": skipped, "calibration": calibration}
-    return [replace(r, novelty_widening=nu, defensive=part, uncorrected=rate,
+    return [replace(r, novelty_widening=nu, defensive=part, uncorrected=rate, disagreement=xi,
                     meta={**r.meta, "novelty": chosen}) for r in residuals]
 
 

@@ -123,7 +123,7 @@ class _Group:
 
         if key not in self.memo:
             seed = stable_seed(self.ctx.seed, self.name, self.obj.name, i, j, "residual")
-            learned = self.predicted(model.model, i, j, f"{key}|learned")[:2] if model.point == "learned" else None
+            learned = self.predicted(model.model, i, j, f"{key}|learned")[:2] if model.needs_learned else None
             pred = predict_residual(model, self.clouds[i][1], self.ctx.actions[j], seed, robot_start=self.starts[i][j],
                                     learned=learned)
             self.memo[key] = (pred.start, pred.final_pose, pred.density)

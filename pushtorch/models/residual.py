@@ -45,14 +45,16 @@ from pushtorch.models.model import PushModel, write_model_file
 from pushtorch.objects import ObjectModel
 from pushtorch.perception import capture_partial_cloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
+from pushtorch.sim.engines import engine_version
 from pushtorch.sim.settings import SimSettings
 
 Tensor = torch.Tensor
 
-__all__ = ["DEFAULT_ENSEMBLE", "DEFENSIVE_PARTS", "DEFENSIVE_TURN", "MAX_DEFENSIVE_SHARE", "NOVELTY_FORM",
-           "NOVELTY_WIDENINGS", "OUTCOME_LADDER", "POINTS", "RESIDUAL_LADDER", "ResidualModel", "SHIFT_STEPS",
-           "UNCORRECTED_RATES", "choose_bandwidth", "correction_spread", "corrected", "defensive_share",
-           "engine_version", "novelty_scored_as_now", "novelty_share", "outcome_log_affinity", "outcome_novelty",
+__all__ = ["DEFAULT_ENSEMBLE", "DEFENSIVE_PARTS", "DEFENSIVE_TURN", "DISAGREEMENT_WEIGHTS",
+           "MAX_DEFENSIVE_SHARE", "NOVELTY_FORM", "NOVELTY_WIDENINGS", "OUTCOME_LADDER", "POINTS",
+           "RESIDUAL_LADDER", "ResidualModel", "SHIFT_STEPS", "UNCORRECTED_RATES", "choose_bandwidth",
+           "correction_spread", "corrected", "defensive_share", "novelty_scored_as_now",
+           "novelty_share", "outcome_disagreement", "outcome_log_affinity", "outcome_novelty",
            "outcome_spread", "residual_of", "rollout_outcome", "train_residual_model", "uncorrected_share",
            "with_ensemble"]
 
@@ -95,11 +97,14 @@ MAX_DEFENSIVE_SHARE = 0.999
 #: (1 cm to 0.05 rad, §Motion Model's bandwidths)
 DEFENSIVE_TURN = 5.0
 #: Which form of the novelty widening a model's choice of ``ν`` was made for (kept beside it in its ``meta``; a
-#: cached choice of another form is made again): 2, a share of the outcomes' spread added to the variances; 3, as 2
-#: and chosen jointly with a defensive part (:data:`DEFENSIVE_PARTS`); 4, as 3 and with an uncorrected share
-#: (:data:`UNCORRECTED_RATES`); 5, as 4 with the uncorrected rollouts' kernels widened by the corrections' spread;
-#: 6, as 5 with the own pushes held out in the choice itself and a tie in likelihood broken by calibration
-NOVELTY_FORM = 6
+#: cached choice of another form is made again): 7, the share of the outcomes' spread, the defensive part, the
+#: uncorrected share and the disagreement weight chosen together, the own pushes held out in the choice itself
+#: and a tie in likelihood broken by calibration (earlier forms lacked one or more of these)
+NOVELTY_FORM = 7
+#: The disagreement weights ``ξ`` tried with each hedge: a prediction whose push model's own point lies ``δ²``
+#: training-outcome stds² from its corrected mode (:func:`outcome_disagreement`) is hedged as if its rollouts'
+#: novelty were ``n + ξ·δ²`` (0: theirs alone). Where the two disagree, one of them misses, at any novelty.
+DISAGREEMENT_WEIGHTS = (0.0, 0.1, 0.3, 1.0, 3.0)
 #: A model's point predictions: ``corrected``, its density's mode (the highest corrected kernel centre);
 #: ``shifted``, that mixture's local mode at the push model's motion kernels' width (where pushtorch anneals its
 #: own mode), found by mean shift from its highest kernel centres (:func:`pushtorch.prediction.residual.
@@ -129,11 +134,12 @@ def rollout_outcome(robot_start: se3.Pose, start: se3.Pose, final: se3.Pose) -> 
     return torch.cat([(p1 - p0)[..., :2], turn.unsqueeze(-1).expand(*p1.shape[:-1], 1)], -1)
 
 
-def _outcome_d2(queries: Tensor, kernels: Tensor) -> Tensor:
+def _outcome_d2(queries: Tensor, kernels: Tensor, stds_of: Tensor | None = None) -> Tensor:
     """``(Q, J)`` float64 squared distances of outcomes ``queries (Q, 3)`` to ``kernels (J, 3)``, per component in
-    the kernels' stds (turns wrapped)."""
+    the stds of ``stds_of`` (default the kernels; turns wrapped)."""
     q, k = queries.double(), kernels.double()
-    scale = k.std(0).clamp_min(1e-9) if k.shape[0] > 1 else torch.ones(3, dtype=torch.float64, device=k.device)
+    s = k if stds_of is None else stds_of.double()
+    scale = s.std(0).clamp_min(1e-9) if s.shape[0] > 1 else torch.ones(3, dtype=torch.float64, device=k.device)
     d = q.unsqueeze(1) - k.unsqueeze(0)
     d[..., 2] = torch.atan2(torch.sin(d[..., 2]), torch.cos(d[..., 2]))
     return ((d / scale) ** 2).sum(-1)
@@ -152,6 +158,12 @@ def outcome_novelty(queries: Tensor, kernels: Tensor) -> Tensor:
     """``(Q,)`` float64 how new each rollout outcome of ``queries (Q, 3)`` is: its squared distance, in the
     training outcomes' stds, to the nearest of ``kernels (J, 3)`` (what each kernel's training rollout did)."""
     return _outcome_d2(queries, kernels).amin(1)
+
+
+def outcome_disagreement(a: Tensor, b: Tensor, outcomes: Tensor) -> float:
+    """``δ²``: the squared distance between two outcomes ``a`` and ``b`` ``(3,)`` (:func:`rollout_outcome`) in the
+    stds of the training outcomes ``outcomes (J, 3)``: how far apart two predictions of one push lie."""
+    return float(_outcome_d2(a.reshape(1, 3), b.reshape(1, 3).to(a.device), outcomes.to(a.device))[0, 0])
 
 
 def outcome_spread(outcomes: Tensor) -> tuple[float, float]:
@@ -179,14 +191,15 @@ def correction_spread(residuals: se3.Pose) -> tuple[float, float]:
 
 
 def novelty_scored_as_now(entry: dict | None, grid=NOVELTY_WIDENINGS, parts=DEFENSIVE_PARTS,
-                          rates=UNCORRECTED_RATES) -> bool:
+                          rates=UNCORRECTED_RATES, weights=DISAGREEMENT_WEIGHTS) -> bool:
     """Whether a model's ``meta`` entry of novelty-widening scores (``meta["novelty"]``) was made over ``grid`` ×
-    the defensive ``parts`` × the uncorrected shares' ``rates`` and for today's :data:`NOVELTY_FORM`: one made
-    otherwise is made again."""
+    the defensive ``parts`` × the uncorrected shares' ``rates`` × the disagreement ``weights`` and for today's
+    :data:`NOVELTY_FORM`: one made otherwise is made again."""
     entry = entry or {}
     return (entry.get("grid") == [float(v) for v in grid] and entry.get("form") == NOVELTY_FORM
             and entry.get("defensive") == [[float(v) for v in part] for part in parts]
-            and entry.get("uncorrected") == [float(v) for v in rates])
+            and entry.get("uncorrected") == [float(v) for v in rates]
+            and entry.get("disagreement") == [float(v) for v in weights])
 
 
 def defensive_share(part: tuple[float, float, float], novelty: float) -> float:
@@ -268,6 +281,9 @@ class ResidualModel:
             did something no training rollout did (0: none; chosen with the defensive part,
             :data:`UNCORRECTED_RATES`).
         point: which point prediction the model reports, one of :data:`POINTS` (``corrected`` unless chosen).
+        disagreement: ``ξ``: the hedges take the novelty ``n + ξ·δ²``, ``δ²`` how far the push model's own point
+            lies from the corrected mode (:func:`outcome_disagreement`; 0: ``n`` alone; chosen with ``ν``,
+            :data:`DISAGREEMENT_WEIGHTS`).
     """
 
     model: PushModel
@@ -286,10 +302,16 @@ class ResidualModel:
     defensive: tuple[float, float, float] = (0.0, 0.0, 0.0)
     uncorrected: float = 0.0
     point: str = "corrected"
+    disagreement: float = 0.0
 
     @property
     def name(self) -> str:
         return f"{self.model.name}_residual"
+
+    @property
+    def needs_learned(self) -> bool:
+        """Whether a prediction needs its push model's own from the same push condition (its point or its hedge)."""
+        return self.point == "learned" or self.disagreement > 0
 
     @property
     def actions(self) -> Tensor:
@@ -418,19 +440,8 @@ class ResidualModel:
                                "outcome_width": None if math.isinf(self.outcome_width) else self.outcome_width,
                                "novelty_widening": self.novelty_widening,
                                "defensive": list(self.defensive), "uncorrected": self.uncorrected,
-                               "point": self.point, "meta": self.meta}}
+                               "point": self.point, "disagreement": self.disagreement, "meta": self.meta}}
         return write_model_file(path, *self.model.file_parts(arrays, header))
-
-
-def engine_version(engine: str) -> str:
-    """The installed version of ``engine`` (``pybullet`` or ``mujoco``): what a model file records."""
-    if engine == "mujoco":
-        import mujoco
-
-        return f"mujoco {mujoco.__version__}"
-    import importlib.metadata
-
-    return f"pybullet {importlib.metadata.version('pybullet')}"
 
 
 def _log_kernels(residuals: se3.Pose, p_std: float, rot_std: float) -> Tensor:

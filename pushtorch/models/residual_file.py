@@ -13,7 +13,8 @@ from pushtorch import se3
 from pushtorch.errors import InvalidParameterError, RecordFormatError
 from pushtorch.kde import KernelBandwidth
 from pushtorch.models.model import PushModel, load_model, model_from_parts, read_model_file
-from pushtorch.models.residual import POINTS, ResidualModel, engine_version
+from pushtorch.models.residual import POINTS, ResidualModel
+from pushtorch.sim.engines import engine_version
 from pushtorch.sim.settings import SimSettings
 
 __all__ = ["load_any_model", "load_residual_model"]
@@ -90,6 +91,9 @@ def _residual_from_parts(path, header: dict, arrays: dict, dtype: torch.dtype, o
         uncorrected = float(spec.get("uncorrected", 0.0))
         if not math.isfinite(uncorrected) or uncorrected < 0:
             raise ValueError(f"an uncorrected share's rate of {uncorrected}")
+        weight = float(spec.get("disagreement", 0.0))
+        if not math.isfinite(weight) or weight < 0:
+            raise ValueError(f"a disagreement weight of {weight}")
         point = str(spec.get("point", "corrected"))
         if point not in POINTS:
             raise ValueError(f"a point prediction {point!r}, not one of {POINTS}")
@@ -97,7 +101,8 @@ def _residual_from_parts(path, header: dict, arrays: dict, dtype: torch.dtype, o
                              dict(spec.get("meta") or {}), shapes, [str(n) for n in spec.get("shape_names", [])],
                              widening, outcomes, width if outcomes is not None else math.inf,
                              novelty if outcomes is not None else 0.0, defensive,
-                             uncorrected if outcomes is not None else 0.0, point)
+                             uncorrected if outcomes is not None else 0.0, point,
+                             weight if outcomes is not None else 0.0)
     except RecordFormatError:
         raise
     except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError, InvalidParameterError) as exc:

@@ -354,9 +354,9 @@ def _predict_batch(
     for m in distinct:
         rows = [i for i, c in enumerate(chosen) if c is m]
         if isinstance(m, ResidualModel):  # its rollouts are batched per prediction, from the cloud as given
-            # a learned point is its push model's prediction (annealed together), from the same push condition
+            # its push model's prediction (a learned point, a disagreement hedge), annealed together, same condition
             owns = share(m.model, [features[i] for i in rows], [m.action_index(actions[i]) for i in rows], generator,
-                         False, [starts[i] for i in rows]) if m.point == "learned" else [None] * len(rows)
+                         False, [starts[i] for i in rows]) if m.needs_learned else [None] * len(rows)
             same = m.settings.feature_radius == first.settings.feature_radius  # the features made above serve it
             for i, own in zip(rows, owns, strict=True):
                 given = features[i] if same else None
@@ -551,7 +551,7 @@ def predict_candidates(model: PushModel | ResidualModel | ModelLibrary, cloud: P
     a_idx = [chosen.action_index(a) for a in actions]
     if isinstance(chosen, ResidualModel):  # its push conditions made once; each candidate's own ensemble
         learned = None
-        if chosen.point == "learned":  # the push model's candidate predictions: their conditions and points
+        if chosen.needs_learned:  # the push model's candidate predictions: their conditions and points
             pushed = predict_candidates(chosen.model, features, starts, actions, seed, chunk_size=chunk_size)
             made = list(pushed.predictions)  # each built once
             conditions, reasons = [None if p is None else p.condition for p in made], pushed.reasons

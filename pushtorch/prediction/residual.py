@@ -65,6 +65,7 @@ from pushtorch.models.residual import (
     correction_spread,
     defensive_share,
     novelty_share,
+    outcome_disagreement,
     outcome_log_affinity,
     outcome_novelty,
     outcome_spread,
@@ -110,7 +111,8 @@ class ResidualPrediction:
     #: the factor the residual kernels' position std was widened by, by contact distance and novelty together
     #: (1: the model does not widen)
     widened_by: float = 1.0
-    #: ``n``: the rollouts' median novelty (:func:`~pushtorch.models.residual.outcome_novelty`), 0 without outcomes
+    #: the novelty the hedges take: the rollouts' median novelty ``n`` (:func:`~pushtorch.models.residual.
+    #: outcome_novelty`) plus the model's ``ξ`` times :attr:`disagreement`; 0 without outcomes
     outcome_novelty: float = 0.0
     #: the spread of the action's training outcomes, (m, rad) (:func:`~pushtorch.models.residual.outcome_spread`),
     #: towards which novelty widens the kernels
@@ -122,6 +124,9 @@ class ResidualPrediction:
     correction_spread: tuple[float, float] = (0.0, 0.0)
     #: which point ``final_pose`` is (:data:`~pushtorch.models.residual.POINTS`)
     point: str = "corrected"
+    #: ``δ²``: how far the push model's own point lies from the corrected mode at the kernels' unhedged stds, in
+    #: the training outcomes' stds (:func:`~pushtorch.models.residual.outcome_disagreement`; 0 without it)
+    disagreement: float = 0.0
 
 
 def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Generator | int | None = None,
@@ -155,9 +160,10 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     model = residual.model
     if residual.point not in POINTS:
         raise InvalidParameterError(f"a residual model's point prediction is one of {POINTS}, got {residual.point!r}")
-    if residual.point == "learned" and learned is None:
-        raise InvalidParameterError("this residual model reports its push model's own prediction: predict through "
-                                    "pushtorch.prediction.predict, or give it (learned=(object start, final pose))")
+    if residual.needs_learned and learned is None:
+        raise InvalidParameterError("this residual model reports or hedges by its push model's own prediction: "
+                                    "predict through pushtorch.prediction.predict, or give it (learned=(object "
+                                    "start, final pose))")
     generator = as_generator(generator)
     a = model.action_index(action)
     features = features_for(cloud if features is None else features, model.settings, model.position)
@@ -220,13 +226,28 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     # is no surer than the action's pushes differ
     scale = math.sqrt(1.0 + residual.widening * d2)
     spread = (0.0, 0.0) if residual.outcomes is None else outcome_spread(residual.outcomes[a])
-    share = novelty_share(residual.novelty_widening, novelty)
-    p_std = math.sqrt((residual.bandwidth.p_std * scale) ** 2 + share * spread[0] ** 2)
-    rot_std = math.sqrt((residual.bandwidth.rot_std * scale) ** 2 + share * spread[1] ** 2)
-    bandwidth = dataclasses.replace(residual.bandwidth, p_std=p_std, rot_std=rot_std, cutoff_std=NO_CUTOFF)
+
+    def bandwidth_at(novelty: float) -> KernelBandwidth:
+        share = novelty_share(residual.novelty_widening, novelty)
+        return dataclasses.replace(residual.bandwidth, cutoff_std=NO_CUTOFF,
+                                   p_std=math.sqrt((residual.bandwidth.p_std * scale) ** 2 + share * spread[0] ** 2),
+                                   rot_std=math.sqrt((residual.bandwidth.rot_std * scale) ** 2
+                                                     + share * spread[1] ** 2))
+
+    bandwidth = bandwidth_at(novelty)
     # the mode: the corrected kernel centre of highest density (the hedges below never move it)
     unwidened = _mixture(means, log_weights, bandwidth, None)
     mode = _highest_centre(unwidened)
+    disagreement = 0.0
+    if learned is not None and residual.outcomes is not None:  # the push model's point against the unhedged mode
+        bare = mode if novelty_share(residual.novelty_widening, novelty) == 0 \
+            else _highest_centre(_mixture(means, log_weights, bandwidth_at(0.0), None))
+        own = learned_point(tuple(_cpu(pose) for pose in learned), body_start)
+        disagreement = outcome_disagreement(*(rollout_outcome(_cpu(condition.robot_start), body_start, pose)
+                                              for pose in (own, _cpu(bare))), residual.outcomes[a].cpu())
+        if residual.disagreement > 0:  # where the two disagree, one misses: hedged as if the rollouts were newer
+            novelty += residual.disagreement * disagreement
+            bandwidth = bandwidth_at(novelty)
     uncorrected = uncorrected_share(residual.uncorrected, novelty)
     spread_c = correction_spread(kernels)
 
@@ -253,8 +274,8 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
         point = mode
     return ResidualPrediction(residual.name, motion.action, condition, body_start.to(dtype), point, density,
                               se3.Pose.unchecked(finals.p.to(dtype), finals.q.to(dtype)), drawn, thrown, log_w, d2,
-                              p_std / residual.bandwidth.p_std, novelty, spread, uncorrected, spread_c,
-                              residual.point)
+                              bandwidth.p_std / residual.bandwidth.p_std, novelty, spread, uncorrected, spread_c,
+                              residual.point, disagreement)
 
 
 @dataclass(frozen=True)
@@ -330,6 +351,10 @@ def learned_point(learned: tuple[se3.Pose, se3.Pose], body_start: se3.Pose) -> s
     moved = se3.compose(final, se3.compose(se3.inverse(start), body))
     return se3.Pose.unchecked(moved.p.to(body_start.p.dtype),
                               se3.quat_normalize(moved.q).to(body_start.q.dtype))
+
+
+def _cpu(pose: se3.Pose) -> se3.Pose:
+    return se3.Pose.unchecked(pose.p.detach().double().cpu(), pose.q.detach().double().cpu())
 
 
 def _highest_centre(density: FinalPoseDistribution) -> se3.Pose:

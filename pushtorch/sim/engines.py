@@ -12,7 +12,7 @@ from __future__ import annotations
 from pushtorch.sim.pybullet_world import PushWorld
 from pushtorch.sim.settings import ObjectSpec, SimSettings
 
-__all__ = ["make_world"]
+__all__ = ["engine_version", "make_world"]
 
 
 def make_world(spec: ObjectSpec, settings: SimSettings | None = None):
@@ -36,3 +36,14 @@ def make_world(spec: ObjectSpec, settings: SimSettings | None = None):
         return MujocoWorld(spec, settings)
     return PushWorld(spec, settings)
 
+
+
+def engine_version(engine: str) -> str:
+    """The installed version of ``engine`` (``pybullet`` or ``mujoco``): what a model file records."""
+    if engine == "mujoco":
+        import mujoco
+
+        return f"mujoco {mujoco.__version__}"
+    import importlib.metadata
+
+    return f"pybullet {importlib.metadata.version('pybullet')}"
