@@ -20,7 +20,8 @@ contact and friction are not the world's. The residual model keeps both:
   its contact weight, and the density is the mixture of these kernels (:data:`RESIDUAL_LADDER` widths chosen
   by leave-one-push-out likelihood), with a defensive share of the same kernels centimetres wider that grows
   with how new the rollouts are (:data:`DEFENSIVE_PARTS`, :func:`defensive_share`), and a share of the rollouts
-  themselves, uncorrected, that grows with it too (:data:`UNCORRECTED_RATES`). Its point prediction is the
+  themselves, uncorrected, that grows with it too (:data:`UNCORRECTED_RATES`), the push model's disagreement
+  with the corrected mode counted as novelty (:data:`DISAGREEMENT_WEIGHTS`). Its point prediction is the
   density's mode, that mode moved by mean shift, or the push model's own prediction from the same push condition,
   whichever was closest on the model's held-out training pushes (:data:`POINTS`).
 

@@ -29,9 +29,12 @@ chosen with them) gives a share ``ρ = τn / (1 + τn)`` of the narrow (and the 
 each ``ρ / N``, their kernels widened in quadrature by the action's corrections' spread
 (:func:`~pushtorch.models.residual.correction_spread`), the corrected kernels ``1 − ρ``: where the rollouts did
 something no training rollout did, which correction holds is unknown, and the simulator's own outcome, no surer
-than the simulator has been off, is the prior a correction departs from. Both shares are hedges of the density:
-the mode stays the corrected kernels'. The point prediction ``final_pose`` is the model's
-(:data:`~pushtorch.models.residual.POINTS`; the density is the same whichever): that mode (``corrected``), the
+than the simulator has been off, is the prior a correction departs from. A model with a disagreement weight
+``ξ`` (chosen with them) gives every hedge the novelty ``n + ξ·δ²``, ``δ²`` how far its push model's own point
+lies from the corrected mode (:func:`pushtorch.models.residual.outcome_disagreement`): where the two disagree,
+one misses. The hedges widen the density: the mode stays the corrected kernels'. The point prediction
+``final_pose`` is the model's (:data:`~pushtorch.models.residual.POINTS`; the density is the same whichever):
+that mode (``corrected``), the
 corrected kernels' local mode at the push model's motion width (``shifted``, :func:`shifted_mode`), or the push
 model's own prediction of the same push from the same push condition, in the cloud body's frame (``learned``):
 :func:`pushtorch.prediction.predict` makes that prediction first, a caller of :func:`predict_residual` gives it.
