@@ -34,9 +34,9 @@ than the simulator has been off, is the prior a correction departs from. A model
 lies from the corrected mode (:func:`pushtorch.models.residual.outcome_disagreement`): where the two disagree,
 one misses. The hedges widen the density: the mode stays the corrected kernels'. The point prediction
 ``final_pose`` is the model's (:data:`~pushtorch.models.residual.POINTS`; the density is the same whichever):
-that mode (``corrected``), the
-corrected kernels' local mode at the push model's motion width (``shifted``, :func:`shifted_mode`), or the push
-model's own prediction of the same push from the same push condition, in the cloud body's frame (``learned``):
+that mode (``corrected``), the corrected kernels' local mode at the push model's motion width (``shifted``,
+:func:`shifted_mode`), or the push model's own prediction of the same push from the same push condition, in the
+cloud body's frame (``learned``):
 :func:`pushtorch.prediction.predict` makes that prediction first, a caller of :func:`predict_residual` gives it.
 A planner's candidates of one cloud share their push conditions (one pose estimate) and roll out an ensemble each
 (:func:`residual_candidates`, through :func:`pushtorch.prediction.predict_candidates`).
@@ -145,8 +145,9 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
         generator: seeded generator or int seed (the push condition and the ensemble's physics draws).
         robot_start: the robot's start pose, when the caller places it; default the model's push condition.
         learned: ``(object start, final pose)`` of the push model's own prediction of the same push from the same
-            robot start (:func:`pushtorch.prediction.predict` with ``residual.model``), the point a model whose
-            point is ``learned`` reports; not used otherwise.
+            robot start (:func:`pushtorch.prediction.predict` with ``residual.model``): the point a model whose
+            point is ``learned`` reports, and what the disagreement ``δ²`` is measured from (its hedge's, where
+            the model's ``ξ > 0``).
         condition: the push condition of this cloud and action made already (the push model's prediction's, whose
             robot start and pose estimate the rollouts then share), instead of ``robot_start``: its pose query is
             not made twice.
@@ -156,8 +157,8 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
 
     Raises:
         ModelError: a cloud that spans no volume, or a rollout with a non-finite outcome.
-        InvalidParameterError: a model whose point is ``learned`` without ``learned`` (predict through
-            :func:`pushtorch.prediction.predict`, which makes it), or a point that is not one of ``POINTS``.
+        InvalidParameterError: a model that needs ``learned`` (its point, or ``ξ > 0``) without it (predict
+            through :func:`pushtorch.prediction.predict`, which makes it), or a point not one of ``POINTS``.
         InvalidParameterError, InvalidPoseError: as :func:`pushtorch.prediction.predict`.
     """
     model = residual.model
