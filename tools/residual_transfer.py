@@ -60,8 +60,8 @@ does not (a hedge's signal measured on training pushes, never on the test object
 (its push model with another seed than the run's, so that its kernels know their pushes), ``--pushes`` of its
 pushes per action held out in turn and predicted as test pushes are, and the mean held-out nll at every kernels'
 scale of :data:`pushtorch.evaluation.transfer.RESIDUAL_SCALES`, without the hedges (what the scale is chosen on)
-and with the run's defensive part and uncorrected share: where a choice of the scale with the hedges in place
-would land.
+and with the run's hedges (defensive part, uncorrected share, disagreement weight): where a choice of the scale
+with the hedges in place would land.
 
 ``weights <run>``: for a shape-transfer run (``experiment=quickstart_transfer``), the pooled residual model's
 mean correction per training shape and action (translation cm / turn rad), and for each transfer object at three
@@ -420,8 +420,11 @@ def scale(run: Path, pushes: int) -> None:
     models = _models(run)
     grid = list(RESIDUAL_SCALES)
     for name, saved in models.items():
-        rows = [[residual_nll_grid(prediction, truth, start, obj, grid, [part], [rate]).numpy()
-                 for part, rate in (((0.0, 0.0, 0.0), 0.0), (saved.defensive, saved.uncorrected))]
+        rows = [[residual_nll_grid(dataclasses.replace(prediction, outcome_novelty=prediction.outcome_novelty + xi
+                                                       * prediction.disagreement), truth, start, obj, grid, [part],
+                                   [rate]).numpy()
+                 for part, rate, xi in (((0.0, 0.0, 0.0), 0.0, 0.0),
+                                        (saved.defensive, saved.uncorrected, saved.disagreement))]
                 for obj, prediction, start, truth, _ in _own_held_out(run, name, saved, pushes, False)]
         table = np.asarray(rows).mean(0)
         for label, nlls in zip(("without the hedges", "with the run's hedges"), table, strict=True):
@@ -429,7 +432,8 @@ def scale(run: Path, pushes: int) -> None:
                   + ", ".join(f"{f:g}: {v:.2f}" for f, v in zip(grid, nlls, strict=True))
                   + f"; best {grid[int(nlls.argmin())]:g}", flush=True)
         print(f"{name:9s} the run's choice: scale {saved.meta['scale']['chosen']:g}, defensive part "
-              f"{tuple(saved.defensive)}, uncorrected rate {saved.uncorrected:g}")
+              f"{tuple(saved.defensive)}, uncorrected rate {saved.uncorrected:g}, disagreement weight "
+              f"{saved.disagreement:g}")
 
 
 def calibration(run: Path, pushes: int) -> None:
