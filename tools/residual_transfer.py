@@ -119,6 +119,7 @@ from pushtorch.perception import capture_partial_cloud
 from pushtorch.prediction import predict, transfer_distance
 from pushtorch.prediction.residual import (
     defensive_factors,
+    disagreeing,
     hedged_density,
     learned_point,
     narrow_density,
@@ -268,9 +269,9 @@ def _radii(points: torch.Tensor, estimate: se3.Pose) -> np.ndarray:
 
 def _hedged(prediction, residual, form: str, shape_d2: float):
     """``prediction`` (made without hedges) hedged as ``residual`` hedges it, or in one of the other ``HEDGES``."""
-    novelty = prediction.outcome_novelty + residual.disagreement * prediction.disagreement \
-        + (shape_d2 / SHAPE_WIDTH**2 if form == "shape" else 0.0)
-    p = dataclasses.replace(prediction, outcome_novelty=novelty)
+    p = disagreeing(prediction, residual.disagreement)
+    novelty = p.outcome_novelty + (shape_d2 / SHAPE_WIDTH**2 if form == "shape" else 0.0)
+    p = dataclasses.replace(p, outcome_novelty=novelty)
     rate = {"tau=0": 0.0, "tau=1": 1.0}.get(form, residual.uncorrected)
     factors = novelty_factors(p, residual.novelty_widening)
     eps = defensive_share(residual.defensive, novelty)
@@ -420,9 +421,7 @@ def scale(run: Path, pushes: int) -> None:
     models = _models(run)
     grid = list(RESIDUAL_SCALES)
     for name, saved in models.items():
-        rows = [[residual_nll_grid(dataclasses.replace(prediction, outcome_novelty=prediction.outcome_novelty + xi
-                                                       * prediction.disagreement), truth, start, obj, grid, [part],
-                                   [rate]).numpy()
+        rows = [[residual_nll_grid(disagreeing(prediction, xi), truth, start, obj, grid, [part], [rate]).numpy()
                  for part, rate, xi in (((0.0, 0.0, 0.0), 0.0, 0.0),
                                         (saved.defensive, saved.uncorrected, saved.disagreement))]
                 for obj, prediction, start, truth, _ in _own_held_out(run, name, saved, pushes, False)]

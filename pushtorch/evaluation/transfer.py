@@ -347,17 +347,13 @@ def _residual_scores(residual, obj: ObjectModel, records, count: int, generator:
     return scores, skipped, predicted
 
 
-def _disagreeing(prediction, weight: float):
-    """``prediction`` (made unhedged, knowing its push model's disagreement ``δ²``) as a model of disagreement
-    weight ``ξ = weight`` hedges it: its novelty ``n + ξ·δ²``."""
-    return replace(prediction, outcome_novelty=prediction.outcome_novelty + weight * prediction.disagreement)
-
-
 def _weighed_scores(prediction, truth: se3.Pose, start: se3.Pose, obj: ObjectModel, factors, weights) -> torch.Tensor:
     """:func:`residual_nll_grid` of ``prediction`` at each disagreement weight of ``weights`` in turn (weight-major;
     the narrow widenings ``factors(prediction)`` at each)."""
+    from pushtorch.prediction.residual import disagreeing
+
     return torch.cat([residual_nll_grid(p, truth, start, obj, factors(p))
-                      for p in (_disagreeing(prediction, w) for w in weights)])
+                      for p in (disagreeing(prediction, w) for w in weights)])
 
 
 def _predicted_scores(residual, obj: ObjectModel, case, generator: torch.Generator, score, learned: bool = False):
@@ -529,7 +525,7 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
         raise InvalidParameterError("choosing the residual's novelty widening holds each model's own pushes out: it "
                                     "needs models trained in this session (their kernels know their pushes), not "
                                     "loaded ones")
-    from pushtorch.prediction.residual import hedged_density, novelty_factors
+    from pushtorch.prediction.residual import disagreeing, hedged_density, novelty_factors
 
     generator = generator or torch.Generator().manual_seed(0)
     grid, weights = [float(v) for v in widenings], [float(v) for v in DISAGREEMENT_WEIGHTS]
@@ -572,7 +568,7 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
         return torch.tensor([bool(covered(rows[k, c], hdr_thresholds(
             hedged_density(q, novelty_factors(q, nu), part, rate), (HEDGE_LEVEL,),
             generator=torch.Generator().manual_seed(k), symmetry=obj.symmetry, plane=p.start)).reshape(-1)[0])
-            for k, (p, obj) in enumerate(cases) for q in [_disagreeing(p, weights[c // block])]])
+            for k, (p, obj) in enumerate(cases) for q in [disagreeing(p, weights[c // block])]])
 
     best, calibration = calibrated_choice(rows, covered_at, HEDGE_LEVEL)
     mean = rows.mean(0)

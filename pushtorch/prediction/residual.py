@@ -80,7 +80,8 @@ from pushtorch.perception import PointCloud
 from pushtorch.sim.bodies import cloud_body, rollout_ensemble
 from pushtorch.streams import keyed_seed
 
-__all__ = ["ResidualCandidates", "ResidualPrediction", "corrected_mode", "defensive_factors", "hedged_density",
+__all__ = ["ResidualCandidates", "ResidualPrediction", "corrected_mode", "defensive_factors", "disagreeing",
+           "hedged_density",
            "learned_point", "narrow_density", "novelty_factors", "predict_residual", "rescaled", "residual_candidates",
            "scaled_parts", "shifted_mode"]
 
@@ -246,9 +247,10 @@ def predict_residual(residual: ResidualModel, cloud, action, generator: torch.Ge
     if learned is not None and residual.outcomes is not None:  # the push model's point against the unhedged mode
         bare = mode if novelty_share(residual.novelty_widening, novelty) == 0 \
             else _highest_centre(_mixture(means, log_weights, bandwidth_at(0.0), None))
-        own = learned_point(tuple(_cpu(pose) for pose in learned), body_start)
-        disagreement = outcome_disagreement(*(rollout_outcome(_cpu(condition.robot_start), body_start, pose)
-                                              for pose in (own, _cpu(bare))), residual.outcomes[a].cpu())
+        cpu = ("cpu", torch.float64)
+        own = learned_point(tuple(pose.to(*cpu) for pose in learned), body_start)
+        disagreement = outcome_disagreement(*(rollout_outcome(condition.robot_start.to(*cpu), body_start, pose)
+                                              for pose in (own, bare.to(*cpu))), residual.outcomes[a].cpu())
         if residual.disagreement > 0:  # where the two disagree, one misses: hedged as if the rollouts were newer
             novelty += residual.disagreement * disagreement
             bandwidth = bandwidth_at(novelty)
@@ -357,10 +359,6 @@ def learned_point(learned: tuple[se3.Pose, se3.Pose], body_start: se3.Pose) -> s
                               se3.quat_normalize(moved.q).to(body_start.q.dtype))
 
 
-def _cpu(pose: se3.Pose) -> se3.Pose:
-    return se3.Pose.unchecked(pose.p.detach().double().cpu(), pose.q.detach().double().cpu())
-
-
 def _highest_centre(density: FinalPoseDistribution) -> se3.Pose:
     """``()`` the kernel centre of ``density`` (one expert, every kernel in full) where it is highest."""
     best = int(density.unnormalised_log_prob(density.means.vector().unsqueeze(-2)).reshape(-1).argmax())
@@ -437,6 +435,13 @@ def scaled_parts(prediction: ResidualPrediction, factor: tuple[float, float]
     mode = density.mode  # the corrected kernels' (a learned point is not the density's mode)
     return (_mixture(density.means, density.log_weights, bandwidth, mode),
             _rollout_mixture(prediction.rollouts, bandwidth, prediction.correction_spread, mode))
+
+
+def disagreeing(prediction: ResidualPrediction, weight: float) -> ResidualPrediction:
+    """``prediction`` (made without a disagreement weight, knowing its ``δ²``) as a model of disagreement weight
+    ``ξ = weight`` hedges it: its novelty ``n + ξ·δ²`` (what :func:`predict_residual` gives such a model)."""
+    return dataclasses.replace(prediction,
+                               outcome_novelty=prediction.outcome_novelty + weight * prediction.disagreement)
 
 
 def hedged_density(prediction: ResidualPrediction, factors: tuple[float, float], part: tuple[float, float, float],
