@@ -234,10 +234,34 @@ def test_a_calibrated_choice_keeps_the_tied_setting_nearest_its_level(pushes, se
     share = inside.double().mean(0)
     assert chosen == min(tied, key=lambda c: (abs(float(share[c]) - 0.9), float(mean[c])))
     assert report["coverage"] == pytest.approx([float(share[c]) for c in report["candidates"]])
+    labels = torch.randint(0, 3, (pushes,), generator=generator).tolist()  # each group counted once, not pooled
+    chosen, report = calibrated_choice(rows, lambda c: inside[:, c], 0.9, margin, groups=labels)
+
+    def off(c):
+        members = [[inside[k, c] for k in range(pushes) if labels[k] == g] for g in dict.fromkeys(labels)]
+        return sum(abs(sum(map(float, m)) / len(m) - 0.9) for m in members) / len(members)
+    assert report["candidates"] == tied and report["groups"] == [str(g) for g in dict.fromkeys(labels)]
+    assert chosen == min(tied, key=lambda c: (round(off(c), 9), float(mean[c])))
+    assert report["miscalibration"] == pytest.approx([off(c) for c in tied])
     with pytest.raises(InvalidParameterError, match="nll rows"):
         calibrated_choice(rows[:1], lambda c: inside[:1, c])
     with pytest.raises(InvalidParameterError, match="NaN"):
         calibrated_choice(torch.where(rows == rows[0, 0], math.nan, rows), lambda c: inside[:, c])
+
+
+def test_a_tie_goes_to_the_setting_calibrated_in_every_group_not_in_their_pool():
+    """Two settings alike in likelihood over two groups of 10 pushes: one holds 1.0 of the first group's truths
+    and 0.8 of the second's (0.9 pooled), the other 0.9 and 0.8 (0.85 pooled). Pooled, the first is nearer 90 %;
+    group by group, the second is (0.05 off on average against 0.1)."""
+    rows = torch.zeros(20, 2, dtype=torch.float64)
+    inside = torch.ones(20, 2, dtype=torch.bool)
+    inside[[10, 11], 0] = False  # the second group: 8 of 10 inside for both settings
+    inside[[10, 11, 0], 1] = False  # and the first 9 of 10 for the second setting
+    assert calibrated_choice(rows, lambda c: inside[:, c])[0] == 0
+    chosen, report = calibrated_choice(rows, lambda c: inside[:, c], groups=["a"] * 10 + ["b"] * 10)
+    assert chosen == 1 and report["group_coverage"] == [pytest.approx([1.0, 0.8]), pytest.approx([0.9, 0.8])]
+    with pytest.raises(InvalidParameterError, match="one label per push"):
+        calibrated_choice(rows, lambda c: inside[:, c], groups=["a"] * 19)
 
 
 def test_a_setting_far_worse_on_a_few_pushes_ties_with_nothing():

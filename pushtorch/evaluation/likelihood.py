@@ -351,7 +351,7 @@ def covered(nll_values: Tensor, thresholds: Tensor) -> Tensor:
 
 
 def calibrated_choice(nll_rows: Tensor, covered_at, level: float = 0.9, margin: float = 2.0,
-                      most: int = CALIBRATION_CANDIDATES) -> tuple[int, dict]:
+                      most: int = CALIBRATION_CANDIDATES, groups=None) -> tuple[int, dict]:
     """The setting, of those held-out likelihood cannot tell apart, whose regions hold the truths as often as
     they say: ``nll_rows (n, C)`` the held-out truths' nll under each of ``C`` settings of one density (the same
     ``n`` pushes); the candidates are the settings whose mean nll is within ``margin`` paired SE of the lowest
@@ -360,14 +360,17 @@ def calibrated_choice(nll_rows: Tensor, covered_at, level: float = 0.9, margin: 
     differences whose plain SE is as large as their mean, and would tie with anything. ``covered_at(c)`` gives
     ``(n,)`` whether each truth lies inside the ``level`` region of setting ``c``'s density
     (:func:`hdr_thresholds`, :func:`covered`); the candidate whose share inside is nearest ``level`` is kept, the
-    lower mean nll on a tie. Likelihood alone trades a sharp core against wide tails and can put the held-out
-    truths' coverage anywhere the tails' weight leaves it (docs/method.md, "A tie in likelihood is broken by
-    calibration"). Returns ``(index, report)``: the report holds the candidates, their mean nll, paired SE and
-    coverage.
+    lower mean nll on a tie. With ``groups`` (``n`` labels: which held-out shape each push is of) a candidate's
+    miscalibration is the mean over the groups of each group's share's distance from ``level``, every group
+    counted once: a pooled share of 0.9 can be one group's 1.0 and another's 0.6, calibrated for neither.
+    Likelihood alone trades a sharp core against wide tails and can put the held-out truths' coverage anywhere
+    the tails' weight leaves it (docs/method.md, "A tie in likelihood is broken by calibration"). Returns
+    ``(index, report)``: the report holds the candidates, their mean nll, paired SE, pooled coverage, and with
+    ``groups`` the groups and each candidate's share per group.
 
     Raises:
-        InvalidParameterError: rows that are not ``(n, C)`` with ``n >= 2`` or that hold a NaN, or a level outside
-            (0, 1).
+        InvalidParameterError: rows that are not ``(n, C)`` with ``n >= 2`` or that hold a NaN, a level outside
+            (0, 1), or groups that are not one label per push.
     """
     rows = torch.as_tensor(nll_rows, dtype=torch.float64)
     if rows.dim() != 2 or rows.shape[0] < 2 or rows.shape[1] < 1 or not 0.0 < level < 1.0:
@@ -382,8 +385,19 @@ def calibrated_choice(nll_rows: Tensor, covered_at, level: float = 0.9, margin: 
     se = differences.clamp(low, high).std(0) / math.sqrt(rows.shape[0])
     tied = torch.nonzero((mean - mean[best] <= margin * se) | (torch.arange(len(mean)) == best)).reshape(-1)
     tied = tied[torch.argsort(mean[tied], stable=True)][:max(1, int(most))].tolist()  # the lowest first
-    shares = [float(torch.as_tensor(covered_at(c)).double().mean()) for c in tied]
-    chosen = min(range(len(tied)), key=lambda k: (abs(shares[k] - level), float(mean[tied[k]])))
-    return tied[chosen], {"level": level, "margin": margin, "candidates": tied,
-                          "nll": [float(mean[c]) for c in tied], "se": [float(se[c]) for c in tied],
-                          "coverage": shares, "likeliest": best}
+    labels = [0] * rows.shape[0] if groups is None else list(groups)
+    if len(labels) != rows.shape[0]:
+        raise InvalidParameterError(f"a calibrated choice's groups need one label per push ({rows.shape[0]}), got "
+                                    f"{len(labels)}")
+    names = list(dict.fromkeys(labels))
+    members = torch.tensor([[label == name for label in labels] for name in names])  # (G, n)
+    inside = [torch.as_tensor(covered_at(c)).double().reshape(-1) for c in tied]
+    shares = [float(i.mean()) for i in inside]
+    per_group = [((members.double() @ i) / members.sum(1)).tolist() for i in inside]
+    off = [round(sum(abs(g - level) for g in gs) / len(gs), 9) for gs in per_group]  # equal shares tie exactly
+    chosen = min(range(len(tied)), key=lambda k: (off[k], float(mean[tied[k]])))
+    report = {"level": level, "margin": margin, "candidates": tied, "nll": [float(mean[c]) for c in tied],
+              "se": [float(se[c]) for c in tied], "coverage": shares, "likeliest": best}
+    if groups is not None:
+        report |= {"groups": [str(n) for n in names], "group_coverage": per_group, "miscalibration": off}
+    return tied[chosen], report

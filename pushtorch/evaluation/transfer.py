@@ -504,7 +504,8 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     :data:`~pushtorch.models.residual.DEFENSIVE_PARTS` and uncorrected share's rate ``τ`` of
     :data:`~pushtorch.models.residual.UNCORRECTED_RATES`. The combinations whose mean nll over all the pushes is
     within 2 paired SE of the lowest are tied; of them, the one whose 90 % regions hold the truths of the same
-    pushes nearest 90 % of the time is given to all (:func:`~pushtorch.evaluation.likelihood.calibrated_choice`,
+    pushes nearest 90 % of the time, on average over the groups of pushes (each model on each shape, its own
+    pushes one group), is given to all (:func:`~pushtorch.evaluation.likelihood.calibrated_choice`,
     each density drawn from as :func:`~pushtorch.prediction.residual.hedged_density` builds it; kept in
     ``meta["novelty"]`` with the candidates' coverage). What an experiment with several training objects does for
     their residual models; a single object has no shape to hold out and keeps ``ν = ξ = 0``.
@@ -533,7 +534,7 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     def factors(p):
         return [novelty_factors(p, v) for v in grid]
 
-    scores, cases, skipped = [], [], 0
+    scores, cases, groups, skipped = [], [], [], 0
     others = list(zip(objects, records, strict=True)) + list(zip(shapes, shape_records, strict=True))
     plain = [replace(r, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0, disagreement=0.0)
              for r in residuals]
@@ -545,6 +546,7 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
                 scores += more
                 skipped += missed
                 cases += [(p, obj) for _, p in made]
+                groups += [f"{objects[i].name}'s model on {obj.name}"] * len(made)
     count = len(scores)
     for residual, obj, own in zip(plain, objects, records, strict=True):  # each model's own pushes, held out
         for _, held_out, case in own_held_out_pushes(residual, obj, own, pushes_per_shape, generator,
@@ -557,10 +559,10 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
                 continue
             scores.append(scored[1])
             cases.append((scored[0], obj))
+            groups.append(f"{obj.name}'s model on its own")
     if not scores:
         raise InvalidParameterError("no held-out push could be predicted to choose the residual's novelty widening")
     rows = torch.stack(scores)
-
     block = len(grid) * len(DEFENSIVE_PARTS) * len(UNCORRECTED_RATES)
 
     def covered_at(c: int) -> torch.Tensor:
@@ -570,16 +572,16 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
             generator=torch.Generator().manual_seed(k), symmetry=obj.symmetry, plane=p.start)).reshape(-1)[0])
             for k, (p, obj) in enumerate(cases) for q in [disagreeing(p, weights[c // block])]])
 
-    best, calibration = calibrated_choice(rows, covered_at, HEDGE_LEVEL)
+    best, calibration = calibrated_choice(rows, covered_at, HEDGE_LEVEL, groups=groups)
     mean = rows.mean(0)
     xi, (nu, part, rate) = weights[best // block], _combination(grid, best % block)
-    shares = dict(zip(calibration["candidates"], calibration["coverage"], strict=True))
+    k, cov, off = calibration["candidates"].index(best), calibration["coverage"], calibration["miscalibration"]
     log.info("residual novelty widening %g, defensive part %s, uncorrected rate %g, disagreement weight %g across "
-             "%s (held-out nll %.2f, "
-             "90 %% coverage %.2f; the likeliest %.2f and %.2f; %d combinations within 2 paired SE of it; %d pushes "
-             "of other objects and shapes, %d of their own)", nu, part, rate, xi, [o.name for o in objects],
-             float(mean[best]), shares[best], float(mean[calibration["likeliest"]]),
-             shares[calibration["likeliest"]], len(shares), count, len(scores) - count)
+             "%s (held-out nll %.2f, 90 %% coverage %.2f, per group %s off 0.9 by %.3f on average; the likeliest "
+             "%.2f, %.2f and %.3f; %d combinations within 2 paired SE of it; %d pushes of other objects and shapes, "
+             "%d of their own)", nu, part, rate, xi, [o.name for o in objects], float(mean[best]), cov[k],
+             " ".join(f"{g:.2f}" for g in calibration["group_coverage"][k]), off[k],
+             float(mean[calibration["likeliest"]]), cov[0], off[0], len(cov), count, len(scores) - count)
     chosen = {"chosen": nu, "defensive_chosen": list(part), "across": [o.name for o in objects],
               "shapes": [o.name for o in shapes], "grid": grid,
               "defensive": [list(d) for d in DEFENSIVE_PARTS], "uncorrected_chosen": rate,
