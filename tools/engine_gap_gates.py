@@ -7,7 +7,8 @@ standard error), the nll of the residual, ``pushtorch`` and ``physics_ensemble``
 its 90 % region. Then, per run, the counts each gate and target reads:
 
 * ``hacc_le_best``: objects where the residual's H_acc ≤ the better of pushtorch and physics_from_cloud + 2
-  paired SE (gate: ≥ 5 of 6 in each cross-engine direction);
+  paired SE, float32 round-off (:data:`ROUND_OFF`) counting as equal (gate: ≥ 5 of 6 in each cross-engine
+  direction);
 * ``nll_below_both``: objects where its nll is below both physics_ensemble's and pushtorch's (gate: ≥ 4 of 6);
 * ``coverage_ok``: objects where its 90 % coverage is in [0.80, 0.97] (gate: ≥ 4 of 6);
 * ``hacc_below_both``: objects where its H_acc is below both by more than 2 paired SE (target: ≥ 3 of 6);
@@ -32,6 +33,11 @@ import numpy as np
 from pushtorch.experiments.figures import FIGURE_DATA, read_figure_data
 
 OBJECTS = ("cube", "prism_thin", "prism_long", "cylinder", "cylinder_wide", "hybrid")
+
+#: H_acc differences this small are one prediction's float32 round-off, not a difference: a residual model that
+#: reports its push model's point carries it into its body's frame and back (per push up to 3.3e-7 in the
+#: engine-gap runs), and "at most" must not turn on the ninth digit
+ROUND_OFF = 1e-6
 
 
 def per_push(run: Path) -> dict[tuple[str, str], np.ndarray]:
@@ -70,13 +76,13 @@ def main() -> None:
             se_pt, se_pfc = paired_se(s_res, s_pt), paired_se(s_res, s_pfc)
             best, se_best = (pt, se_pt) if pt["hacc_mean"] <= pfc["hacc_mean"] else (pfc, se_pfc)
             h = res["hacc_mean"]
-            tally["hacc_le_best"] += h <= best["hacc_mean"] + 2 * se_best
+            tally["hacc_le_best"] += h <= best["hacc_mean"] + 2 * se_best + ROUND_OFF
             ens_nll = ens["nll_mean"] if ens else math.inf
             tally["nll_below_both"] += res["nll_mean"] < ens_nll and res["nll_mean"] < pt["nll_mean"]
             cov = res.get("coverage_90")
             tally["coverage_ok"] += cov is not None and 0.80 <= cov <= 0.97
             tally["hacc_below_both"] += h < pt["hacc_mean"] - 2 * se_pt and h < pfc["hacc_mean"] - 2 * se_pfc
-            tally["within_physics"] += h <= pfc["hacc_mean"] + 2 * se_pfc
+            tally["within_physics"] += h <= pfc["hacc_mean"] + 2 * se_pfc + ROUND_OFF
             print(f"{obj:15s} {pt['hacc_mean']:9.3f} {h:9.3f} {pfc['hacc_mean']:8.3f} {se_pt:11.4f} {se_pfc:12.4f}"
                   f"  {res['nll_mean']:6.1f} / {pt['nll_mean']:6.1f} / {ens_nll:6.1f}  "
                   f"{cov if cov is None else round(cov, 2)}")
