@@ -494,14 +494,17 @@ def test_a_prediction_whose_rollouts_did_something_new_widens_by_its_novelty(tra
     assert meta["own_pushes"] + meta["skipped"] == 12  # two of each action's own pushes per model, held out
     rates, parts, block = len(UNCORRECTED_RATES), len(DEFENSIVE_PARTS), len(meta["nll"]) // len(DISAGREEMENT_WEIGHTS)
     assert block == len(NOVELTY_WIDENINGS) * parts * rates and meta["disagreement"] == list(DISAGREEMENT_WEIGHTS)
-    # of the combinations likelihood cannot tell apart, the one whose 90 % regions hold the truths nearest 90 %
+    # of the combinations likelihood cannot tell apart, the one whose 90 % regions hold the truths nearest 90 %,
+    # group by group: each model on each other shape, and on its own pushes (both models are the cube's here)
     calibration = meta["calibration"]
-    candidates, shares = calibration["candidates"], calibration["coverage"]
+    candidates, off = calibration["candidates"], calibration["miscalibration"]
     likeliest = min(range(len(meta["nll"])), key=meta["nll"].__getitem__)
     assert calibration["likeliest"] == likeliest == candidates[0] and calibration["level"] == 0.9
     assert all(meta["nll"][c] - meta["nll"][likeliest] <= 2 * se + 1e-12
                for c, se in zip(candidates, calibration["se"], strict=True))
-    best = candidates[min(range(len(candidates)), key=lambda k: (abs(shares[k] - 0.9), meta["nll"][candidates[k]]))]
+    assert calibration["groups"] == ["cube's model on cube", "cube's model on its own"]
+    assert off == pytest.approx([sum(abs(g - 0.9) for g in gs) / 2 for gs in calibration["group_coverage"]])
+    best = candidates[min(range(len(candidates)), key=lambda k: (off[k], meta["nll"][candidates[k]]))]
     assert (chosen[0].disagreement, chosen[0].novelty_widening, chosen[0].defensive, chosen[0].uncorrected) == (
         DISAGREEMENT_WEIGHTS[best // block], NOVELTY_WIDENINGS[best % block // (parts * rates)],
         DEFENSIVE_PARTS[best // rates % parts], UNCORRECTED_RATES[best % rates])
