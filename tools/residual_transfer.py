@@ -23,9 +23,10 @@ apart, never a choice.
 robot starts) predicted again by its training object's residual model from fresh single-shot clouds (other draws
 than the run's), and the share of truths inside the 50 % and 90 % regions (docs/method.md, "Likelihood score") of
 the whole density and of its corrected kernels alone (:func:`pushtorch.prediction.residual.narrow_density`): what
-the defensive part and the uncorrected share do to calibration, and how much a second draw moves it (``--draw k``:
-the predictions' seeds moved by 1000 k; the last line counts the objects whose 90 % coverage lies in the engine
-gap's band, [0.80, 0.97]).
+the defensive part and the uncorrected share do to calibration (with the predictions' median uncorrected share
+``ρ``, the weight on the rollouts themselves, and the novelty ``n + ξ·δ²`` that sets it), and how much a second
+draw moves it (``--draw k``: the predictions' seeds moved by 1000 k; the last line counts the objects whose 90 %
+coverage lies in the engine gap's band, [0.80, 0.97]).
 
 ``hedges <run>``: for the same run, each catalogue object's test pushes predicted again as ``coverage`` predicts
 them (the same clouds and seeds at ``--draw k``), and the 90 % coverage and mean nll of the density hedged in five
@@ -248,14 +249,18 @@ def coverage(run: Path, draw: int) -> None:
     for obj_name, trained in TRAINING_OF.items():
         residual, obj = models[trained], load_object(obj_name)
         inside: dict[str, list] = {"density": [], "corrected kernels alone": []}
+        uncorrected = []
         for i, cloud, action, robot, start, truth in _test_pushes(run, obj, residual.settings.voxel_size):
             prediction = _predicted(residual, cloud, action, i + 1000 * draw, robot)
+            uncorrected.append([prediction.uncorrected_share, prediction.outcome_novelty])
             for label, density in zip(inside, (prediction.density, narrow_density(prediction)), strict=True):
                 inside[label].append(_scored_regions(density, prediction, obj, start, truth, i)[0])
         shares = {label: torch.stack(rows).mean(0).tolist() for label, rows in inside.items()}
         in_band += 0.80 <= shares["density"][1] <= 0.97
         print(f"{obj_name:14s} ({trained}'s model, {len(inside['density'])} pushes) 50 % / 90 % coverage: "
-              + "; ".join(f"{label} {v[0]:.2f} / {v[1]:.2f}" for label, v in shares.items()), flush=True)
+              + "; ".join(f"{label} {v[0]:.2f} / {v[1]:.2f}" for label, v in shares.items())
+              + "; uncorrected share and the novelty it takes, medians {:.3f}, {:.2f}".format(
+                  *np.median(uncorrected, axis=0)), flush=True)
     print(f"draw={draw} coverage_ok={in_band} of {len(TRAINING_OF)} (the density's 90 % coverage in [0.80, 0.97])")
 
 
