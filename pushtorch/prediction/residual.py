@@ -81,9 +81,8 @@ from pushtorch.sim.bodies import cloud_body, rollout_ensemble
 from pushtorch.streams import keyed_seed
 
 __all__ = ["ResidualCandidates", "ResidualPrediction", "corrected_mode", "defensive_factors", "disagreeing",
-           "hedged_density",
-           "learned_point", "narrow_density", "novelty_factors", "predict_residual", "rescaled", "residual_candidates",
-           "scaled_parts", "shifted_mode"]
+           "hedged_density", "learned_point", "narrow_density", "novelty_factors", "predict_residual", "rescaled",
+           "residual_candidates", "scaled_parts", "shifted_mode"]
 
 
 @dataclass
