@@ -232,17 +232,25 @@ def test_a_calibrated_choice_keeps_the_tied_setting_nearest_its_level(pushes, se
     tied = report["candidates"]
     assert surely <= set(tied) <= maybe and sorted(tied) == sorted(asked) and tied[0] == likeliest
     share = inside.double().mean(0)
-    assert chosen == min(tied, key=lambda c: (abs(float(share[c]) - 0.9), float(mean[c])))
+    assert chosen == min(tied, key=lambda c: (abs(float(share[c]) - 0.9), float(mean[c])))  # no sharpness given
     assert report["coverage"] == pytest.approx([float(share[c]) for c in report["candidates"]])
     labels = torch.randint(0, 3, (pushes,), generator=generator).tolist()  # each group counted once, not pooled
-    chosen, report = calibrated_choice(rows, lambda c: inside[:, c], 0.9, margin, groups=labels)
+    edge = torch.randn(pushes, settings, generator=generator, dtype=torch.float64)  # each region's threshold
+    chosen, report = calibrated_choice(rows, lambda c: (inside[:, c], edge[:, c]), 0.9, margin, groups=labels)
 
     def off(c):
         members = [[inside[k, c] for k in range(pushes) if labels[k] == g] for g in dict.fromkeys(labels)]
         return sum(abs(sum(map(float, m)) / len(m) - 0.9) for m in members) / len(members)
     assert report["candidates"] == tied and report["groups"] == [str(g) for g in dict.fromkeys(labels)]
-    assert chosen == min(tied, key=lambda c: (round(off(c), 9), float(mean[c])))
     assert report["miscalibration"] == pytest.approx([off(c) for c in tied])
+    assert report["sharpness"] == pytest.approx([float(edge[:, c].mean()) for c in tied])
+    least = min(tied, key=lambda c: (round(off(c), 9), float(mean[c])))
+    spread = dict(zip(tied, report["miscalibration_se"], strict=True))
+    alike = [c for c in tied if off(c) - off(least) <= spread[c] + 1e-8]
+    assert spread[least] == 0.0 and all(v >= 0.0 for v in spread.values())
+    assert least in report["calibrated_alike"] and set(report["calibrated_alike"]) <= set(alike)
+    assert chosen in alike and all(float(edge[:, chosen].mean()) >= float(edge[:, c].mean()) - 1e-8
+                                   for c in report["calibrated_alike"])  # the sharpest of those calibrated alike
     with pytest.raises(InvalidParameterError, match="nll rows"):
         calibrated_choice(rows[:1], lambda c: inside[:1, c])
     with pytest.raises(InvalidParameterError, match="NaN"):
@@ -262,6 +270,21 @@ def test_a_tie_goes_to_the_setting_calibrated_in_every_group_not_in_their_pool()
     assert chosen == 1 and report["group_coverage"] == [pytest.approx([1.0, 0.8]), pytest.approx([0.9, 0.8])]
     with pytest.raises(InvalidParameterError, match="one label per push"):
         calibrated_choice(rows, lambda c: inside[:, c], groups=["a"] * 19)
+
+
+def test_of_settings_calibrated_alike_the_sharper_is_kept_and_a_sharp_miscalibrated_one_is_not():
+    """Three settings alike in likelihood over 40 pushes: the first's regions hold 36 truths (0.9) and are the
+    widest, the second's 37 (0.925: within the noise of 40 pushes, SE 0.03) and are sharper, the third's 20 (0.5)
+    and are the sharpest. The second is kept: as well calibrated as 40 pushes can tell, and it says more."""
+    rows = torch.zeros(40, 3, dtype=torch.float64)
+    inside = torch.ones(40, 3, dtype=torch.bool)
+    inside[:4, 0], inside[:3, 1], inside[:20, 2] = False, False, False
+    edge = torch.tensor([-8.0, -6.0, -2.0], dtype=torch.float64).expand(40, 3)
+    chosen, report = calibrated_choice(rows, lambda c: (inside[:, c], edge[:, c]))
+    assert chosen == 1 and report["calibrated_alike"] == [0, 1]
+    assert report["miscalibration"] == pytest.approx([0.0, 0.025, 0.4])
+    assert 0.025 < report["miscalibration_se"][1] < 0.06 and report["miscalibration_se"][0] == 0.0
+    assert calibrated_choice(rows, lambda c: inside[:, c])[0] == 0  # without thresholds: the least miscalibrated
 
 
 def test_a_setting_far_worse_on_a_few_pushes_ties_with_nothing():

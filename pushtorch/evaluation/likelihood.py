@@ -68,6 +68,7 @@ __all__ = [
     "MIN_P_STD",
     "MIN_ROT_STD",
     "WINSOR",
+    "CALIBRATION_RESAMPLES",
     "log_kernel_normaliser",
     "log_normaliser",
     "log_rotation_normaliser",
@@ -96,6 +97,9 @@ COVERAGE_SAMPLES = 400
 CALIBRATION_CANDIDATES = 48
 #: The share of paired differences in each tail that :func:`calibrated_choice` winsorises before their SE
 WINSOR = 0.05
+#: Resamples of the held-out pushes (within each group) that give the SE of a candidate's miscalibration less the
+#: least miscalibrated one's, in :func:`calibrated_choice` (from a fixed seed: the choice is reproducible)
+CALIBRATION_RESAMPLES = 500
 _CONTINUOUS_STEPS = 120  # a 3° grid about a continuous symmetry axis
 _REFINE = torch.linspace(-1.5, 1.5, 37, dtype=torch.float64)  # ±1.5 grid steps (±4.5°) in 0.25° steps
 #: A draw's search about a continuous axis (:func:`_nearest_copy_scores`): 9 turns over nll's refined span, then 9
@@ -352,21 +356,27 @@ def covered(nll_values: Tensor, thresholds: Tensor) -> Tensor:
 
 def calibrated_choice(nll_rows: Tensor, covered_at, level: float = 0.9, margin: float = 2.0,
                       most: int = CALIBRATION_CANDIDATES, groups=None) -> tuple[int, dict]:
-    """The setting, of those held-out likelihood cannot tell apart, whose regions hold the truths as often as
-    they say: ``nll_rows (n, C)`` the held-out truths' nll under each of ``C`` settings of one density (the same
-    ``n`` pushes); the candidates are the settings whose mean nll is within ``margin`` paired SE of the lowest
-    (at most ``most``, lowest mean first; the lowest always). The SE is that of the paired differences
+    """The sharpest setting, of those held-out likelihood cannot tell apart, whose regions hold the truths as
+    often as they say: ``nll_rows (n, C)`` the held-out truths' nll under each of ``C`` settings of one density
+    (the same ``n`` pushes); the candidates are the settings whose mean nll is within ``margin`` paired SE of the
+    lowest (at most ``most``, lowest mean first; the lowest always). The SE is that of the paired differences
     winsorised at their :data:`WINSOR` quantiles: a setting hundreds of nats worse on a few pushes has
     differences whose plain SE is as large as their mean, and would tie with anything. ``covered_at(c)`` gives
     ``(n,)`` whether each truth lies inside the ``level`` region of setting ``c``'s density
-    (:func:`hdr_thresholds`, :func:`covered`); the candidate whose share inside is nearest ``level`` is kept, the
-    lower mean nll on a tie. With ``groups`` (``n`` labels: which held-out shape each push is of) a candidate's
-    miscalibration is the mean over the groups of each group's share's distance from ``level``, every group
-    counted once: a pooled share of 0.9 can be one group's 1.0 and another's 0.6, calibrated for neither.
-    Likelihood alone trades a sharp core against wide tails and can put the held-out truths' coverage anywhere
-    the tails' weight leaves it (docs/method.md, "A tie in likelihood is broken by calibration"). Returns
-    ``(index, report)``: the report holds the candidates, their mean nll, paired SE, pooled coverage, and with
-    ``groups`` the groups and each candidate's share per group.
+    (:func:`hdr_thresholds`, :func:`covered`), or that and ``(n,)`` each region's log-density threshold. A
+    candidate's miscalibration is its share inside's distance from ``level``; with ``groups`` (``n`` labels:
+    which held-out shape each push is of) the mean over the groups of each group's, every group counted once (a
+    pooled share of 0.9 can be one group's 1.0 and another's 0.6, calibrated for neither). The candidates within
+    one SE of the least miscalibrated (the SE of each one's miscalibration less the least's, over
+    :data:`CALIBRATION_RESAMPLES` resamples of the pushes within their groups) are calibrated alike, and of them
+    the one whose regions are sharpest is kept: the highest mean threshold, the log density at the edge of its
+    regions (without thresholds: the least miscalibrated), then the least miscalibrated, then the lower mean nll
+    (docs/method.md, "A tie in likelihood is broken by calibration, then sharpness"). Likelihood alone trades a
+    sharp core against wide tails and can put the held-out truths' coverage anywhere the tails' weight leaves it;
+    a group's coverage on a few pushes is known to a tenth, and of two settings calibrated alike the sharper says
+    more. Returns ``(index, report)``: the report holds the candidates, their mean nll, paired SE, pooled
+    coverage, miscalibration, its SE and sharpness, which are calibrated alike, and with ``groups`` the groups and
+    each candidate's share per group.
 
     Raises:
         InvalidParameterError: rows that are not ``(n, C)`` with ``n >= 2`` or that hold a NaN, a level outside
@@ -391,13 +401,35 @@ def calibrated_choice(nll_rows: Tensor, covered_at, level: float = 0.9, margin: 
                                     f"{len(labels)}")
     names = list(dict.fromkeys(labels))
     members = torch.tensor([[label == name for label in labels] for name in names])  # (G, n)
-    inside = [torch.as_tensor(covered_at(c)).double().reshape(-1) for c in tied]
-    shares = [float(i.mean()) for i in inside]
-    per_group = [((members.double() @ i) / members.sum(1)).tolist() for i in inside]
+    measured = [covered_at(c) for c in tied]
+    pairs = [m if isinstance(m, tuple) else (m, None) for m in measured]
+    inside = torch.stack([torch.as_tensor(i).double().reshape(-1) for i, _ in pairs])  # (K, n)
+    sharp = [0.0 if t is None else float(torch.as_tensor(t).double().mean()) for _, t in pairs]
+    per_group = ((inside @ members.double().T) / members.sum(1)).tolist()  # (K, G)
     off = [round(sum(abs(g - level) for g in gs) / len(gs), 9) for gs in per_group]  # equal shares tie exactly
-    chosen = min(range(len(tied)), key=lambda k: (off[k], float(mean[tied[k]])))
+    least = min(range(len(tied)), key=lambda k: (off[k], float(mean[tied[k]])))
+    spread = _miscalibration_se(inside, members, level, least)
+    alike = [k for k in range(len(tied)) if off[k] - off[least] <= spread[k] + 1e-9]
+    chosen = min(alike, key=lambda k: (-round(sharp[k], 9), off[k], float(mean[tied[k]])))
     report = {"level": level, "margin": margin, "candidates": tied, "nll": [float(mean[c]) for c in tied],
-              "se": [float(se[c]) for c in tied], "coverage": shares, "likeliest": best}
+              "se": [float(se[c]) for c in tied], "coverage": inside.mean(1).tolist(), "likeliest": best,
+              "miscalibration": off, "miscalibration_se": spread, "sharpness": sharp,
+              "calibrated_alike": [tied[k] for k in alike]}
     if groups is not None:
-        report |= {"groups": [str(n) for n in names], "group_coverage": per_group, "miscalibration": off}
+        report |= {"groups": [str(n) for n in names], "group_coverage": per_group}
     return tied[chosen], report
+
+
+def _miscalibration_se(inside: Tensor, members: Tensor, level: float, least: int) -> list[float]:
+    """``(K,)`` the SE of each candidate's miscalibration (the mean over groups of their share inside's distance
+    from ``level``; ``inside (K, n)``, ``members (G, n)``) less candidate ``least``'s, over
+    :data:`CALIBRATION_RESAMPLES` resamples of each group's pushes with replacement (paired: the same resample for
+    every candidate)."""
+    generator = torch.Generator().manual_seed(0)
+    off = torch.zeros(inside.shape[0], CALIBRATION_RESAMPLES, dtype=torch.float64)
+    for row in members:
+        own = inside[:, row]  # (K, m)
+        draws = torch.randint(0, own.shape[1], (CALIBRATION_RESAMPLES, own.shape[1]), generator=generator)
+        off += (own[:, draws].mean(-1) - level).abs()
+    off /= members.shape[0]
+    return (off - off[least]).std(1).tolist()

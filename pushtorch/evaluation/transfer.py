@@ -22,16 +22,14 @@ A pooled residual model (:mod:`pushtorch.models.residual`) widens its residual k
 ``κ`` scored on the same rollouts.
 
 A residual model's density also has a defensive part (:class:`~pushtorch.distribution.DefensiveMixture`): a share
-of the same kernels, centimetres wider, that grows with the prediction's outcome novelty
-(:func:`pushtorch.models.residual.defensive_share`). It is chosen with ``κ``
-(:func:`choose_residual_widening`) or with the novelty widening ``ν`` (:func:`choose_novelty_widening`), on the
+of the same kernels, centimetres wider, growing with the prediction's outcome novelty, chosen with ``κ``
+(:func:`choose_residual_widening`) or with the novelty widening ``ν`` (:func:`choose_novelty_widening`) on the
 same held-out pushes of shapes the model did not see and the same rollouts, every pair scored. So is its
 uncorrected share (:data:`~pushtorch.models.residual.UNCORRECTED_RATES`), the rollouts themselves keeping a share
 that grows with novelty: every combination is scored from the log densities of the corrected kernels and of the
 rollouts at each distinct width, at the truth's symmetric copies, mixed at each combination's weights
 (:func:`residual_nll_grid`). Across training objects, the combinations that held-out likelihood cannot tell apart
-(within 2 paired SE of the likeliest) are told apart by calibration: the one whose 90 % regions hold the same
-held-out truths nearest 90 % of the time is kept (:func:`choose_novelty_widening`).
+are told apart by calibration, then sharpness, for each model on its pushes (:func:`choose_novelty_widening`).
 """
 
 from __future__ import annotations
@@ -493,22 +491,22 @@ def _combination(grid: list[float], index: int) -> tuple[float, tuple[float, flo
 def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records: list, pushes_per_shape: int = 6,
                             generator: torch.Generator | None = None, widenings=NOVELTY_WIDENINGS,
                             shapes: list[ObjectModel] = (), shape_records: list = ()) -> list:
-    """Residual models of one object each, trained on the same prior, with one novelty widening ``ν`` chosen
-    across them: each model predicts ``pushes_per_shape`` of every *other* training object's pushes (a shape it
-    never saw), of each of ``shapes`` (generated training shapes no model was trained on, with their
-    ``shape_records``: rollouts of intermediate novelty) and of each action's own, each held out of it in turn
-    (:meth:`~pushtorch.models.residual.ResidualModel.without_pushes`: small novelty, where widening costs), from
-    its push model's push condition. Each prediction is hedged at every disagreement weight ``ξ`` of
+    """Residual models of one object each, trained on the same prior, each with its novelty widening ``ν`` and
+    hedges chosen on held-out pushes: each model predicts ``pushes_per_shape`` of every *other* training object's
+    pushes (a shape it never saw), of each of ``shapes`` (generated training shapes no model was trained on, with
+    their ``shape_records``: rollouts of intermediate novelty) and of each action's own, each held out of it in
+    turn (:meth:`~pushtorch.models.residual.ResidualModel.without_pushes`: small novelty, where widening costs),
+    from its push model's push condition. Each prediction is hedged at every disagreement weight ``ξ`` of
     :data:`~pushtorch.models.residual.DISAGREEMENT_WEIGHTS` (its novelty ``n + ξ·δ²``), novelty widening ``ν``
     (:mod:`pushtorch.prediction.residual`), defensive part ``(ε0, λ, w)`` of
     :data:`~pushtorch.models.residual.DEFENSIVE_PARTS` and uncorrected share's rate ``τ`` of
-    :data:`~pushtorch.models.residual.UNCORRECTED_RATES`. The combinations whose mean nll over all the pushes is
-    within 2 paired SE of the lowest are tied; of them, the one whose 90 % regions hold the truths of the same
-    pushes nearest 90 % of the time, on average over the groups of pushes (each model on each shape, its own
-    pushes one group), is given to all (:func:`~pushtorch.evaluation.likelihood.calibrated_choice`,
-    each density drawn from as :func:`~pushtorch.prediction.residual.hedged_density` builds it; kept in
-    ``meta["novelty"]`` with the candidates' coverage). What an experiment with several training objects does for
-    their residual models; a single object has no shape to hold out and keeps ``ν = ξ = 0``.
+    :data:`~pushtorch.models.residual.UNCORRECTED_RATES`. For each model, the combinations whose mean nll over
+    the pushes it predicted is within 2 paired SE of the lowest are tied; of those whose 90 % regions hold the
+    truths of the same pushes as near 90 % of the time as the nearest, within its SE, on average over the groups
+    of pushes (the model on each shape, its own pushes one group), the sharpest is kept
+    (:func:`~pushtorch.evaluation.likelihood.calibrated_choice`, each density drawn from as
+    :func:`~pushtorch.prediction.residual.hedged_density` builds it; kept in ``meta["novelty"]``): how far a
+    model's corrections carry to other shapes is its own. A single object keeps ``ν = ξ = 0``.
 
     Raises:
         InvalidParameterError: fewer than two models, objects or records not one per model, a model read from its
@@ -534,7 +532,7 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
     def factors(p):
         return [novelty_factors(p, v) for v in grid]
 
-    scores, cases, groups, skipped = [], [], [], 0
+    scores, cases, groups, owner, skipped = [], [], [], [], [0] * len(residuals)
     others = list(zip(objects, records, strict=True)) + list(zip(shapes, shape_records, strict=True))
     plain = [replace(r, novelty_widening=0.0, defensive=(0.0, 0.0, 0.0), uncorrected=0.0, disagreement=0.0)
              for r in residuals]
@@ -544,53 +542,57 @@ def choose_novelty_widening(residuals: list, objects: list[ObjectModel], records
                 more, missed, made = _residual_scores(residual, obj, other, pushes_per_shape, generator, factors,
                                                       weights)
                 scores += more
-                skipped += missed
+                skipped[i] += missed
                 cases += [(p, obj) for _, p in made]
                 groups += [f"{objects[i].name}'s model on {obj.name}"] * len(made)
-    count = len(scores)
-    for residual, obj, own in zip(plain, objects, records, strict=True):  # each model's own pushes, held out
+                owner += [(i, False)] * len(made)
+    for i, (residual, obj, own) in enumerate(zip(plain, objects, records, strict=True)):  # own pushes, held out
         for _, held_out, case in own_held_out_pushes(residual, obj, own, pushes_per_shape, generator,
                                                      "choosing the residual's novelty widening"):
             scored = None if held_out is None else _predicted_scores(
                 held_out, obj, case, generator,
                 lambda p, truth, start, obj=obj: _weighed_scores(p, truth, start, obj, factors, weights), True)
             if scored is None:
-                skipped += 1
+                skipped[i] += 1
                 continue
             scores.append(scored[1])
             cases.append((scored[0], obj))
             groups.append(f"{obj.name}'s model on its own")
-    if not scores:
-        raise InvalidParameterError("no held-out push could be predicted to choose the residual's novelty widening")
-    rows = torch.stack(scores)
+            owner.append((i, True))
     block = len(grid) * len(DEFENSIVE_PARTS) * len(UNCORRECTED_RATES)
 
-    def covered_at(c: int) -> torch.Tensor:
+    def covered_at(keep: list[int], c: int) -> tuple[torch.Tensor, torch.Tensor]:
         nu, part, rate = _combination(grid, c % block)
-        return torch.tensor([bool(covered(rows[k, c], hdr_thresholds(
-            hedged_density(q, novelty_factors(q, nu), part, rate), (HEDGE_LEVEL,),
-            generator=torch.Generator().manual_seed(k), symmetry=obj.symmetry, plane=p.start)).reshape(-1)[0])
-            for k, (p, obj) in enumerate(cases) for q in [disagreeing(p, weights[c // block])]])
+        edge = torch.stack([hdr_thresholds(hedged_density(q, novelty_factors(q, nu), part, rate), (HEDGE_LEVEL,),
+                                           generator=torch.Generator().manual_seed(k), symmetry=obj.symmetry,
+                                           plane=p.start).reshape(-1)[0]
+                            for k in keep for p, obj in [cases[k]] for q in [disagreeing(p, weights[c // block])]])
+        return covered(rows[keep, c], edge.unsqueeze(-1)).reshape(-1), edge
 
-    best, calibration = calibrated_choice(rows, covered_at, HEDGE_LEVEL, groups=groups)
-    mean = rows.mean(0)
-    xi, (nu, part, rate) = weights[best // block], _combination(grid, best % block)
-    k, cov, off = calibration["candidates"].index(best), calibration["coverage"], calibration["miscalibration"]
-    log.info("residual novelty widening %g, defensive part %s, uncorrected rate %g, disagreement weight %g across "
-             "%s (held-out nll %.2f, 90 %% coverage %.2f, per group %s off 0.9 by %.3f on average; the likeliest "
-             "%.2f, %.2f and %.3f; %d combinations within 2 paired SE of it; %d pushes of other objects and shapes, "
-             "%d of their own)", nu, part, rate, xi, [o.name for o in objects], float(mean[best]), cov[k],
-             " ".join(f"{g:.2f}" for g in calibration["group_coverage"][k]), off[k],
-             float(mean[calibration["likeliest"]]), cov[0], off[0], len(cov), count, len(scores) - count)
-    chosen = {"chosen": nu, "defensive_chosen": list(part), "across": [o.name for o in objects],
-              "shapes": [o.name for o in shapes], "grid": grid,
-              "defensive": [list(d) for d in DEFENSIVE_PARTS], "uncorrected_chosen": rate,
-              "uncorrected": list(UNCORRECTED_RATES), "form": NOVELTY_FORM, "nll": mean.tolist(),
-              "disagreement": list(weights), "disagreement_chosen": xi,
-              "pushes": count, "own_pushes": len(scores) - count, "pushes_per_shape": int(pushes_per_shape),
-              "skipped": skipped, "calibration": calibration}
-    return [replace(r, novelty_widening=nu, defensive=part, uncorrected=rate, disagreement=xi,
-                    meta={**r.meta, "novelty": chosen}) for r in residuals]
+    if len({o for o, _ in owner}) < len(residuals):
+        raise InvalidParameterError("no held-out push could be predicted by a residual model to choose its hedges")
+    rows, chosen = torch.stack(scores), []
+    for i, residual in enumerate(residuals):  # each model's hedges on the pushes it predicted
+        keep = [k for k, (o, _) in enumerate(owner) if o == i]
+        best, calibration = calibrated_choice(rows[keep], lambda c, keep=keep: covered_at(keep, c), HEDGE_LEVEL,
+                                              groups=[groups[k] for k in keep])
+        mean, own = rows[keep].mean(0), sum(owner[k][1] for k in keep)
+        xi, (nu, part, rate) = weights[best // block], _combination(grid, best % block)
+        k, cov = calibration["candidates"].index(best), calibration["coverage"]
+        log.info("%s's residual model: novelty widening %g, defensive part %s, uncorrected rate %g, disagreement "
+                 "weight %g (held-out nll %.2f, 90 %% coverage %.2f, per group %s; %d tied in likelihood, %d "
+                 "calibrated alike; %d pushes, %d its own)", objects[i].name, nu, part, rate, xi, float(mean[best]),
+                 cov[k], " ".join(f"{g:.2f}" for g in calibration["group_coverage"][k]), len(cov),
+                 len(calibration["calibrated_alike"]), len(keep), own)
+        entry = dict(chosen=nu, defensive_chosen=list(part), across=[o.name for o in objects],
+                     shapes=[o.name for o in shapes], grid=grid, defensive=[list(d) for d in DEFENSIVE_PARTS],
+                     uncorrected_chosen=rate, uncorrected=list(UNCORRECTED_RATES), form=NOVELTY_FORM,
+                     nll=mean.tolist(), disagreement=list(weights), disagreement_chosen=xi, pushes=len(keep) - own,
+                     own_pushes=own, pushes_per_shape=int(pushes_per_shape), skipped=skipped[i],
+                     calibration=calibration)
+        chosen.append(replace(residual, novelty_widening=nu, defensive=part, uncorrected=rate, disagreement=xi,
+                              meta={**residual.meta, "novelty": entry}))
+    return chosen
 
 
 def _check_pushes(pushes_per_shape) -> None:

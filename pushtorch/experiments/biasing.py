@@ -123,7 +123,7 @@ def run_part(cfg, part: Mapping[str, Any], ctx: ExperimentContext,
         size = int(part.get("residual_ensemble") or DEFAULT_ENSEMBLE)
         scale_pushes = part.get("residual_scale_pushes")
         fitted = {tfm: train_residual(ctx, load_object(tfm[0]), *tfm[1:], size, scale_pushes) for tfm in trained}
-        if int(part.get("residual_novelty_pushes", 0)) > 0:  # one novelty widening across the training objects
+        if int(part.get("residual_novelty_pushes", 0)) > 0:  # each model's hedges on the other training objects
             fitted = widen_residuals_by_novelty(ctx, fitted, int(part["residual_novelty_pushes"]),
                                                 part.get("residual_novelty_shapes"))
         residuals = {models[tfm].name: fitted[tfm] for tfm in trained}

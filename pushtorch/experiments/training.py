@@ -252,12 +252,12 @@ def _scale_chosen(residual, pushes: int) -> bool:
 
 
 def widen_residuals_by_novelty(ctx: ExperimentContext, trained: dict, pushes: int, shapes: str | None = None) -> dict:
-    """``{(object, friction, mass): residual model}`` with one novelty widening, defensive part and uncorrected
-    share chosen across the training objects of each prior
+    """``{(object, friction, mass): residual model}`` with each model's novelty widening, defensive part and
+    uncorrected share chosen on the training objects of its prior
     (:func:`pushtorch.evaluation.transfer.choose_novelty_widening`: each object's model scores ``pushes`` of every
     other's training pushes per object, as many of each generated shape of ``shapes``, a ``shapes:<kind>:<count>``
     entry, pushed under the same prior, and as many of each action's own, held out; a tie in likelihood is broken
-    by the same pushes' 90 % coverage), each saved back to its file. A prior with one
+    by the same pushes' 90 % coverage, then sharpness), each saved back to its file. A prior with one
     training object keeps its models as they are; a model whose file already holds the choice across the same
     objects and shapes is kept as read."""
     from pushtorch.evaluation.transfer import choose_novelty_widening

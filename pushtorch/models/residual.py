@@ -100,9 +100,9 @@ DEFENSIVE_TURN = 5.0
 #: Which form of the novelty widening a model's choice of ``ν`` was made for (kept beside it in its ``meta``; a
 #: cached choice of another form is made again): 7, the share of the outcomes' spread, the defensive part, the
 #: uncorrected share and the disagreement weight chosen together, the own pushes held out in the choice itself
-#: and a tie in likelihood broken by calibration per group of held-out pushes, not pooled (8; earlier forms
-#: lacked one or more of these)
-NOVELTY_FORM = 8
+#: and a tie in likelihood broken by calibration per group of held-out pushes, then by sharpness among those
+#: calibrated alike, each model's on the pushes it predicted (9; earlier forms lacked one or more of these)
+NOVELTY_FORM = 9
 #: The disagreement weights ``ξ`` tried with each hedge: a prediction whose push model's own point lies ``δ²``
 #: training-outcome stds² from its corrected mode (:func:`outcome_disagreement`) is hedged as if its rollouts'
 #: novelty were ``n + ξ·δ²`` (0: theirs alone). Where the two disagree, one of them misses, at any novelty.

@@ -14,7 +14,7 @@ widened by ``sqrt(1 + κ·d²)`` where this contact is ``d`` contact-kernel stds
 rollouts did something ``n`` training-outcome stds² from what any training rollout did (the median over the
 rollouts of :func:`pushtorch.models.residual.outcome_novelty`), a share ``ν·n / (1 + ν·n)`` of the spread of
 the action's training outcomes (:func:`pushtorch.models.residual.outcome_spread`) is added to their variances
-(``ν`` the model's ``novelty_widening``, chosen across an experiment's training objects, 0 unless chosen): where
+(``ν`` the model's ``novelty_widening``, chosen on an experiment's other training objects, 0 unless chosen): where
 the simulator did something else the correction is unknown, and the outcome no surer than pushes differ. Its mode
 is the mixture's highest corrected kernel centre. It is a :class:`~pushtorch.distribution.FinalPoseDistribution`
 of one expert with exponent 1, so ``log_prob``, ``sample`` and the coverage work as for pushtorch's own prediction. A
