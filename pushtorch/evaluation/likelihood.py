@@ -371,12 +371,12 @@ def calibrated_choice(nll_rows: Tensor, covered_at, level: float = 0.9, margin: 
     :data:`CALIBRATION_RESAMPLES` resamples of the pushes within their groups) are calibrated alike, and of them
     the one whose regions are sharpest is kept: the highest mean threshold, the log density at the edge of its
     regions (without thresholds: the least miscalibrated), then the least miscalibrated, then the lower mean nll
-    (docs/method.md, "A tie in likelihood is broken by calibration, then sharpness"). Likelihood alone trades a
-    sharp core against wide tails and can put the held-out truths' coverage anywhere the tails' weight leaves it;
-    a group's coverage on a few pushes is known to a tenth, and of two settings calibrated alike the sharper says
-    more. Returns ``(index, report)``: the report holds the candidates, their mean nll, paired SE, pooled
-    coverage, miscalibration, its SE and sharpness, which are calibrated alike, and with ``groups`` the groups and
-    each candidate's share per group.
+    (docs/method.md, "Each model's hedges, and a tie in likelihood broken by calibration, then sharpness").
+    Likelihood alone trades a sharp core against wide tails and can put the held-out truths' coverage anywhere
+    the tails' weight leaves it; a group's coverage on a few pushes is known to a tenth, and of two settings
+    calibrated alike the sharper says more. Returns ``(index, report)``: the report holds the candidates, their
+    mean nll, paired SE, pooled coverage, miscalibration, its SE and sharpness, which are calibrated alike, and
+    with ``groups`` the groups and each candidate's share per group.
 
     Raises:
         InvalidParameterError: rows that are not ``(n, C)`` with ``n >= 2`` or that hold a NaN, a level outside
