@@ -41,7 +41,10 @@ would calibrate the density, never a choice (the test pushes choose nothing).
 ``scale``), ``--pushes`` of its pushes per action held out in turn and predicted as test pushes are, at the run's
 kernels' scale and with its hedges: the share of them inside the 90 % region, with the hedges and of the corrected
 kernels alone. Set beside ``hedges``' own objects: whether held-out training pushes calibrate as the test pushes do
-(what a choice of the hedges by calibration on them would rest on).
+(what a choice of the hedges by calibration on them would rest on). Then how far off the object's centre the bumper
+meets it (the object's start across the robot's heading) in the test pushes, which start from the push model's
+own contact, and in the held-out training pushes, which start from the training placement's, with the coverage of
+the held-out half nearer the centre and of the half farther: whether the test pushes' contacts are easier.
 
 ``disagreement <run>``: for the same run, each catalogue object's test pushes predicted again from fresh clouds by
 its training object's push model and, from the same push condition, its residual model: how far the push model's
@@ -447,11 +450,25 @@ def calibration(run: Path, pushes: int) -> None:
         for obj, prediction, start, truth, p in _own_held_out(run, name, saved, pushes, True):
             rows.append([float(_scored_regions(density, prediction, obj, start, truth, p)[0][1])
                          for density in (_hedged(prediction, saved, "run", 0.0), prediction.density)]
-                        + [prediction.outcome_novelty])
+                        + [prediction.outcome_novelty, _offset(prediction.condition.robot_start, start)])
         table = np.asarray(rows)
         print(f"{name:9s} {len(rows)} held-out training pushes: 90 % coverage {table[:, 0].mean():.2f} with the run's "
               f"hedges, {table[:, 1].mean():.2f} of the corrected kernels alone; median novelty "
               f"{np.median(table[:, 2]):.3f}", flush=True)
+        tests = np.asarray([_offset(robot, start) for _, _, _, robot, start, _ in _test_pushes(
+            run, load_object(name), saved.settings.voxel_size)])
+        near = table[:, 3] <= np.median(table[:, 3])
+        print(f"{name:9s} the bumper's lateral offset from the object's centre: test pushes median "
+              f"{100 * np.median(tests):.1f} cm (90 % under {100 * np.quantile(tests, 0.9):.1f}), held-out training "
+              f"pushes median {100 * np.median(table[:, 3]):.1f} cm; 90 % coverage with the run's hedges "
+              f"{table[near, 0].mean():.2f} of the {int(near.sum())} held-out pushes nearer the centre than that, "
+              f"{table[~near, 0].mean():.2f} of the {int((~near).sum())} farther", flush=True)
+
+
+def _offset(robot: se3.Pose, start: se3.Pose) -> float:
+    """How far off centre the bumper meets the object: the object's start position across the robot's heading, in
+    the robot's start frame (m, absolute)."""
+    return abs(float(se3.relative(robot.to(torch.float64), start.to(torch.float64)).p[..., 1]))
 
 
 def _model_of(models: dict, prediction):
