@@ -214,8 +214,9 @@ def test_a_flat_cloud_cannot_make_a_body():
 
 @given(st.integers(2, 30), st.integers(1, 12), st.integers(0, 2**31 - 1), st.floats(0.0, 4.0))
 def test_a_calibrated_choice_keeps_the_tied_setting_nearest_its_level(pushes, settings, seed, margin):
-    """Whatever the scores, the kept setting is within ``margin`` paired SE of the likeliest, and of those it is
-    the one whose coverage is nearest the level (the likelier on a tie); the likeliest is always a candidate."""
+    """Whatever the scores, the kept setting is within ``margin`` paired SE of the likeliest (always a candidate).
+    Without region thresholds it is the one whose coverage is nearest the level (the likelier on a tie); with
+    them and groups, the sharpest of those within their miscalibration's SE of the least miscalibrated."""
     generator = torch.Generator().manual_seed(seed)
     rows = torch.randn(pushes, settings, generator=generator, dtype=torch.float64) \
         + 3.0 * torch.rand(settings, generator=generator, dtype=torch.float64)
