@@ -455,8 +455,9 @@ def calibration(run: Path, pushes: int) -> None:
         print(f"{name:9s} {len(rows)} held-out training pushes: 90 % coverage {table[:, 0].mean():.2f} with the run's "
               f"hedges, {table[:, 1].mean():.2f} of the corrected kernels alone; median novelty "
               f"{np.median(table[:, 2]):.3f}", flush=True)
-        tests = np.asarray([_offset(robot, start) for _, _, _, robot, start, _ in _test_pushes(
-            run, load_object(name), saved.settings.voxel_size)])
+        truths = load_records(_one(f"{run}/truth/*_{name}_paper_default_paper_default*"))
+        tests = np.asarray([_offset(robot, start) for start, robot, _ in (
+            _poses(truths.take(torch.tensor([i]))) for i in torch.nonzero(truths.valid).reshape(-1).tolist())])
         near = table[:, 3] <= np.median(table[:, 3])
         print(f"{name:9s} the bumper's lateral offset from the object's centre: test pushes median "
               f"{100 * np.median(tests):.1f} cm (90 % under {100 * np.quantile(tests, 0.9):.1f}), held-out training "
